@@ -1,0 +1,491 @@
+"""Sequential filters (sec. Sequential Bayesian Filtering): IEKF3D and UKF3D.
+
+Both share one small interface: ``predict()``, ``innovation(anchor, d) -> (nu, hph)``,
+``update(anchor, d, R) -> UpdateResult``, ``update_height(z, R_z)``, and the state
+``x`` / covariance ``P``. The maths is written with plain Python floats: for a 3- or
+4-state filter with scalar measurements this is several times faster than NumPy's
+small-matrix calls (benchmarks/bench_estimator.py measures it), and the arithmetic is
+the same as the textbook matrix form (tests check it against NumPy at 1e-9).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+Vec = list[float]
+Mat = list[list[float]]
+RSpec = float | Callable[[float, float], float]
+
+
+@dataclass(frozen=True, kw_only=True)
+class IekfConfig:
+    """IEKF3D parameters (eqs. 15-20)."""
+
+    q_diag: tuple[float, float, float, float] = (0.01, 0.01, 0.04, 1e-4)  # Q, m^2
+    p0_diag: tuple[float, float, float, float] = (25.0, 25.0, 100.0, 4.0)  # P0, m^2
+    iterations: int = 3  # M relinearising iterations
+    nis_gate: float = 9.0  # eq. (19)
+    bias0_m: float = 0.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class UkfConfig:
+    """UKF3D parameters: Merwe scaled sigma points, same position Q and NIS gate."""
+
+    q_diag: tuple[float, float, float] = (0.01, 0.01, 0.04)
+    p0_diag: tuple[float, float, float] = (25.0, 25.0, 100.0)
+    alpha: float = 1e-3
+    beta: float = 2.0
+    kappa: float = 0.0
+    nis_gate: float = 9.0
+
+
+class UpdateResult(NamedTuple):
+    """Outcome of one range update: ``nu`` and ``S`` at the prior, NIS = nu^2 / S."""
+
+    accepted: bool
+    nu_m: float
+    s_m2: float
+    nis: float
+    r_m2: float
+
+
+class FilterError(ArithmeticError):
+    """The filter state became invalid (non-finite or non-positive-definite)."""
+
+
+def _diag(d: Sequence[float]) -> Mat:
+    n = len(d)
+    return [[float(d[i]) if i == j else 0.0 for j in range(n)] for i in range(n)]
+
+
+def joseph_scalar_update(
+    x: Vec, P: Mat, H: Vec, K: Vec, innov: float, R: float, PH: Vec | None = None
+) -> tuple[Vec, Mat]:
+    """x + K innov and the Joseph form (I - K H) P (I - K H)^T + K R K^T (eq. 20).
+
+    Computed as A P = P - K (P H)^T, then (A P) A^T = A P - (A P H) K^T, upper
+    triangle only (the result is symmetric by construction), plus R K K^T: the product
+    form, not the subtractive identity. ``PH`` (= P H^T) may be passed when known.
+    """
+    n = len(x)
+    rn = range(n)
+    xn = [x[i] + K[i] * innov for i in rn]
+    if PH is None:
+        PH = [sum(P[i][k] * H[k] for k in rn) for i in rn]
+    AP = [[P[i][j] - K[i] * PH[j] for j in rn] for i in rn]
+    APH = [sum(AP[i][k] * H[k] for k in rn) for i in rn]
+    Pn = [[0.0] * n for _ in rn]
+    for i in rn:
+        Ki = K[i]
+        APi = AP[i]
+        a = APH[i]
+        rk = R * Ki
+        row = Pn[i]
+        for j in range(i, n):
+            row[j] = APi[j] - a * K[j] + rk * K[j]
+        for j in range(i):
+            row[j] = Pn[j][i]
+    return xn, Pn
+
+
+def _height_joseph(x: Vec, P: Mat, z_m: float, R: float) -> tuple[Vec, Mat]:
+    """Joseph update for the linear pseudo-measurement z (H = e_z), eq. (16)."""
+    n = len(x)
+    rn = range(n)
+    S = P[2][2] + R
+    K = [P[i][2] / S for i in rn]
+    innov = z_m - x[2]
+    xn = [x[i] + K[i] * innov for i in rn]
+    P2 = P[2]
+    AP = [[P[i][j] - K[i] * P2[j] for j in rn] for i in rn]
+    Pn = [[0.0] * n for _ in rn]
+    for i in rn:
+        APi = AP[i]
+        a = APi[2]
+        rk = R * K[i]
+        row = Pn[i]
+        for j in range(i, n):
+            row[j] = APi[j] - a * K[j] + rk * K[j]
+        for j in range(i):
+            row[j] = Pn[j][i]
+    return xn, Pn
+
+
+def _joseph4(P: Mat, H: Sequence[float], K: Sequence[float], q: Sequence[float], R: float) -> Mat:
+    """Unrolled 4-state :func:`joseph_scalar_update` covariance (q = P H^T)."""
+    h0, h1, h2, h3 = H
+    k0, k1, k2, k3 = K
+    q0, q1, q2, q3 = q
+    rows = []
+    for Pi, ki in zip(P, K, strict=True):
+        a0 = Pi[0] - ki * q0
+        a1 = Pi[1] - ki * q1
+        a2 = Pi[2] - ki * q2
+        a3 = Pi[3] - ki * q3
+        c = a0 * h0 + a1 * h1 + a2 * h2 + a3 * h3 - R * ki
+        rows.append((a0 - c * k0, a1 - c * k1, a2 - c * k2, a3 - c * k3))
+    r0, r1, r2, r3 = rows
+    return [
+        [r0[0], r0[1], r0[2], r0[3]],
+        [r0[1], r1[1], r1[2], r1[3]],
+        [r0[2], r1[2], r2[2], r2[3]],
+        [r0[3], r1[3], r2[3], r3[3]],
+    ]
+
+
+def _check4(x: Vec, P: Mat) -> None:
+    a, b, c, d = P[0][0], P[1][1], P[2][2], P[3][3]
+    if not (a > 0.0 and b > 0.0 and c > 0.0 and d > 0.0) or not math.isfinite(
+        x[0] + x[1] + x[2] + x[3] + a + b + c + d
+    ):
+        raise FilterError("filter state is not finite or its covariance is not positive")
+
+
+def _check(x: Vec, P: Mat) -> None:
+    for i, xi in enumerate(x):
+        if not math.isfinite(xi) or not P[i][i] > 0.0 or not math.isfinite(P[i][i]):
+            raise FilterError("filter state is not finite or its covariance is not positive")
+
+
+class IEKF3D:
+    """Iterated EKF on [x, y, z, b] with h(x) = |p - u| + b (eqs. 15-20)."""
+
+    n = 4
+    has_bias = True
+
+    def __init__(
+        self, position_enu_m: Sequence[float], cfg: IekfConfig = IekfConfig()
+    ) -> None:
+        self.cfg = cfg
+        self.x: Vec = [float(position_enu_m[0]), float(position_enu_m[1]),
+                       float(position_enu_m[2]), cfg.bias0_m]
+        self.P: Mat = _diag(cfg.p0_diag)
+        self._q = cfg.q_diag
+
+    @staticmethod
+    def _h_and_jac(x: Vec, u: Sequence[float]) -> tuple[float, Vec]:
+        dx = x[0] - u[0]
+        dy = x[1] - u[1]
+        dz = x[2] - u[2]
+        r = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if r < 1e-9:
+            r = 1e-9
+        return r + x[3], [dx / r, dy / r, dz / r, 1.0]
+
+    def predict(self) -> None:
+        """Eq. (15): static AP, P^- = P + Q."""
+        P = self.P
+        q = self._q
+        for i in range(4):
+            P[i][i] += q[i]
+
+    def innovation(self, anchor: Sequence[float], range_m: float) -> tuple[float, float]:
+        """Prior innovation nu = d - h(x^-) and H P^- H^T (eq. 18)."""
+        h, H = self._h_and_jac(self.x, anchor)
+        P = self.P
+        hph = 0.0
+        for i in range(4):
+            Hi = H[i]
+            row = P[i]
+            hph += Hi * (row[0] * H[0] + row[1] * H[1] + row[2] * H[2] + row[3] * H[3])
+        return range_m - h, hph
+
+    def update(self, anchor: Sequence[float], range_m: float, r_m2: RSpec) -> UpdateResult:
+        """NIS-gated iterated update with M relinearisations and the Joseph form.
+
+        ``r_m2`` is R, or a callable ``(nu, H P^- H^T) -> R`` for innovation-based
+        noise models (evaluated once, at the prior). The gate uses nu and S at the prior
+        (eqs. 18-19); iteration i relinearises at x_i:
+        x_{i+1} = x^- + K_i (d - h(x_i) - H_i (x^- - x_i)).
+        """
+        x0 = self.x
+        P = self.P
+        ux, uy, uz = anchor[0], anchor[1], anchor[2]
+        X, Y, Z, B = x0
+        P0, P1, P2, P3 = P
+        dx, dy, dz = X - ux, Y - uy, Z - uz
+        r = math.sqrt(dx * dx + dy * dy + dz * dz) or 1e-9
+        h0, h1, h2 = dx / r, dy / r, dz / r
+        q0 = P0[0] * h0 + P0[1] * h1 + P0[2] * h2 + P0[3]
+        q1 = P1[0] * h0 + P1[1] * h1 + P1[2] * h2 + P1[3]
+        q2 = P2[0] * h0 + P2[1] * h1 + P2[2] * h2 + P2[3]
+        q3 = P3[0] * h0 + P3[1] * h1 + P3[2] * h2 + P3[3]
+        hph = h0 * q0 + h1 * q1 + h2 * q2 + q3
+        nu = range_m - (r + B)
+        if callable(r_m2):
+            r_m2 = r_m2(nu, hph)
+        S = hph + r_m2
+        nis = nu * nu / S
+        if not nis <= self.cfg.nis_gate:
+            return UpdateResult(False, nu, S, nis, r_m2)
+        Si = S
+        innov = nu
+        xi0, xi1, xi2, xi3 = X, Y, Z, B
+        for it in range(self.cfg.iterations):
+            if it > 0:
+                dx, dy, dz = xi0 - ux, xi1 - uy, xi2 - uz
+                r = math.sqrt(dx * dx + dy * dy + dz * dz) or 1e-9
+                h0, h1, h2 = dx / r, dy / r, dz / r
+                q0 = P0[0] * h0 + P0[1] * h1 + P0[2] * h2 + P0[3]
+                q1 = P1[0] * h0 + P1[1] * h1 + P1[2] * h2 + P1[3]
+                q2 = P2[0] * h0 + P2[1] * h1 + P2[2] * h2 + P2[3]
+                q3 = P3[0] * h0 + P3[1] * h1 + P3[2] * h2 + P3[3]
+                Si = h0 * q0 + h1 * q1 + h2 * q2 + q3 + r_m2
+                innov = range_m - (r + xi3) - (
+                    h0 * (X - xi0) + h1 * (Y - xi1) + h2 * (Z - xi2) + (B - xi3)
+                )
+            g = innov / Si
+            xi0, xi1, xi2, xi3 = X + q0 * g, Y + q1 * g, Z + q2 * g, B + q3 * g
+        K = (q0 / Si, q1 / Si, q2 / Si, q3 / Si)
+        # covariance at the last linearisation point (H, K of the final iteration)
+        Pn = _joseph4(P, (h0, h1, h2, 1.0), K, (q0, q1, q2, q3), r_m2)
+        xn = [xi0, xi1, xi2, xi3]
+        _check4(xn, Pn)
+        self.x = xn
+        self.P = Pn
+        return UpdateResult(True, nu, S, nis, r_m2)
+
+    def update_height(self, z_m: float, r_m2: float) -> None:
+        """Ground-height pseudo-measurement z = z_prior, R_z (eq. 16)."""
+        _height_update(self, z_m, r_m2)
+
+    @property
+    def position_enu_m(self) -> tuple[float, float, float]:
+        return self.x[0], self.x[1], self.x[2]
+
+    @property
+    def bias_m(self) -> float:
+        return self.x[3]
+
+
+def _height_update(f: IEKF3D | UKF3D, z_m: float, r_m2: float) -> None:
+    P = f.P
+    if f.n == 4:
+        q0, q1, q2, q3 = P[2]  # P e_z (P symmetric)
+        S = q2 + r_m2
+        k0, k1, k2, k3 = q0 / S, q1 / S, q2 / S, q3 / S
+        g = (z_m - f.x[2]) / S
+        x0, x1, x2, x3 = f.x
+        x = [x0 + q0 * g, x1 + q1 * g, x2 + q2 * g, x3 + q3 * g]
+        # Joseph form with H = e_z: row_i = a_i - (a_i2 - R k_i) K, a_i = P_i - k_i P_2
+        rows = []
+        for Pi, ki in zip(P, (k0, k1, k2, k3), strict=True):
+            a0 = Pi[0] - ki * q0
+            a1 = Pi[1] - ki * q1
+            a2 = Pi[2] - ki * q2
+            a3 = Pi[3] - ki * q3
+            c = a2 - r_m2 * ki
+            rows.append((a0 - c * k0, a1 - c * k1, a2 - c * k2, a3 - c * k3))
+        r0, r1, r2, r3 = rows
+        Pn = [
+            [r0[0], r0[1], r0[2], r0[3]],
+            [r0[1], r1[1], r1[2], r1[3]],
+            [r0[2], r1[2], r2[2], r2[3]],
+            [r0[3], r1[3], r2[3], r3[3]],
+        ]
+        _check4(x, Pn)
+    else:
+        x, Pn = _height_joseph(f.x, P, z_m, r_m2)
+        _check(x, Pn)
+    f.x = x
+    f.P = Pn
+
+
+# ----------------------------------------------------------------------------- UKF
+
+
+@dataclass(frozen=True)
+class MerweWeights:
+    """Merwe scaled sigma-point weights for dimension n (Wm, Wc sum to 1 for Wm)."""
+
+    n: int
+    lam: float
+    wm0: float
+    wc0: float
+    wi: float
+
+    @classmethod
+    def make(cls, n: int, alpha: float, beta: float, kappa: float) -> MerweWeights:
+        lam = alpha * alpha * (n + kappa) - n
+        wi = 1.0 / (2.0 * (n + lam))
+        wm0 = lam / (n + lam)
+        wc0 = wm0 + (1.0 - alpha * alpha + beta)
+        return cls(n, lam, wm0, wc0, wi)
+
+    @property
+    def wm(self) -> list[float]:
+        return [self.wm0] + [self.wi] * (2 * self.n)
+
+    @property
+    def wc(self) -> list[float]:
+        return [self.wc0] + [self.wi] * (2 * self.n)
+
+
+def cholesky(A: Mat) -> Mat:
+    """Lower Cholesky factor of a small SPD matrix; raises FilterError if not SPD."""
+    n = len(A)
+    L = [[0.0] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            s = A[i][j]
+            for k in range(j):
+                s -= L[i][k] * L[j][k]
+            if i == j:
+                if not s > 0.0:
+                    raise FilterError("covariance is not positive definite")
+                L[i][i] = math.sqrt(s)
+            else:
+                L[i][j] = s / L[j][j]
+    return L
+
+
+def sigma_points(x: Vec, P: Mat, w: MerweWeights) -> list[Vec]:
+    """2n+1 Merwe sigma points: x, x +/- columns of chol((n + lambda) P)."""
+    n = len(x)
+    c = n + w.lam
+    L = cholesky([[c * P[i][j] for j in range(n)] for i in range(n)])
+    pts = [list(x)]
+    for k in range(n):
+        pts.append([x[i] + L[i][k] for i in range(n)])
+    for k in range(n):
+        pts.append([x[i] - L[i][k] for i in range(n)])
+    return pts
+
+
+def unscented_transform_scalar(
+    ys: Sequence[float], w: MerweWeights
+) -> tuple[float, float]:
+    """Mean and variance of scalar sigma-point images."""
+    ym = w.wm0 * ys[0] + w.wi * sum(ys[1:])
+    d0 = ys[0] - ym
+    var = w.wc0 * d0 * d0 + w.wi * sum((y - ym) * (y - ym) for y in ys[1:])
+    return ym, var
+
+
+class UKF3D:
+    """UKF on [x, y, z] (no bias) with h(x) = |p - u| (sec. UKF3D)."""
+
+    n = 3
+    has_bias = False
+
+    def __init__(self, position_enu_m: Sequence[float], cfg: UkfConfig = UkfConfig()) -> None:
+        self.cfg = cfg
+        self.x: Vec = [float(v) for v in position_enu_m[:3]]
+        self.P: Mat = _diag(cfg.p0_diag)
+        self.w = MerweWeights.make(3, cfg.alpha, cfg.beta, cfg.kappa)
+        self._cache: tuple | None = None
+
+    def predict(self) -> None:
+        P = self.P
+        q = self.cfg.q_diag
+        for i in range(3):
+            P[i][i] += q[i]
+        self._cache = None
+
+    def _propagate(self, anchor: Sequence[float]) -> tuple:
+        """Sigma points x, x +/- L e_k (L = chol((n + lambda) P)) through h; unrolled.
+
+        Returns (L columns, images Y0, Y+, Y-, mean, variance). The mean is written as
+        Y0 + Wi sum(Y_k - Y0), equal to sum(Wm Y) because the weights sum to one, but
+        free of the cancellation between Wm0 ~ -1e6 and Wi ~ 1.7e5 at alpha = 1e-3.
+        """
+        key = (anchor[0], anchor[1], anchor[2])
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        w = self.w
+        c = 3.0 + w.lam
+        (a00, a01, a02), (_, a11, a12), (_, _, a22) = self.P
+        a00 *= c
+        a01 *= c
+        a02 *= c
+        a11 *= c
+        a12 *= c
+        a22 *= c
+        if not a00 > 0.0:
+            raise FilterError("covariance is not positive definite")
+        l00 = math.sqrt(a00)
+        l10 = a01 / l00
+        l20 = a02 / l00
+        t = a11 - l10 * l10
+        if not t > 0.0:
+            raise FilterError("covariance is not positive definite")
+        l11 = math.sqrt(t)
+        l21 = (a12 - l20 * l10) / l11
+        t = a22 - l20 * l20 - l21 * l21
+        if not t > 0.0:
+            raise FilterError("covariance is not positive definite")
+        l22 = math.sqrt(t)
+        cols = ((l00, l10, l20), (0.0, l11, l21), (0.0, 0.0, l22))
+        x0, x1, x2 = self.x
+        ax, ay, az = key
+        dx, dy, dz = x0 - ax, x1 - ay, x2 - az
+        y0 = math.sqrt(dx * dx + dy * dy + dz * dz)
+        yp = []
+        ym_ = []
+        for c0, c1, c2 in cols:
+            yp.append(math.sqrt((dx + c0) ** 2 + (dy + c1) ** 2 + (dz + c2) ** 2))
+            ym_.append(math.sqrt((dx - c0) ** 2 + (dy - c1) ** 2 + (dz - c2) ** 2))
+        wi = w.wi
+        mean = y0 + wi * (yp[0] + yp[1] + yp[2] + ym_[0] + ym_[1] + ym_[2] - 6.0 * y0)
+        d0 = y0 - mean
+        var = w.wc0 * d0 * d0 + wi * sum((v - mean) ** 2 for v in (*yp, *ym_))
+        out = (cols, yp, ym_, mean, var)
+        self._cache = (key, out)
+        return out
+
+    def innovation(self, anchor: Sequence[float], range_m: float) -> tuple[float, float]:
+        out = self._propagate(anchor)
+        return range_m - out[3], out[4]
+
+    def update(self, anchor: Sequence[float], range_m: float, r_m2: RSpec) -> UpdateResult:
+        """NIS-gated unscented update; ``r_m2`` as in :meth:`IEKF3D.update`.
+
+        P_xy = sum Wc (chi - x)(Y - y_mean) = Wi sum_k (Y_k+ - Y_k-) L e_k (the centre
+        point contributes nothing); K = P_xy / S; P = P - K S K^T.
+        """
+        cols, yp, ymn, ym, pyy = self._propagate(anchor)
+        nu = range_m - ym
+        if callable(r_m2):
+            r_m2 = r_m2(nu, pyy)
+        S = pyy + r_m2
+        nis = nu * nu / S
+        if not nis <= self.cfg.nis_gate:
+            self._cache = None
+            return UpdateResult(False, nu, S, nis, r_m2)
+        wi = self.w.wi
+        p0 = p1 = p2 = 0.0
+        for (c0, c1, c2), a, b in zip(cols, yp, ymn, strict=True):
+            d = wi * (a - b)
+            p0 += c0 * d
+            p1 += c1 * d
+            p2 += c2 * d
+        k0, k1, k2 = p0 / S, p1 / S, p2 / S
+        x = self.x
+        xn = [x[0] + k0 * nu, x[1] + k1 * nu, x[2] + k2 * nu]
+        (a00, a01, a02), (_, a11, a12), (_, _, a22) = self.P
+        Pn = [
+            [a00 - k0 * S * k0, a01 - k0 * S * k1, a02 - k0 * S * k2],
+            [a01 - k1 * S * k0, a11 - k1 * S * k1, a12 - k1 * S * k2],
+            [a02 - k2 * S * k0, a12 - k2 * S * k1, a22 - k2 * S * k2],
+        ]
+        _check(xn, Pn)
+        self.x = xn
+        self.P = Pn
+        self._cache = None
+        return UpdateResult(True, nu, S, nis, r_m2)
+
+    def update_height(self, z_m: float, r_m2: float) -> None:
+        _height_update(self, z_m, r_m2)
+        self._cache = None
+
+    @property
+    def position_enu_m(self) -> tuple[float, float, float]:
+        return self.x[0], self.x[1], self.x[2]
+
+    @property
+    def bias_m(self) -> float:
+        return 0.0

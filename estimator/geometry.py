@@ -1,0 +1,64 @@
+"""Geometry conditioning of a set of virtual anchors.
+
+The paper (sec. Discussion, Bootstrap Geometry) reports a condition number of 2.2 for
+AP_1F and 28.5 for AP_AB and suggests refusing kappa >= 10, without defining the
+matrix. Our definition, used by the bootstrap and by the planner alike:
+
+    kappa_H = sqrt(lambda_max / lambda_min) of the weighted horizontal scatter matrix
+    C = sum_i w_i (u_i - u_bar)(u_i - u_bar)^T / sum_i w_i, u_i = (x_i, y_i),
+
+i.e. the singular-value ratio of the weighted, centred stage-1 design matrix (eq. 6
+with the mean anchor as reference). It depends on the flight alone: a straight pass
+(which leaves a mirror ambiguity about its line whatever the ranges) has kappa equal to
+its length over its width times a constant (a 28 m pass 0.3 m wide: ~27), a circle has
+kappa = 1, and any orbit or sweep covering both horizontal directions stays small.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+KAPPA_LIMIT = 10.0  # sec. Discussion: "kappa < 10 would have rejected AP_AB, accepted AP_1F"
+
+
+def horizontal_condition_number(
+    anchors_xy_m: Sequence[Sequence[float]] | np.ndarray,
+    weights: Sequence[float] | np.ndarray | None = None,
+) -> float:
+    """kappa_H of horizontal anchor positions (N x 2 or N x 3, metres); inf if degenerate."""
+    a = np.asarray(anchors_xy_m, dtype=float)
+    if a.ndim != 2 or a.shape[0] < 2:
+        return math.inf
+    xy = a[:, :2]
+    w = np.ones(len(xy)) if weights is None else np.asarray(weights, dtype=float)
+    if not np.all(np.isfinite(w)) or w.sum() <= 0:
+        return math.inf
+    mean = (w[:, None] * xy).sum(axis=0) / w.sum()
+    d = xy - mean
+    sxx = float((w * d[:, 0] ** 2).sum())
+    syy = float((w * d[:, 1] ** 2).sum())
+    sxy = float((w * d[:, 0] * d[:, 1]).sum())
+    return condition_from_scatter(sxx, syy, sxy)
+
+
+def condition_from_scatter(sxx: float, syy: float, sxy: float) -> float:
+    """sqrt(lambda_max / lambda_min) of [[sxx, sxy], [sxy, syy]] (closed form, 2 x 2)."""
+    tr = sxx + syy
+    disc = math.sqrt(max(0.0, 0.25 * (sxx - syy) ** 2 + sxy * sxy))
+    lmax = 0.5 * tr + disc
+    lmin = 0.5 * tr - disc
+    if not math.isfinite(lmax) or lmax <= 0.0 or lmin <= lmax * 1e-18:
+        return math.inf
+    return math.sqrt(lmax / lmin)
+
+
+def bbox_diagonal_m(anchors_xy_m: Sequence[Sequence[float]] | np.ndarray) -> float:
+    """Horizontal bounding-box diagonal of the anchors (sec. Gauss-Newton Bootstrap)."""
+    a = np.asarray(anchors_xy_m, dtype=float)
+    if a.ndim != 2 or a.shape[0] == 0:
+        return 0.0
+    span = a[:, :2].max(axis=0) - a[:, :2].min(axis=0)
+    return float(math.hypot(span[0], span[1]))

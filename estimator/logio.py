@@ -1,0 +1,597 @@
+"""Flight-log reader and writer: shared/spec/log-format.md, version 1.
+
+Reading never crashes on a bad line and never drops a good one because of it: every
+rejected line is counted by reason (``RejectCounts``). Plain ``.jsonl`` and gzip
+(detected by its magic bytes, whatever the file is called) are both accepted.
+
+Streaming: :func:`iter_log` yields records in file order with O(1) memory;
+:func:`iter_log_sorted` yields them ordered by ``t_ns`` (stable) with bounded memory,
+spilling sorted runs of ``chunk_records`` records to temporary files and merging them
+(an external merge sort), so a log of any length is ordered without holding it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gzip
+import heapq
+import io
+import json
+import math
+import os
+import pickle
+import re
+import tempfile
+import warnings
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from estimator.records import (
+    LOG_FORMAT,
+    LOG_VERSION,
+    GnssFix,
+    LogHeader,
+    RangeSample,
+    TruthRecord,
+)
+
+Record = LogHeader | GnssFix | RangeSample | TruthRecord
+TimedRecord = GnssFix | RangeSample
+
+_BSSID_RE = re.compile(r"^[0-9a-fA-F]{2}(:[0-9a-fA-F]{2}){5}$")
+_GZIP_MAGIC = b"\x1f\x8b"
+
+
+class LogError(Exception):
+    """A log that cannot be read at all (missing file, refused version, not a log)."""
+
+
+class LogVersionError(LogError):
+    """The header declares a major version this reader does not understand."""
+
+
+class LogWarning(UserWarning):
+    """A readable log with a problem worth telling (no header, header not first)."""
+
+
+@dataclass
+class RejectCounts:
+    """Lines skipped while reading, counted by reason.
+
+    ``rejected`` holds bad lines (the replay report's ``rejected_lines``);
+    ``unknown_types`` and ``unknown_fields`` count forward-compatible content that was
+    skipped or ignored as the spec asks.
+    """
+
+    rejected: Counter = field(default_factory=Counter)
+    unknown_types: Counter = field(default_factory=Counter)
+    unknown_fields: int = 0
+    lines: int = 0
+
+    def reject(self, reason: str) -> None:
+        self.rejected[reason] += 1
+
+    def merge(self, other: RejectCounts) -> None:
+        self.rejected.update(other.rejected)
+        self.unknown_types.update(other.unknown_types)
+        self.unknown_fields += other.unknown_fields
+        self.lines += other.lines
+
+    @property
+    def n_rejected(self) -> int:
+        return sum(self.rejected.values())
+
+
+class _Reject(Exception):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+_KNOWN_FIELDS: dict[str, frozenset[str]] = {
+    "header": frozenset({"type", "format", "version", "agent", "start_utc", "config"}),
+    "gnss": frozenset(
+        {"type", "t_ns", "lat", "lon", "alt_m", "acc_m", "vacc_m", "fix", "sats"}
+    ),
+    "rtt": frozenset(
+        {
+            "type",
+            "t_ns",
+            "bssid",
+            "status",
+            "range_m",
+            "range_std_m",
+            "rssi_dbm",
+            "attempted",
+            "successful",
+        }
+    ),
+    "truth": frozenset({"type", "bssid", "lat", "lon", "alt_m", "concealment"}),
+}
+
+
+def _reject_constant(name: str) -> float:
+    raise _Reject("non_finite")
+
+
+def _num(obj: dict, key: str, *, required: bool) -> float | None:
+    if key not in obj or obj[key] is None:
+        if required:
+            raise _Reject("missing_field")
+        return None
+    v = obj[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise _Reject("bad_type")
+    if not math.isfinite(v):
+        raise _Reject("non_finite")
+    return float(v)
+
+
+def _int(obj: dict, key: str, *, required: bool) -> int | None:
+    v = _num(obj, key, required=required)
+    if v is None:
+        return None
+    if not float(v).is_integer():
+        raise _Reject("bad_type")
+    return int(obj[key]) if isinstance(obj[key], int) else int(v)
+
+
+def _str(obj: dict, key: str, *, required: bool) -> str | None:
+    if key not in obj or obj[key] is None:
+        if required:
+            raise _Reject("missing_field")
+        return None
+    v = obj[key]
+    if not isinstance(v, str):
+        raise _Reject("bad_type")
+    return v
+
+
+def _t_ns(obj: dict) -> int:
+    t = _int(obj, "t_ns", required=True)
+    assert t is not None
+    if t < 0:
+        raise _Reject("negative_t_ns")
+    return t
+
+
+def _latlon(obj: dict) -> tuple[float, float]:
+    lat = _num(obj, "lat", required=True)
+    lon = _num(obj, "lon", required=True)
+    assert lat is not None and lon is not None
+    if not -90.0 <= lat <= 90.0:
+        raise _Reject("bad_latitude")
+    if not -180.0 <= lon <= 180.0:
+        raise _Reject("bad_longitude")
+    return lat, lon
+
+
+def _bssid(obj: dict) -> str:
+    b = _str(obj, "bssid", required=True)
+    assert b is not None
+    if not _BSSID_RE.match(b):
+        raise _Reject("bad_bssid")
+    return b.lower()
+
+
+def _parse_header(obj: dict) -> LogHeader:
+    fmt = obj.get("format", LOG_FORMAT)
+    if fmt != LOG_FORMAT:
+        raise LogError(f"not an {LOG_FORMAT} file (header format {fmt!r})")
+    version = obj.get("version", LOG_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int | float | str):
+        raise LogError(f"header version {version!r} is not a number")
+    try:
+        major = int(str(version).split(".")[0])
+    except ValueError as exc:
+        raise LogError(f"header version {version!r} is not a number") from exc
+    if major > LOG_VERSION:
+        raise LogVersionError(
+            f"log format version {version} is newer than this reader (version {LOG_VERSION})"
+        )
+    config = obj.get("config") or {}
+    if not isinstance(config, dict):
+        raise _Reject("bad_type")
+    agl = _num(config, "agl_m", required=False)
+    off = _num(config, "range_offset_m", required=False)
+    agent = obj.get("agent")
+    start = obj.get("start_utc")
+    extra = {k: v for k, v in config.items() if k not in ("agl_m", "range_offset_m")}
+    return LogHeader(
+        version=major,
+        agent=str(agent) if agent is not None else "unknown",
+        start_utc=str(start) if start is not None else None,
+        agl_m=agl,
+        range_offset_m=off,
+        extra=extra,
+    )
+
+
+def _parse_gnss(obj: dict) -> GnssFix:
+    t = _t_ns(obj)
+    lat, lon = _latlon(obj)
+    alt = _num(obj, "alt_m", required=True)
+    acc = _num(obj, "acc_m", required=True)
+    vacc = _num(obj, "vacc_m", required=False)
+    assert alt is not None and acc is not None
+    if acc < 0 or (vacc is not None and vacc < 0):
+        raise _Reject("bad_value")
+    fix = _str(obj, "fix", required=False)
+    sats = _int(obj, "sats", required=False)
+    return GnssFix(
+        t_ns=t, lat_deg=lat, lon_deg=lon, alt_m=alt, acc_m=acc, vacc_m=vacc, fix=fix, sats=sats
+    )
+
+
+def _parse_rtt(obj: dict) -> RangeSample:
+    t = _t_ns(obj)
+    bssid = _bssid(obj)
+    status = _str(obj, "status", required=True)
+    assert status is not None
+    ok = status == "ok"
+    rng = _num(obj, "range_m", required=ok)
+    rssi = _num(obj, "rssi_dbm", required=ok)
+    std = _num(obj, "range_std_m", required=False)
+    if std is not None and std < 0:
+        raise _Reject("bad_value")
+    att = _int(obj, "attempted", required=False)
+    suc = _int(obj, "successful", required=False)
+    return RangeSample(
+        t_ns=t,
+        bssid=bssid,
+        status=status,
+        range_m=rng,
+        range_std_m=std,
+        rssi_dbm=rssi,
+        attempted=att,
+        successful=suc,
+    )
+
+
+def _parse_truth(obj: dict) -> TruthRecord:
+    bssid = _bssid(obj)
+    lat, lon = _latlon(obj)
+    alt = _num(obj, "alt_m", required=True)
+    assert alt is not None
+    conc = _str(obj, "concealment", required=False) or "open"
+    return TruthRecord(bssid=bssid, lat_deg=lat, lon_deg=lon, alt_m=alt, concealment=conc)
+
+
+_PARSERS = {"gnss": _parse_gnss, "rtt": _parse_rtt, "truth": _parse_truth}
+
+
+def parse_line(line: bytes | str, counts: RejectCounts) -> Record | None:
+    """Parse one log line; return its record, or ``None`` after counting why it was skipped."""
+    if isinstance(line, bytes):
+        try:
+            line = line.decode("utf-8")
+        except UnicodeDecodeError:
+            counts.reject("not_utf8")
+            return None
+    if not line.strip():
+        return None
+    counts.lines += 1
+    try:
+        obj = json.loads(line, parse_constant=_reject_constant)
+    except _Reject as r:
+        counts.reject(r.reason)
+        return None
+    except (json.JSONDecodeError, RecursionError, ValueError):
+        counts.reject("not_json")
+        return None
+    if not isinstance(obj, dict):
+        counts.reject("not_object")
+        return None
+    kind = obj.get("type")
+    if not isinstance(kind, str):
+        counts.reject("missing_field" if kind is None else "bad_type")
+        return None
+    if kind == "header":
+        try:
+            rec: Record = _parse_header(obj)
+        except _Reject as r:
+            counts.reject(r.reason)
+            return None
+    else:
+        parser = _PARSERS.get(kind)
+        if parser is None:
+            counts.unknown_types[kind] += 1
+            return None
+        try:
+            rec = parser(obj)
+        except _Reject as r:
+            counts.reject(r.reason)
+            return None
+    known = _KNOWN_FIELDS[kind]
+    if any(k not in known for k in obj):
+        counts.unknown_fields += 1
+    return rec
+
+
+def _open_binary(path: str | os.PathLike) -> IO[bytes]:
+    p = Path(path)
+    try:
+        fh = open(p, "rb")  # noqa: SIM115 - returned to the caller
+    except FileNotFoundError as exc:
+        raise LogError(f"{p}: no such file") from exc
+    except IsADirectoryError as exc:
+        raise LogError(f"{p}: is a directory") from exc
+    except PermissionError as exc:
+        raise LogError(f"{p}: permission denied") from exc
+    except OSError as exc:
+        raise LogError(f"{p}: cannot open ({exc.strerror})") from exc
+    head = fh.peek(2)[:2] if hasattr(fh, "peek") else b""
+    if head == _GZIP_MAGIC:
+        return gzip.GzipFile(fileobj=fh, mode="rb")  # type: ignore[return-value]
+    return fh
+
+
+@dataclass
+class LogStream:
+    """An opened log: its header (once seen), reject counts, and the records read so far."""
+
+    path: str
+    counts: RejectCounts = field(default_factory=RejectCounts)
+    header: LogHeader | None = None
+    truth: list[TruthRecord] = field(default_factory=list)
+    n_gnss: int = 0
+    n_rtt: int = 0
+
+
+def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterator[TimedRecord]:
+    """Yield the ``gnss`` and ``rtt`` records of a log in file order, streaming.
+
+    Header and truth records are stored on ``stream`` (truth records are few). Raises
+    :class:`LogError` only for a file that cannot be read as a log at all.
+    """
+    st = stream if stream is not None else LogStream(path=str(path))
+    fh = _open_binary(path)
+    first = True
+    header_seen = False
+    try:
+        for raw in _safe_lines(fh, path):
+            rec = parse_line(raw, st.counts)
+            if rec is None:
+                if raw.strip():
+                    first = False
+                continue
+            if isinstance(rec, LogHeader):
+                if header_seen:
+                    st.counts.reject("duplicate_header")
+                else:
+                    header_seen = True
+                    st.header = rec
+                    if not first:
+                        warnings.warn(
+                            f"{path}: header is not the first line", LogWarning, stacklevel=2
+                        )
+                first = False
+                continue
+            first = False
+            if isinstance(rec, TruthRecord):
+                st.truth.append(rec)
+            elif isinstance(rec, GnssFix):
+                st.n_gnss += 1
+                yield rec
+            else:
+                st.n_rtt += 1
+                yield rec
+    finally:
+        fh.close()
+    if st.header is None:
+        warnings.warn(
+            f"{path}: no header line; read as version {LOG_VERSION}", LogWarning, stacklevel=2
+        )
+        st.header = LogHeader()
+
+
+def _safe_lines(fh: IO[bytes], path: str | os.PathLike) -> Iterator[bytes]:
+    try:
+        yield from fh
+    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+        raise LogError(f"{path}: corrupt or truncated compressed file ({exc})") from exc
+
+
+def _key(rec: TimedRecord) -> int:
+    return rec.t_ns
+
+
+def iter_log_sorted(
+    path: str | os.PathLike,
+    stream: LogStream | None = None,
+    *,
+    chunk_records: int = 200_000,
+) -> Iterator[TimedRecord]:
+    """Yield ``gnss``/``rtt`` records ordered by ``t_ns`` (stable), in bounded memory.
+
+    Runs of at most ``chunk_records`` records are sorted in memory; a log longer than
+    that is spilled to temporary files and merged, so memory stays O(chunk_records).
+    """
+    st = stream if stream is not None else LogStream(path=str(path))
+    it = iter_log(path, st)
+    runs: list[str] = []
+    tmpdir: tempfile.TemporaryDirectory | None = None
+    buf: list[TimedRecord] = []
+    in_order = True
+    last = -1
+    try:
+        for rec in it:
+            if rec.t_ns < last:
+                in_order = False
+            last = rec.t_ns
+            buf.append(rec)
+            if len(buf) >= chunk_records:
+                if tmpdir is None:
+                    tmpdir = tempfile.TemporaryDirectory(prefix="osa-sort-")
+                buf.sort(key=_key)
+                run = os.path.join(tmpdir.name, f"run{len(runs)}.pkl")
+                with open(run, "wb") as fo:
+                    for r in buf:
+                        pickle.dump(r, fo, protocol=pickle.HIGHEST_PROTOCOL)
+                runs.append(run)
+                buf = []
+        if not runs:
+            if not in_order:
+                buf.sort(key=_key)
+            yield from buf
+            return
+        buf.sort(key=_key)
+        # heapq.merge is stable across its inputs in argument order: runs are in file order
+        iters = [_read_run(r) for r in runs] + [iter(buf)]
+        yield from heapq.merge(*iters, key=_key)
+    finally:
+        if tmpdir is not None:
+            tmpdir.cleanup()
+
+
+def _read_run(path: str) -> Iterator[TimedRecord]:
+    with open(path, "rb") as fh:
+        while True:
+            try:
+                yield pickle.load(fh)
+            except EOFError:
+                return
+
+
+@dataclass
+class FlightLog:
+    """A whole log in memory, ordered by ``t_ns`` (for tools and tests; replay streams)."""
+
+    path: str
+    header: LogHeader
+    gnss: list[GnssFix]
+    rtt: list[RangeSample]
+    truth: list[TruthRecord]
+    counts: RejectCounts
+
+
+def read_log(path: str | os.PathLike) -> FlightLog:
+    """Read a whole log into memory, ordered by ``t_ns``."""
+    st = LogStream(path=str(path))
+    gnss: list[GnssFix] = []
+    rtt: list[RangeSample] = []
+    for rec in iter_log_sorted(path, st):
+        (gnss if isinstance(rec, GnssFix) else rtt).append(rec)  # type: ignore[arg-type]
+    assert st.header is not None
+    return FlightLog(
+        path=str(path), header=st.header, gnss=gnss, rtt=rtt, truth=st.truth, counts=st.counts
+    )
+
+
+# ----------------------------------------------------------------------------- writer
+
+
+def _clean(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in d.items() if v is not None}
+
+
+def header_to_dict(h: LogHeader) -> dict[str, Any]:
+    config = dict(h.extra)
+    if h.agl_m is not None:
+        config["agl_m"] = h.agl_m
+    if h.range_offset_m is not None:
+        config["range_offset_m"] = h.range_offset_m
+    return _clean(
+        {
+            "type": "header",
+            "format": h.format,
+            "version": h.version,
+            "agent": h.agent,
+            "start_utc": h.start_utc,
+            "config": config,
+        }
+    )
+
+
+def record_to_dict(rec: Record) -> dict[str, Any]:
+    """The JSON object of one record, exactly as the spec names its fields."""
+    if isinstance(rec, LogHeader):
+        return header_to_dict(rec)
+    if isinstance(rec, GnssFix):
+        return _clean(
+            {
+                "type": "gnss",
+                "t_ns": int(rec.t_ns),
+                "lat": rec.lat_deg,
+                "lon": rec.lon_deg,
+                "alt_m": rec.alt_m,
+                "acc_m": rec.acc_m,
+                "vacc_m": rec.vacc_m,
+                "fix": rec.fix,
+                "sats": rec.sats,
+            }
+        )
+    if isinstance(rec, RangeSample):
+        return _clean(
+            {
+                "type": "rtt",
+                "t_ns": int(rec.t_ns),
+                "bssid": rec.bssid,
+                "status": rec.status,
+                "range_m": rec.range_m,
+                "range_std_m": rec.range_std_m,
+                "rssi_dbm": rec.rssi_dbm,
+                "attempted": rec.attempted,
+                "successful": rec.successful,
+            }
+        )
+    if isinstance(rec, TruthRecord):
+        return {
+            "type": "truth",
+            "bssid": rec.bssid,
+            "lat": rec.lat_deg,
+            "lon": rec.lon_deg,
+            "alt_m": rec.alt_m,
+            "concealment": rec.concealment,
+        }
+    raise TypeError(f"not a log record: {type(rec).__name__}")
+
+
+def dumps_record(rec: Record) -> str:
+    """One log line (without newline). Non-finite numbers are refused (``ValueError``)."""
+    return json.dumps(record_to_dict(rec), separators=(",", ":"), allow_nan=False)
+
+
+class LogWriter:
+    """Write a flight log; ``.gz`` paths are gzip-compressed reproducibly (mtime 0).
+
+    Use as a context manager. The header is written first, once.
+    """
+
+    def __init__(self, path: str | os.PathLike, header: LogHeader) -> None:
+        self.path = Path(path)
+        self._raw = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        if self.path.suffix == ".gz":
+            self._bin: IO[bytes] = gzip.GzipFile(
+                filename="", fileobj=self._raw, mode="wb", mtime=0, compresslevel=6
+            )
+        else:
+            self._bin = self._raw
+        self._fh = io.TextIOWrapper(self._bin, encoding="utf-8", newline="\n")
+        self.n_lines = 0
+        self.write(header)
+
+    def write(self, rec: Record) -> None:
+        self._fh.write(dumps_record(rec))
+        self._fh.write("\n")
+        self.n_lines += 1
+
+    def write_all(self, recs: Iterable[Record]) -> None:
+        for r in recs:
+            self.write(r)
+
+    def close(self) -> None:
+        with contextlib.suppress(ValueError):
+            self._fh.flush()
+        self._fh.close()
+        if self._bin is not self._raw:
+            self._raw.close()
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,379 @@
+"""One responder track: gate -> bootstrap -> filter -> ground prior -> smoother -> rules.
+
+The paper's six modes (sec. Measurement-Noise Configurations) are compositions of a
+filter, a noise model and a smoother (:data:`MODES`), not six pipelines. Further modes
+(ours) are compositions too and carry their own names; the paper's six never change.
+
+Counting (Table "Filter comparison on AP_1F"): ``n_meas`` associated measurements enter
+the track; those up to and including the successful bootstrap are ``n_bootstrap``;
+after it every measurement is either rejected (``n_gate`` = MAD ``n_mad`` + NIS
+``n_nis``) or accepted (``n_acc``), so n_meas = n_bootstrap + n_gate + n_acc.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from estimator.bootstrap import (
+    BootstrapConfig,
+    BootstrapResult,
+    BootstrapSample,
+    GaussNewtonBootstrap,
+    RobustBootstrap,
+    RobustBootstrapConfig,
+)
+from estimator.convergence import ConvergenceConfig, ConvergenceMonitor
+from estimator.filters import IEKF3D, UKF3D, FilterError, IekfConfig, UkfConfig
+from estimator.gate import MadGate, MadGateConfig, median
+from estimator.noise import (
+    AdaptiveR,
+    AdaptiveRConfig,
+    ConstantR,
+    EmpiricalR,
+    EmpiricalRConfig,
+    GatedRange,
+    GnssCovarianceConfig,
+    GnssInflatedR,
+    NlosConfig,
+    NlosR,
+    NoiseModel,
+)
+from estimator.records import AssociatedRange
+from estimator.smoothing import EmaSmoother, EmaSmootherConfig, MedianSmoother, MedianSmootherConfig
+
+DEFAULT_AGL_M = 45.0  # shared/spec/cli.md: header config.agl_m, else 45 m
+
+
+@dataclass(frozen=True, kw_only=True)
+class GroundPriorConfig:
+    """Ground-height pseudo-measurement after each accepted update (eq. 16)."""
+
+    enabled: bool = True
+    window: int = 25  # W_z of the ground prior: last 25 drone altitudes
+    r_z_m2: float = 25.0  # R_z = (5 m)^2
+
+
+@dataclass(frozen=True)
+class ModeSpec:
+    """A mode: filter x noise model x smoother (x bootstrap, x GNSS covariance)."""
+
+    name: str
+    filter: str = "iekf"  # iekf | ukf
+    noise: str = "constant"  # constant | nlos | empirical | adaptive | empirical+nlos
+    smoother: str = "median"  # median | ema
+    bootstrap: str = "gauss-newton"  # gauss-newton | robust
+    gnss_covariance: bool = False
+    paper: bool = True
+
+
+MODES: dict[str, ModeSpec] = {
+    "baseline": ModeSpec("baseline"),
+    "nlos": ModeSpec("nlos", noise="nlos"),
+    "empirical-r": ModeSpec("empirical-r", noise="empirical"),
+    "ukf": ModeSpec("ukf", filter="ukf"),
+    "ema": ModeSpec("ema", smoother="ema"),
+    "adaptive-r": ModeSpec("adaptive-r", noise="adaptive"),
+    # ours (sec. Conclusions' recommendations): damped robust bootstrap, honest
+    # covariance with GNSS anchor uncertainty, NLoS-aware Empirical-R weighting
+    "robust": ModeSpec(
+        "robust",
+        noise="empirical+nlos",
+        bootstrap="robust",
+        gnss_covariance=True,
+        paper=False,
+    ),
+}
+PAPER_MODES: tuple[str, ...] = tuple(k for k, v in MODES.items() if v.paper)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PipelineConfig:
+    """Every parameter of the pipeline; defaults are the paper's values."""
+
+    agl_m: float = DEFAULT_AGL_M  # H_AGL when a measurement carries none
+    gate: MadGateConfig = field(default_factory=MadGateConfig)
+    bootstrap: BootstrapConfig = field(default_factory=BootstrapConfig)
+    robust_bootstrap: RobustBootstrapConfig = field(default_factory=RobustBootstrapConfig)
+    iekf: IekfConfig = field(default_factory=IekfConfig)
+    ukf: UkfConfig = field(default_factory=UkfConfig)
+    ground: GroundPriorConfig = field(default_factory=GroundPriorConfig)
+    nlos: NlosConfig = field(default_factory=NlosConfig)
+    empirical: EmpiricalRConfig = field(default_factory=EmpiricalRConfig)
+    adaptive: AdaptiveRConfig = field(default_factory=AdaptiveRConfig)
+    gnss_cov: GnssCovarianceConfig = field(default_factory=GnssCovarianceConfig)
+    median: MedianSmootherConfig = field(default_factory=MedianSmootherConfig)
+    ema: EmaSmootherConfig = field(default_factory=EmaSmootherConfig)
+    convergence: ConvergenceConfig = field(default_factory=ConvergenceConfig)
+
+
+class _EmpiricalNlos:
+    """Empirical-R inflated by the NLoS decision of eq. (12) (mode ``robust``)."""
+
+    def __init__(self, cfg: PipelineConfig) -> None:
+        self.emp = EmpiricalR(cfg.empirical)
+        self.det = NlosR(cfg.nlos)
+
+    def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
+        r = self.emp.variance(m, nu_m, hph_m2)
+        return r * self.det.cfg.kappa_nlos**2 if self.det.is_nlos(m) else r
+
+
+def make_noise(spec: ModeSpec, cfg: PipelineConfig) -> NoiseModel:
+    kinds = {
+        "constant": lambda: ConstantR(),
+        "nlos": lambda: NlosR(cfg.nlos),
+        "empirical": lambda: EmpiricalR(cfg.empirical),
+        "adaptive": lambda: AdaptiveR(cfg.adaptive),
+        "empirical+nlos": lambda: _EmpiricalNlos(cfg),
+    }
+    try:
+        model: NoiseModel = kinds[spec.noise]()
+    except KeyError as exc:
+        raise ValueError(f"unknown noise model {spec.noise!r}") from exc
+    if spec.gnss_covariance:
+        model = GnssInflatedR(model, cfg.gnss_cov, cfg.agl_m)
+    return model
+
+
+class Published(NamedTuple):
+    """One published (smoothed) estimate in the track's history."""
+
+    t_s: float
+    enu_m: tuple[float, float, float]
+    sigma_h_m: float
+    sigma_z_m: float
+    bias_m: float
+    stable: bool
+    accepted_index: int
+
+
+@dataclass
+class TrackCounts:
+    n_meas: int = 0
+    n_bootstrap: int = 0
+    n_gate: int = 0
+    n_mad: int = 0
+    n_nis: int = 0
+    n_acc: int = 0
+    n_bootstrap_attempts: int = 0
+    n_restarts: int = 0
+
+
+class SharedFront:
+    """Mode-independent front end of one responder: MAD gate, ground window, bootstrap.
+
+    Every mode sees the same gate decisions, ground-height window and (per bootstrap
+    kind) bootstrap attempts, so tracks of several modes on one responder share one
+    front end and each measurement is gated once. A standalone :class:`Track` makes its
+    own. Results are cached for the latest measurement only (by identity).
+    """
+
+    def __init__(self, cfg: PipelineConfig = PipelineConfig()) -> None:
+        self.cfg = cfg
+        self.gate = MadGate(cfg.gate)
+        self.ground: deque[float] = deque(maxlen=cfg.ground.window)
+        self._m: AssociatedRange | None = None
+        self._g = None
+        self._ground_med: float | None = None
+        self.index = -1
+        self._boot_cache: dict[str, tuple[int, BootstrapResult]] = {}
+
+    def front(self, m: AssociatedRange, agl_m: float):  # noqa: ANN201
+        """Gate result of ``m`` (computed once however many tracks ask)."""
+        if m is not self._m:
+            self._m = m
+            self.index += 1
+            self.ground.append(m.anchor_enu_m[2] - agl_m)
+            self._ground_med = None
+            self._g = self.gate.check(m.t_s, m.range_m)
+        return self._g
+
+    def ground_median(self) -> float:
+        """z_prior = median of the last W (z_d - H_AGL), eq. (16)."""
+        if self._ground_med is None:
+            self._ground_med = median(self.ground)
+        return self._ground_med
+
+    def bootstrap(self, kind: str, solver, samples) -> BootstrapResult:  # noqa: ANN001
+        hit = self._boot_cache.get(kind)
+        if hit is not None and hit[0] == self.index:
+            return hit[1]
+        res = solver.solve(list(samples))
+        self._boot_cache[kind] = (self.index, res)
+        return res
+
+
+class Track:
+    """The real-time pipeline for one BSSID in one mode (sec. System Architecture)."""
+
+    def __init__(
+        self,
+        bssid: str,
+        mode: str | ModeSpec = "baseline",
+        cfg: PipelineConfig = PipelineConfig(),
+        *,
+        keep_history: bool = True,
+        front: SharedFront | None = None,
+    ) -> None:
+        self.bssid = bssid
+        self.front = front if front is not None else SharedFront(cfg)
+        self._generation = 0  # bootstrap buffers diverge from the shared one after a restart
+        self.spec = MODES[mode] if isinstance(mode, str) else mode
+        self.cfg = cfg
+        self.keep_history = keep_history
+        self.counts = TrackCounts()
+        self.bootstrapper = (
+            RobustBootstrap(cfg.robust_bootstrap)
+            if self.spec.bootstrap == "robust"
+            else GaussNewtonBootstrap(cfg.bootstrap)
+        )
+        self._boot: deque[BootstrapSample] = deque(maxlen=cfg.bootstrap.max_samples)
+        self.last_bootstrap: BootstrapResult | None = None
+        self.bootstrap_result: BootstrapResult | None = None
+        self.bootstrap_t_s: float | None = None
+        self.filter: IEKF3D | UKF3D | None = None
+        self.noise: NoiseModel = make_noise(self.spec, cfg)
+        self.smoother = (
+            EmaSmoother(cfg.ema) if self.spec.smoother == "ema" else MedianSmoother(cfg.median)
+        )
+        self.monitor = ConvergenceMonitor(cfg.convergence)
+        self.history: list[Published] = []
+        self.last: Published | None = None
+        self.last_stable: Published | None = None
+        self.diverged = False
+        self.first_t_s: float | None = None
+        self.last_t_s: float | None = None
+
+    # ------------------------------------------------------------------ processing
+    def process(self, m: AssociatedRange) -> Published | None:
+        """Feed one associated range (time-ordered); return the estimate it published."""
+        c = self.counts
+        c.n_meas += 1
+        if self.first_t_s is None:
+            self.first_t_s = m.t_s
+        self.last_t_s = m.t_s
+        agl = m.agl_m if m.agl_m is not None else self.cfg.agl_m
+        u = m.anchor_enu_m
+        g = self.front.front(m, agl)
+        if self.filter is None:
+            c.n_bootstrap += 1
+            if g.accepted:
+                self._boot.append(BootstrapSample(u, m.range_m, g.sigma_gate_m, agl))
+                self._try_bootstrap(m.t_s)
+            return None
+        if not g.accepted:
+            c.n_gate += 1
+            c.n_mad += 1
+            self.monitor.on_rejected()
+            return None
+        f = self.filter
+        gm = GatedRange(m, g.sigma_gate_m)
+        noise = self.noise
+        try:
+            f.predict()
+            res = f.update(u, m.range_m, lambda nu, hph: noise.variance(gm, nu, hph))
+            if not res.accepted:
+                c.n_gate += 1
+                c.n_nis += 1
+                self.monitor.on_rejected()
+                return None
+            c.n_acc += 1
+            self.monitor.on_accepted()
+            if self.cfg.ground.enabled:
+                f.update_height(self.front.ground_median(), self.cfg.ground.r_z_m2)
+        except FilterError:
+            self._restart()
+            return None
+        return self._publish(m.t_s)
+
+    def _try_bootstrap(self, t_s: float) -> None:
+        ready, _ = self.bootstrapper.ready(self._boot)
+        if not ready:
+            return
+        self.counts.n_bootstrap_attempts += 1
+        if self._generation == 0:
+            res = self.front.bootstrap(self.spec.bootstrap, self.bootstrapper, self._boot)
+        else:
+            res = self.bootstrapper.solve(list(self._boot))
+        self.last_bootstrap = res
+        if not res.ok:
+            return
+        assert res.position_enu_m is not None
+        self.bootstrap_result = res
+        self.bootstrap_t_s = t_s
+        if self.spec.filter == "ukf":
+            self.filter = UKF3D(res.position_enu_m, self.cfg.ukf)
+        else:
+            self.filter = IEKF3D(res.position_enu_m, self.cfg.iekf)
+        self.diverged = False
+
+    def _restart(self) -> None:
+        """Filter blew up: mark diverged and bootstrap again from new samples."""
+        self.diverged = True
+        self.counts.n_restarts += 1
+        self._generation += 1
+        self.filter = None
+        self.last = None
+        self.last_stable = None
+        self._boot.clear()
+        self.monitor = ConvergenceMonitor(self.cfg.convergence)
+        self.smoother = (
+            EmaSmoother(self.cfg.ema)
+            if self.spec.smoother == "ema"
+            else MedianSmoother(self.cfg.median)
+        )
+        self.noise = make_noise(self.spec, self.cfg)
+
+    def _publish(self, t_s: float) -> Published:
+        f = self.filter
+        assert f is not None
+        P = f.P
+        sigma_h = math.sqrt(P[0][0] + P[1][1])  # eq. (21)
+        sigma_z = math.sqrt(P[2][2])
+        pos = self.smoother.push(f.position_enu_m)
+        stable = self.monitor.on_published(pos, sigma_h, sigma_z, self.counts.n_acc)
+        pub = Published(t_s, pos, sigma_h, sigma_z, f.bias_m, stable, self.counts.n_acc)
+        self.last = pub
+        if stable:
+            self.last_stable = pub
+        if self.keep_history:
+            self.history.append(pub)
+        return pub
+
+    # ------------------------------------------------------------------ outcome
+    @property
+    def status(self) -> str:
+        """converged | tracking | bootstrapping | weak_geometry | diverged | no_data."""
+        if self.counts.n_meas == 0:
+            return "no_data"
+        if self.filter is not None:
+            return "converged" if self.last_stable is not None else "tracking"
+        if self.diverged:
+            return "diverged"
+        lb = self.last_bootstrap
+        if lb is None or lb.status == "waiting":
+            return "bootstrapping"
+        return "weak_geometry" if lb.status == "weak_geometry" else "diverged"
+
+    def reported(self) -> Published | None:
+        """The estimate to report: the last stable one, else the latest filter output."""
+        if self.filter is None:
+            return None
+        if self.last_stable is not None:
+            return self.last_stable
+        if self.last is not None:
+            return self.last
+        f = self.filter
+        P = f.P
+        return Published(
+            self.bootstrap_t_s or 0.0,
+            f.position_enu_m,
+            math.sqrt(P[0][0] + P[1][1]),
+            math.sqrt(P[2][2]),
+            f.bias_m,
+            False,
+            0,
+        )

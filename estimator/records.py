@@ -1,0 +1,175 @@
+"""Record types of the flight log (shared/spec/log-format.md) and of the estimator.
+
+Records are small frozen dataclasses with SI units in their names. They never hold
+models or callbacks. Log times are integer nanoseconds of the logging device's
+monotonic clock; inside the estimator time is float seconds (``t_s``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+if TYPE_CHECKING:
+    import numpy as np
+
+Concealment = Literal["open", "vegetation", "vegetation_debris"]
+CONCEALMENT_CLASSES: tuple[str, ...] = ("open", "vegetation", "vegetation_debris")
+GNSS_FIX_TYPES: tuple[str, ...] = ("none", "2d", "3d", "dgps", "rtk_float", "rtk_fixed")
+
+LOG_FORMAT = "osa-log"
+LOG_VERSION = 1
+
+
+@dataclass(frozen=True, kw_only=True)
+class LogHeader:
+    """``header`` record: who recorded the log and its pre-flight configuration."""
+
+    format: str = LOG_FORMAT
+    version: int = LOG_VERSION
+    agent: str = "unknown"
+    start_utc: str | None = None
+    agl_m: float | None = None  # configured H_AGL (sec. Gauss-Newton Bootstrap, eq. 5)
+    range_offset_m: float | None = None  # pre-flight calibration offset b0 (sec. Range Model)
+    extra: dict = field(default_factory=dict, compare=False, hash=False)
+
+
+@dataclass(frozen=True, kw_only=True)
+class GnssFix:
+    """``gnss`` record: one fix of the initiator's antenna (WGS84, ellipsoidal height)."""
+
+    t_ns: int
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    acc_m: float
+    vacc_m: float | None = None
+    fix: str | None = None
+    sats: int | None = None
+
+    @property
+    def t_s(self) -> float:
+        return self.t_ns * 1e-9
+
+
+@dataclass(frozen=True, kw_only=True)
+class RangeSample:
+    """``rtt`` record: one IEEE 802.11mc FTM ranging result to one responder."""
+
+    t_ns: int
+    bssid: str
+    status: str
+    range_m: float | None = None
+    range_std_m: float | None = None
+    rssi_dbm: float | None = None
+    attempted: int | None = None
+    successful: int | None = None
+
+    @property
+    def t_s(self) -> float:
+        return self.t_ns * 1e-9
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok" and self.range_m is not None
+
+
+@dataclass(frozen=True, kw_only=True)
+class TruthRecord:
+    """``truth`` record (simulator only): surveyed responder position."""
+
+    bssid: str
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    concealment: str = "open"
+
+
+@dataclass(frozen=True, kw_only=True)
+class AssociatedRange:
+    """A corrected FTM range with its GNSS-interpolated anchor: the estimator's unit of work.
+
+    ``range_m`` is the corrected range d = max(0, d_raw - b0) (sec. Range Measurement
+    Model); ``anchor_enu_m`` the initiator position u_i in the replay's ENU frame.
+    """
+
+    t_s: float
+    bssid: str
+    range_m: float
+    rssi_dbm: float | None
+    anchor_enu_m: tuple[float, float, float]
+    anchor_acc_m: float
+    anchor_vacc_m: float | None = None
+    agl_m: float | None = None  # H_AGL of the agent that measured it (None: pipeline default)
+    agent: str = ""
+
+
+EstimateStatus = Literal[
+    "converged", "tracking", "bootstrapping", "weak_geometry", "diverged", "no_data"
+]
+STATUSES: tuple[str, ...] = (
+    "converged",
+    "tracking",
+    "bootstrapping",
+    "weak_geometry",
+    "diverged",
+    "no_data",
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Estimate:
+    """A published AP estimate (after output smoothing) in the replay's ENU frame."""
+
+    t_s: float
+    bssid: str
+    mean_enu_m: tuple[float, float, float]
+    cov_m2: tuple[tuple[float, float, float], ...]
+    bias_m: float
+    sigma_h_m: float
+    sigma_z_m: float
+    stable: bool
+    status: str
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A timed flight path in a local ENU frame: the planner's output, flown by ``sim``.
+
+    ``enu_m`` is (N, 3). ``height_ref`` says what z means: ``"origin"`` (metres above
+    the frame origin, i.e. above home for a mission) or ``"terrain"`` (metres above the
+    ground under each point; the vehicle resolves it with its terrain model).
+    ``origin`` is the WGS84 (lat_deg, lon_deg, h_m) of the ENU frame.
+    """
+
+    t_s: "np.ndarray"
+    enu_m: "np.ndarray"
+    origin: tuple[float, float, float]
+    height_ref: Literal["origin", "terrain"] = "origin"
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        import numpy as np
+
+        t = np.asarray(self.t_s, dtype=float)
+        p = np.asarray(self.enu_m, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3 or t.shape != (p.shape[0],):
+            raise ValueError("Trajectory needs t_s (N,) and enu_m (N, 3)")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
+            raise ValueError("Trajectory holds non-finite values")
+        if len(t) > 1 and np.any(np.diff(t) < 0):
+            raise ValueError("Trajectory times must be non-decreasing")
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "enu_m", p)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1] - self.t_s[0]) if len(self.t_s) else 0.0
+
+    @property
+    def length_m(self) -> float:
+        import numpy as np
+
+        if len(self.t_s) < 2:
+            return 0.0
+        return float(np.linalg.norm(np.diff(self.enu_m, axis=0), axis=1).sum())

@@ -1,0 +1,58 @@
+"""Output smoothers (sec. Measurement-Noise Configurations, last paragraph).
+
+All modes but EMA publish a sliding-window median of the filter output (W_xy = 7 for
+x and y, W_z = 9 for z); the EMA mode replaces it with s = a x + (1 - a) s_prev,
+a = 0.3. Smoothers see the filter output after every accepted update.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Protocol
+
+from estimator.gate import median
+
+
+class Smoother(Protocol):
+    def push(self, p: tuple[float, float, float]) -> tuple[float, float, float]: ...
+
+
+@dataclass(frozen=True, kw_only=True)
+class MedianSmootherConfig:
+    window_xy: int = 7  # W_xy
+    window_z: int = 9  # W_z
+
+
+class MedianSmoother:
+    def __init__(self, cfg: MedianSmootherConfig = MedianSmootherConfig()) -> None:
+        self._x: deque[float] = deque(maxlen=cfg.window_xy)
+        self._y: deque[float] = deque(maxlen=cfg.window_xy)
+        self._z: deque[float] = deque(maxlen=cfg.window_z)
+
+    def push(self, p: tuple[float, float, float]) -> tuple[float, float, float]:
+        self._x.append(p[0])
+        self._y.append(p[1])
+        self._z.append(p[2])
+        return median(self._x), median(self._y), median(self._z)
+
+
+@dataclass(frozen=True, kw_only=True)
+class EmaSmootherConfig:
+    alpha: float = 0.3  # alpha_EMA
+
+
+class EmaSmoother:
+    def __init__(self, cfg: EmaSmootherConfig = EmaSmootherConfig()) -> None:
+        self.alpha = cfg.alpha
+        self._s: tuple[float, float, float] | None = None
+
+    def push(self, p: tuple[float, float, float]) -> tuple[float, float, float]:
+        if self._s is None:
+            self._s = (p[0], p[1], p[2])
+        else:
+            a = self.alpha
+            b = 1.0 - a
+            s = self._s
+            self._s = (a * p[0] + b * s[0], a * p[1] + b * s[1], a * p[2] + b * s[2])
+        return self._s
