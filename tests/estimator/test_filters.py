@@ -1,0 +1,219 @@
+"""IEKF3D and UKF3D updates against hand computations in matrix form (eqs. 15-20)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimator.filters import (
+    IEKF3D,
+    UKF3D,
+    FilterError,
+    IekfConfig,
+    MerweWeights,
+    UkfConfig,
+    cholesky,
+    joseph_scalar_update,
+    sigma_points,
+    unscented_transform_scalar,
+)
+
+ANCHOR = (31.0, -12.0, 46.5)
+
+
+def iekf_reference(x0, P0, Q, u, d, R, iterations=3):
+    """The textbook IEKF in NumPy: predict, gate at the prior, M relinearisations, Joseph."""
+    x_prior = np.asarray(x0, float)
+    P = np.asarray(P0, float) + np.diag(Q)
+    u = np.asarray(u, float)
+
+    def h_jac(x):
+        r = np.linalg.norm(x[:3] - u)
+        return r + x[3], np.array([*(x[:3] - u) / r, 1.0])
+
+    h, H = h_jac(x_prior)
+    S0 = H @ P @ H + R
+    nu0 = d - h
+    xi = x_prior.copy()
+    for _ in range(iterations):
+        h, H = h_jac(xi)
+        S = H @ P @ H + R
+        K = P @ H / S
+        xi = x_prior + K * (d - h - H @ (x_prior - xi))
+    A = np.eye(4) - np.outer(K, H)
+    Pn = A @ P @ A.T + R * np.outer(K, K)
+    return xi, Pn, nu0, S0
+
+
+def test_iekf_update_matches_hand_computation():
+    cfg = IekfConfig()
+    f = IEKF3D((12.0, 7.0, -40.0), cfg)
+    f.P = [[25.0, 1.5, -2.0, 0.3], [1.5, 20.0, 0.7, -0.2], [-2.0, 0.7, 90.0, 0.1],
+           [0.3, -0.2, 0.1, 4.0]]
+    f.x[3] = 0.4
+    x0, P0 = list(f.x), np.array(f.P)
+    d, R = 97.0, 0.8
+    f.predict()
+    res = f.update(ANCHOR, d, R)
+    xr, Pr, nu, S = iekf_reference(x0, P0, cfg.q_diag, ANCHOR, d, R)
+    assert res.accepted
+    np.testing.assert_allclose(f.x, xr, atol=1e-9)
+    np.testing.assert_allclose(np.array(f.P), Pr, atol=1e-9)
+    assert res.nu_m == pytest.approx(nu, abs=1e-9)
+    assert res.s_m2 == pytest.approx(S, abs=1e-9)
+    assert res.nis == pytest.approx(nu * nu / S, abs=1e-9)
+    # symmetric by construction
+    P = np.array(f.P)
+    assert np.array_equal(P, P.T)
+
+
+def test_iekf_single_iteration_is_the_ekf():
+    f = IEKF3D((0.0, 0.0, 0.0), IekfConfig(iterations=1))
+    x0, P0 = list(f.x), np.array(f.P)
+    f.predict()
+    f.update((40.0, 30.0, 45.0), 71.0, 0.5)
+    xr, Pr, _, _ = iekf_reference(x0, P0, IekfConfig().q_diag, (40.0, 30.0, 45.0), 71.0, 0.5, 1)
+    np.testing.assert_allclose(f.x, xr, atol=1e-9)
+    np.testing.assert_allclose(np.array(f.P), Pr, atol=1e-9)
+
+
+def test_iekf_nis_gate_rejects_and_leaves_state():
+    f = IEKF3D((0.0, 0.0, 0.0))
+    f.predict()
+    x_before, P_before = list(f.x), [row[:] for row in f.P]
+    u = (50.0, 0.0, 0.0)
+    # predicted range 50 m, S = H P H^T + R = 25.01 + 4.0001 + R; pick nu so NIS = 10 > 9
+    S = (25.0 + 0.01) + (4.0 + 1e-4) + 1.0
+    d = 50.0 + math.sqrt(10.0 * S)
+    res = f.update(u, d, 1.0)
+    assert not res.accepted
+    assert res.nis == pytest.approx(10.0, rel=1e-12)
+    assert f.x == x_before and f.P == P_before
+    # just inside the gate: NIS = 8.9 is accepted
+    d = 50.0 + math.sqrt(8.9 * S)
+    assert f.update(u, d, 1.0).accepted
+
+
+def test_joseph_matches_numpy_for_general_gain():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(4, 4))
+    P = A @ A.T + 4 * np.eye(4)
+    H = rng.normal(size=4)
+    K = rng.normal(size=4)  # a non-optimal gain: Joseph stays exact
+    R = 0.7
+    _, Pn = joseph_scalar_update([0.0] * 4, P.tolist(), H.tolist(), K.tolist(), 0.0, R)
+    I_KH = np.eye(4) - np.outer(K, H)
+    np.testing.assert_allclose(np.array(Pn), I_KH @ P @ I_KH.T + R * np.outer(K, K), atol=1e-9)
+
+
+def test_height_pseudo_measurement_matches_linear_kf():
+    f = IEKF3D((3.0, 4.0, -30.0))
+    f.P[0][2] = f.P[2][0] = 3.0
+    P = np.array(f.P)
+    x = np.array(f.x)
+    z, Rz = -44.0, 25.0
+    f.update_height(z, Rz)
+    H = np.array([0.0, 0.0, 1.0, 0.0])
+    S = H @ P @ H + Rz
+    K = P @ H / S
+    xr = x + K * (z - x[2])
+    A = np.eye(4) - np.outer(K, H)
+    np.testing.assert_allclose(f.x, xr, atol=1e-9)
+    np.testing.assert_allclose(np.array(f.P), A @ P @ A.T + Rz * np.outer(K, K), atol=1e-9)
+
+
+def test_merwe_weights_paper_values():
+    w = MerweWeights.make(3, 1e-3, 2.0, 0.0)
+    lam = 1e-6 * 3 - 3
+    assert w.lam == pytest.approx(lam, abs=1e-15)
+    assert sum(w.wm) == pytest.approx(1.0, abs=1e-9)
+    assert w.wm0 == pytest.approx(lam / (3 + lam), rel=1e-12)
+    assert w.wc0 == pytest.approx(lam / (3 + lam) + 1 - 1e-6 + 2.0, rel=1e-12)
+    assert w.wi == pytest.approx(1 / (2 * (3 + lam)), rel=1e-12)
+    assert len(w.wm) == 7
+    # Wc sums to 1 + (1 - alpha^2 + beta)
+    assert sum(w.wc) == pytest.approx(1.0 + 1.0 - 1e-6 + 2.0, abs=1e-6)
+
+
+def test_sigma_points_reproduce_mean_and_covariance():
+    P = [[4.0, 1.0, 0.5], [1.0, 3.0, -0.2], [0.5, -0.2, 9.0]]
+    x = [1.0, -2.0, 3.0]
+    w = MerweWeights.make(3, 0.5, 2.0, 0.0)  # a moderate alpha for a clean check
+    pts = np.array(sigma_points(x, P, w))
+    wm, wc = np.array(w.wm), np.array(w.wc)
+    mean = wm @ pts
+    np.testing.assert_allclose(mean, x, atol=1e-12)
+    d = pts - mean
+    cov = (wc[:, None] * d).T @ d
+    # the centre point carries Wc0 - Wm0 = 1 - alpha^2 + beta extra weight but d0 = 0
+    np.testing.assert_allclose(cov, P, atol=1e-9)
+    L = np.array(cholesky(P))
+    np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
+    with pytest.raises(FilterError):
+        cholesky([[1.0, 2.0], [2.0, 1.0]])
+
+
+def ukf_reference(x, P, Q, u, d, R, cfg=UkfConfig()):
+    """Textbook UKF update in NumPy with Merwe points (filterpy's formulation)."""
+    x = np.asarray(x, float)
+    P = np.asarray(P, float) + np.diag(Q)
+    w = MerweWeights.make(3, cfg.alpha, cfg.beta, cfg.kappa)
+    L = np.linalg.cholesky((3 + w.lam) * P)
+    pts = np.vstack([x, x + L.T, x - L.T])
+    ys = np.linalg.norm(pts - np.asarray(u), axis=1)
+    wm, wc = np.array(w.wm), np.array(w.wc)
+    ym = wm @ ys
+    S = wc @ (ys - ym) ** 2 + R
+    Pxy = (wc * (ys - ym)) @ (pts - x)
+    K = Pxy / S
+    return x + K * (d - ym), P - S * np.outer(K, K), d - ym, S
+
+
+def test_ukf_update_matches_hand_computation():
+    f = UKF3D((12.0, 7.0, -40.0))
+    f.P = [[25.0, 1.5, -2.0], [1.5, 20.0, 0.7], [-2.0, 0.7, 90.0]]
+    x0, P0 = list(f.x), np.array(f.P)
+    f.predict()
+    res = f.update(ANCHOR, 97.0, 0.8)
+    xr, Pr, nu, S = ukf_reference(x0, P0, UkfConfig().q_diag, ANCHOR, 97.0, 0.8)
+    assert res.accepted
+    # alpha = 1e-3 weights of +-1e6 limit the reference's own precision to ~1e-8
+    np.testing.assert_allclose(f.x, xr, atol=1e-7)
+    np.testing.assert_allclose(np.array(f.P), Pr, atol=1e-6)
+    assert res.nu_m == pytest.approx(nu, abs=1e-7)
+    assert res.s_m2 == pytest.approx(S, abs=1e-6)
+
+
+def test_ukf_generic_and_unrolled_transforms_agree():
+    f = UKF3D((5.0, -3.0, -45.0))
+    f.P = [[9.0, 0.5, 0.0], [0.5, 16.0, 1.0], [0.0, 1.0, 36.0]]
+    _cols, _yp, _yn, mean, var = f._propagate((60.0, 40.0, 2.0))
+    ys = [math.dist(p, (60.0, 40.0, 2.0)) for p in sigma_points(f.x, f.P, f.w)]
+    m2, v2 = unscented_transform_scalar(ys, f.w)
+    assert mean == pytest.approx(m2, abs=1e-8)
+    assert var == pytest.approx(v2, abs=1e-6)
+
+
+def test_ukf_matches_ekf_on_nearly_linear_case():
+    """Far anchor, small covariance: range is nearly linear, UKF = EKF to < 1 mm."""
+    p0 = (10.0, 20.0, 0.0)
+    u = (2010.0, 1520.0, 45.0)  # 2.5 km away: curvature negligible over the prior
+    ukf = UKF3D(p0, UkfConfig(p0_diag=(1.0, 1.0, 1.0)))
+    ekf = IEKF3D(p0, IekfConfig(iterations=1, p0_diag=(1.0, 1.0, 1.0, 0.0),
+                               q_diag=(0.01, 0.01, 0.04, 0.0)))
+    ekf.P[3][3] = 1e-300  # bias frozen at zero: a 3-state EKF
+    d = math.dist(p0, u) + 1.3
+    for f in (ukf, ekf):
+        f.predict()
+        assert f.update(u, d, 0.5).accepted
+    np.testing.assert_allclose(ukf.x, ekf.x[:3], atol=1e-3)
+    np.testing.assert_allclose(np.array(ukf.P), np.array(ekf.P)[:3, :3], atol=1e-3)
+
+
+def test_filter_error_on_invalid_state():
+    f = IEKF3D((0.0, 0.0, 0.0))
+    f.P[0][0] = -1.0
+    with pytest.raises(FilterError):
+        f.update_height(0.0, 25.0)
