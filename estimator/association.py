@@ -123,7 +123,8 @@ class Associator:
         two_t = 2.0 * cfg.t_sync_s * 1e9
         one_t = cfg.t_sync_s * 1e9
         interp = False
-        if prev is not None and nxt is not None and t - prev.t_ns <= two_t and nxt.t_ns - t <= two_t:
+        bracketed = prev is not None and nxt is not None
+        if bracketed and t - prev.t_ns <= two_t and nxt.t_ns - t <= two_t:
             span = nxt.t_ns - prev.t_ns
             w = 0.0 if span <= 0 else (t - prev.t_ns) / span
             lat = prev.lat_deg + w * (nxt.lat_deg - prev.lat_deg)
@@ -145,7 +146,8 @@ class Associator:
             if best is None:
                 self.stats.unassociated[s.bssid] += 1
                 return
-            lat, lon, alt, acc, vacc = best.lat_deg, best.lon_deg, best.alt_m, best.acc_m, best.vacc_m
+            lat, lon, alt = best.lat_deg, best.lon_deg, best.alt_m
+            acc, vacc = best.acc_m, best.vacc_m
         if not acc < cfg.max_acc_m:
             self.stats.gnss_quality[s.bssid] += 1
             return

@@ -62,7 +62,11 @@ class ConvergenceMonitor:
         else:
             self.non_increasing = 0
         self._prev_sigma_h = sigma_h_m
-        min_n = cfg.relaxed_min_n_acc if self.non_increasing >= cfg.relax_n_acc_after else cfg.min_n_acc
+        min_n = (
+            cfg.relaxed_min_n_acc
+            if self.non_increasing >= cfg.relax_n_acc_after
+            else cfg.min_n_acc
+        )
         min_streak = (
             cfg.relaxed_min_streak
             if self.non_increasing >= cfg.relax_streak_after

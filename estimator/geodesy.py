@@ -23,11 +23,21 @@ class EnuFrame(Protocol):
     lon0_deg: float
     h0_m: float
 
-    def to_enu(self, lat_deg, lon_deg, alt_m):  # noqa: ANN001, ANN201
+    def to_enu(self, lat_deg, lon_deg, alt_m):
         ...
 
-    def to_geodetic(self, e_m, n_m, u_m):  # noqa: ANN001, ANN201
+    def to_geodetic(self, e_m, n_m, u_m):
         ...
+
+
+def _wrap180(deg):
+    """Longitude (difference) into [-180, 180]: a frame straddling the antimeridian.
+
+    Values already in range are returned unchanged (bit for bit).
+    """
+    if isinstance(deg, float | int):
+        return deg - 360.0 if deg > 180.0 else deg + 360.0 if deg < -180.0 else deg
+    return np.where(deg > 180.0, deg - 360.0, np.where(deg < -180.0, deg + 360.0, deg))
 
 
 @dataclass(frozen=True)
@@ -41,28 +51,29 @@ class TangentPlaneENU:
 
     name = "tangent"
 
-    def to_enu(self, lat_deg, lon_deg, alt_m):  # noqa: ANN001, ANN201
+    def to_enu(self, lat_deg, lon_deg, alt_m):
         if isinstance(lat_deg, float | int) and isinstance(lon_deg, float | int):
             lat = math.radians(lat_deg)
             lat0 = math.radians(self.lat0_deg)
-            x = self.radius_m * math.radians(lon_deg - self.lon0_deg) * math.cos(0.5 * (lat + lat0))
+            dlon = _wrap180(lon_deg - self.lon0_deg)
+            x = self.radius_m * math.radians(dlon) * math.cos(0.5 * (lat + lat0))
             y = self.radius_m * (lat - lat0)
             return x, y, alt_m - self.h0_m
         lat = np.radians(np.asarray(lat_deg, dtype=float))
         lat0 = math.radians(self.lat0_deg)
-        dlon = np.radians(np.asarray(lon_deg, dtype=float) - self.lon0_deg)
+        dlon = np.radians(_wrap180(np.asarray(lon_deg, dtype=float) - self.lon0_deg))
         x = self.radius_m * dlon * np.cos(0.5 * (lat + lat0))
         y = self.radius_m * (lat - lat0)
         return x, y, np.asarray(alt_m, dtype=float) - self.h0_m
 
-    def to_geodetic(self, e_m, n_m, u_m):  # noqa: ANN001, ANN201
+    def to_geodetic(self, e_m, n_m, u_m):
         """Exact inverse of :meth:`to_enu` (latitude from y first, then longitude)."""
         scalar = isinstance(e_m, float | int) and isinstance(n_m, float | int)
         mod = math if scalar else np
         lat0 = math.radians(self.lat0_deg)
         lat = lat0 + n_m / self.radius_m
         lon = math.radians(self.lon0_deg) + e_m / (self.radius_m * mod.cos(0.5 * (lat + lat0)))
-        return mod.degrees(lat), mod.degrees(lon), u_m + self.h0_m
+        return mod.degrees(lat), _wrap180(mod.degrees(lon)), u_m + self.h0_m
 
 
 @dataclass(frozen=True)
@@ -75,7 +86,7 @@ class ExactENU:
 
     name = "wgs84"
 
-    def to_enu(self, lat_deg, lon_deg, alt_m):  # noqa: ANN001, ANN201
+    def to_enu(self, lat_deg, lon_deg, alt_m):
         e, n, u = pymap3d.geodetic2enu(
             lat_deg, lon_deg, alt_m, self.lat0_deg, self.lon0_deg, self.h0_m
         )
@@ -83,7 +94,7 @@ class ExactENU:
             return float(e), float(n), float(u)
         return e, n, u
 
-    def to_geodetic(self, e_m, n_m, u_m):  # noqa: ANN001, ANN201
+    def to_geodetic(self, e_m, n_m, u_m):
         lat, lon, h = pymap3d.enu2geodetic(
             e_m, n_m, u_m, self.lat0_deg, self.lon0_deg, self.h0_m
         )

@@ -23,6 +23,7 @@ import pickle
 import re
 import tempfile
 import warnings
+import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -85,7 +86,7 @@ class RejectCounts:
         return sum(self.rejected.values())
 
 
-class _Reject(Exception):
+class _Reject(Exception):  # noqa: N818 - internal control flow, not an error type
     def __init__(self, reason: str) -> None:
         super().__init__(reason)
         self.reason = reason
@@ -125,7 +126,11 @@ def _num(obj: dict, key: str, *, required: bool) -> float | None:
     v = obj[key]
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise _Reject("bad_type")
-    if not math.isfinite(v):
+    try:
+        finite = math.isfinite(v)
+    except OverflowError:  # an integer beyond the float range
+        finite = False
+    if not finite:
         raise _Reject("non_finite")
     return float(v)
 
@@ -172,7 +177,7 @@ def _latlon(obj: dict) -> tuple[float, float]:
 def _bssid(obj: dict) -> str:
     b = _str(obj, "bssid", required=True)
     assert b is not None
-    if not _BSSID_RE.match(b):
+    if not _BSSID_RE.fullmatch(b):  # match() let a trailing newline through
         raise _Reject("bad_bssid")
     return b.lower()
 
@@ -391,7 +396,7 @@ def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterat
 def _safe_lines(fh: IO[bytes], path: str | os.PathLike) -> Iterator[bytes]:
     try:
         yield from fh
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+    except (OSError, EOFError, gzip.BadGzipFile, zlib.error) as exc:
         raise LogError(f"{path}: corrupt or truncated compressed file ({exc})") from exc
 
 

@@ -163,12 +163,13 @@ class TrackCounts:
 
 
 class SharedFront:
-    """Mode-independent front end of one responder: MAD gate, ground window, bootstrap.
+    """Mode-independent front end of one responder: MAD gate, ground window, filter runs.
 
-    Every mode sees the same gate decisions, ground-height window and (per bootstrap
-    kind) bootstrap attempts, so tracks of several modes on one responder share one
-    front end and each measurement is gated once. A standalone :class:`Track` makes its
-    own. Results are cached for the latest measurement only (by identity).
+    Every mode sees the same gate decisions and ground-height window, so tracks of several
+    modes on one responder share one front end and each measurement is gated once. Modes
+    whose filter, noise model and bootstrap agree (``baseline`` and ``ema`` differ only
+    in the smoother) also share one :class:`FilterRun`. A standalone :class:`Track` makes
+    its own front end. Results are cached for the latest measurement only (by identity).
     """
 
     def __init__(self, cfg: PipelineConfig = PipelineConfig()) -> None:
@@ -179,9 +180,9 @@ class SharedFront:
         self._g = None
         self._ground_med: float | None = None
         self.index = -1
-        self._boot_cache: dict[str, tuple[int, BootstrapResult]] = {}
+        self._runs: dict[tuple, FilterRun] = {}
 
-    def front(self, m: AssociatedRange, agl_m: float):  # noqa: ANN201
+    def front(self, m: AssociatedRange, agl_m: float):
         """Gate result of ``m`` (computed once however many tracks ask)."""
         if m is not self._m:
             self._m = m
@@ -197,37 +198,29 @@ class SharedFront:
             self._ground_med = median(self.ground)
         return self._ground_med
 
-    def bootstrap(self, kind: str, solver, samples) -> BootstrapResult:  # noqa: ANN001
-        hit = self._boot_cache.get(kind)
-        if hit is not None and hit[0] == self.index:
-            return hit[1]
-        res = solver.solve(list(samples))
-        self._boot_cache[kind] = (self.index, res)
-        return res
+    def filter_run(self, spec: ModeSpec) -> FilterRun:
+        key = (spec.filter, spec.noise, spec.bootstrap, spec.gnss_covariance)
+        run = self._runs.get(key)
+        if run is None:
+            run = self._runs[key] = FilterRun(spec, self.cfg, self)
+        return run
 
 
-class Track:
-    """The real-time pipeline for one BSSID in one mode (sec. System Architecture)."""
+# step outcomes of a FilterRun
+BOOT, MAD, NIS, ACC, RESTART = range(5)
 
-    def __init__(
-        self,
-        bssid: str,
-        mode: str | ModeSpec = "baseline",
-        cfg: PipelineConfig = PipelineConfig(),
-        *,
-        keep_history: bool = True,
-        front: SharedFront | None = None,
-    ) -> None:
-        self.bssid = bssid
-        self.front = front if front is not None else SharedFront(cfg)
-        self._generation = 0  # bootstrap buffers diverge from the shared one after a restart
-        self.spec = MODES[mode] if isinstance(mode, str) else mode
+
+class FilterRun:
+    """Bootstrap, filter and noise model of one responder (shared by modes that agree)."""
+
+    def __init__(self, spec: ModeSpec, cfg: PipelineConfig, front: SharedFront) -> None:
+        self.spec = spec
         self.cfg = cfg
-        self.keep_history = keep_history
+        self.front = front
         self.counts = TrackCounts()
         self.bootstrapper = (
             RobustBootstrap(cfg.robust_bootstrap)
-            if self.spec.bootstrap == "robust"
+            if spec.bootstrap == "robust"
             else GaussNewtonBootstrap(cfg.bootstrap)
         )
         self._boot: deque[BootstrapSample] = deque(maxlen=cfg.bootstrap.max_samples)
@@ -235,69 +228,62 @@ class Track:
         self.bootstrap_result: BootstrapResult | None = None
         self.bootstrap_t_s: float | None = None
         self.filter: IEKF3D | UKF3D | None = None
-        self.noise: NoiseModel = make_noise(self.spec, cfg)
-        self.smoother = (
-            EmaSmoother(cfg.ema) if self.spec.smoother == "ema" else MedianSmoother(cfg.median)
-        )
-        self.monitor = ConvergenceMonitor(cfg.convergence)
-        self.history: list[Published] = []
-        self.last: Published | None = None
-        self.last_stable: Published | None = None
+        self.noise: NoiseModel = make_noise(spec, cfg)
+        self._innovation_noise = isinstance(self.noise, AdaptiveR) or spec.noise == "adaptive"
+        self.generation = 0  # bumped at every restart
         self.diverged = False
-        self.first_t_s: float | None = None
-        self.last_t_s: float | None = None
+        self._index = -2
+        self._out = BOOT
 
-    # ------------------------------------------------------------------ processing
-    def process(self, m: AssociatedRange) -> Published | None:
-        """Feed one associated range (time-ordered); return the estimate it published."""
+    def step(self, m: AssociatedRange, g, agl_m: float) -> int:
+        """Process ``m`` once (cached for the front end's current measurement)."""
+        if self._index == self.front.index:
+            return self._out
+        self._index = self.front.index
+        self._out = out = self._step(m, g, agl_m)
+        return out
+
+    def _step(self, m: AssociatedRange, g, agl_m: float) -> int:
         c = self.counts
         c.n_meas += 1
-        if self.first_t_s is None:
-            self.first_t_s = m.t_s
-        self.last_t_s = m.t_s
-        agl = m.agl_m if m.agl_m is not None else self.cfg.agl_m
         u = m.anchor_enu_m
-        g = self.front.front(m, agl)
         if self.filter is None:
             c.n_bootstrap += 1
             if g.accepted:
-                self._boot.append(BootstrapSample(u, m.range_m, g.sigma_gate_m, agl))
+                self._boot.append(BootstrapSample(u, m.range_m, g.sigma_gate_m, agl_m))
                 self._try_bootstrap(m.t_s)
-            return None
+            return BOOT
         if not g.accepted:
             c.n_gate += 1
             c.n_mad += 1
-            self.monitor.on_rejected()
-            return None
+            return MAD
         f = self.filter
         gm = GatedRange(m, g.sigma_gate_m)
         noise = self.noise
         try:
             f.predict()
-            res = f.update(u, m.range_m, lambda nu, hph: noise.variance(gm, nu, hph))
+            if self._innovation_noise:
+                res = f.update(u, m.range_m, lambda nu, hph: noise.variance(gm, nu, hph))
+            else:
+                res = f.update(u, m.range_m, noise.variance(gm, 0.0, 0.0))
             if not res.accepted:
                 c.n_gate += 1
                 c.n_nis += 1
-                self.monitor.on_rejected()
-                return None
+                return NIS
             c.n_acc += 1
-            self.monitor.on_accepted()
             if self.cfg.ground.enabled:
                 f.update_height(self.front.ground_median(), self.cfg.ground.r_z_m2)
         except FilterError:
             self._restart()
-            return None
-        return self._publish(m.t_s)
+            return RESTART
+        return ACC
 
     def _try_bootstrap(self, t_s: float) -> None:
         ready, _ = self.bootstrapper.ready(self._boot)
         if not ready:
             return
         self.counts.n_bootstrap_attempts += 1
-        if self._generation == 0:
-            res = self.front.bootstrap(self.spec.bootstrap, self.bootstrapper, self._boot)
-        else:
-            res = self.bootstrapper.solve(list(self._boot))
+        res = self.bootstrapper.solve(list(self._boot))
         self.last_bootstrap = res
         if not res.ok:
             return
@@ -314,28 +300,75 @@ class Track:
         """Filter blew up: mark diverged and bootstrap again from new samples."""
         self.diverged = True
         self.counts.n_restarts += 1
-        self._generation += 1
+        self.generation += 1
         self.filter = None
-        self.last = None
-        self.last_stable = None
         self._boot.clear()
-        self.monitor = ConvergenceMonitor(self.cfg.convergence)
-        self.smoother = (
-            EmaSmoother(self.cfg.ema)
-            if self.spec.smoother == "ema"
-            else MedianSmoother(self.cfg.median)
-        )
         self.noise = make_noise(self.spec, self.cfg)
 
+
+class Track:
+    """The real-time pipeline for one BSSID in one mode (sec. System Architecture).
+
+    A track is a :class:`FilterRun` (possibly shared with other modes) plus its own
+    smoother, convergence monitor and published history.
+    """
+
+    def __init__(
+        self,
+        bssid: str,
+        mode: str | ModeSpec = "baseline",
+        cfg: PipelineConfig = PipelineConfig(),
+        *,
+        keep_history: bool = True,
+        front: SharedFront | None = None,
+    ) -> None:
+        self.bssid = bssid
+        self.spec = MODES[mode] if isinstance(mode, str) else mode
+        self.cfg = cfg
+        self.front = front if front is not None else SharedFront(cfg)
+        self.run = self.front.filter_run(self.spec)
+        self.keep_history = keep_history
+        self.smoother = self._make_smoother()
+        self.monitor = ConvergenceMonitor(cfg.convergence)
+        self.history: list[Published] = []
+        self.last: Published | None = None
+        self.last_stable: Published | None = None
+        self._generation = 0
+
+    def _make_smoother(self) -> EmaSmoother | MedianSmoother:
+        cfg = self.cfg
+        return EmaSmoother(cfg.ema) if self.spec.smoother == "ema" else MedianSmoother(cfg.median)
+
+    # ------------------------------------------------------------------ processing
+    def process(self, m: AssociatedRange) -> Published | None:
+        """Feed one associated range (time-ordered); return the estimate it published."""
+        agl = m.agl_m if m.agl_m is not None else self.cfg.agl_m
+        g = self.front.front(m, agl)
+        run = self.run
+        out = run.step(m, g, agl)
+        if run.generation != self._generation:  # the shared filter restarted
+            self._generation = run.generation
+            self.smoother = self._make_smoother()
+            self.monitor = ConvergenceMonitor(self.cfg.convergence)
+            self.last = None
+            self.last_stable = None
+        if out == ACC:
+            self.monitor.on_accepted()
+            return self._publish(m.t_s)
+        if out in (MAD, NIS):
+            self.monitor.on_rejected()
+        return None
+
     def _publish(self, t_s: float) -> Published:
-        f = self.filter
+        f = self.run.filter
         assert f is not None
         P = f.P
         sigma_h = math.sqrt(P[0][0] + P[1][1])  # eq. (21)
         sigma_z = math.sqrt(P[2][2])
         pos = self.smoother.push(f.position_enu_m)
-        stable = self.monitor.on_published(pos, sigma_h, sigma_z, self.counts.n_acc)
-        pub = Published(t_s, pos, sigma_h, sigma_z, f.bias_m, stable, self.counts.n_acc)
+        n_acc = self.run.counts.n_acc
+        stable = self.monitor.on_published(pos, sigma_h, sigma_z, n_acc)
+        pub = Published(t_s, pos, sigma_h, sigma_z, f.bias_m, stable, n_acc)
         self.last = pub
         if stable:
             self.last_stable = pub
@@ -345,31 +378,52 @@ class Track:
 
     # ------------------------------------------------------------------ outcome
     @property
+    def counts(self) -> TrackCounts:
+        return self.run.counts
+
+    @property
+    def filter(self) -> IEKF3D | UKF3D | None:
+        return self.run.filter
+
+    @property
+    def bootstrap_result(self) -> BootstrapResult | None:
+        return self.run.bootstrap_result
+
+    @property
+    def last_bootstrap(self) -> BootstrapResult | None:
+        return self.run.last_bootstrap
+
+    @property
+    def bootstrap_t_s(self) -> float | None:
+        return self.run.bootstrap_t_s
+
+    @property
     def status(self) -> str:
         """converged | tracking | bootstrapping | weak_geometry | diverged | no_data."""
-        if self.counts.n_meas == 0:
+        run = self.run
+        if run.counts.n_meas == 0:
             return "no_data"
-        if self.filter is not None:
+        if run.filter is not None:
             return "converged" if self.last_stable is not None else "tracking"
-        if self.diverged:
+        if run.diverged:
             return "diverged"
-        lb = self.last_bootstrap
+        lb = run.last_bootstrap
         if lb is None or lb.status == "waiting":
             return "bootstrapping"
         return "weak_geometry" if lb.status == "weak_geometry" else "diverged"
 
     def reported(self) -> Published | None:
         """The estimate to report: the last stable one, else the latest filter output."""
-        if self.filter is None:
+        f = self.run.filter
+        if f is None:
             return None
         if self.last_stable is not None:
             return self.last_stable
         if self.last is not None:
             return self.last
-        f = self.filter
         P = f.P
         return Published(
-            self.bootstrap_t_s or 0.0,
+            self.run.bootstrap_t_s or 0.0,
             f.position_enu_m,
             math.sqrt(P[0][0] + P[1][1]),
             math.sqrt(P[2][2]),

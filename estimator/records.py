@@ -142,8 +142,8 @@ class Trajectory:
     ``origin`` is the WGS84 (lat_deg, lon_deg, h_m) of the ENU frame.
     """
 
-    t_s: "np.ndarray"
-    enu_m: "np.ndarray"
+    t_s: np.ndarray
+    enu_m: np.ndarray
     origin: tuple[float, float, float]
     height_ref: Literal["origin", "terrain"] = "origin"
     name: str = ""

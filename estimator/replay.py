@@ -217,15 +217,12 @@ def _open_sources(paths: Sequence[str], opts: ReplayOptions) -> list[_LogSource]
 
 
 def _associated(src: _LogSource, index: int) -> Iterator[tuple[float, int, int, GeoRange, float]]:
-    seq = 0
-
     def recs() -> Iterator:
         if src.first is not None:
             yield src.first
         yield from src.records
 
-    for g in src.associator.run(recs()):
-        seq += 1
+    for seq, g in enumerate(src.associator.run(recs())):
         yield (g.t_ns * 1e-9 + src.offset_s, index, seq, g, src.agl_m)
 
 
@@ -356,8 +353,9 @@ def format_table(report: ReplayReport) -> str:
 
     for b, rows in by_bssid.items():
         conc = rows[0].concealment
-        lines.append(f"{b}" + (f"  ({conc})" if conc else "") + f"  n_meas={rows[0].counts['n_meas']}"
-                     f"  n_bootstrap={rows[0].counts['n_bootstrap']}")
+        c0 = rows[0].counts
+        head = f"{b}" + (f"  ({conc})" if conc else "")
+        lines.append(f"{head}  n_meas={c0['n_meas']}  n_bootstrap={c0['n_bootstrap']}")
         lines.append(
             f"  {'Mode':<12}{'status':<14}{'n_gate':>7}{'n_acc':>7}{'sigma_H':>9}{'sigma_Z':>9}"
             f"{'err_2D':>8}{'TWM':>7}{'err_3D':>8}{'bias':>7}"

@@ -39,7 +39,7 @@ def main(path: str, seed: int = 7) -> None:
     frame = ExactENU(*ORIGIN)
     t0_ns = 81_234_000_000_000
     t_gnss = np.arange(0.0, 240.0, 0.1)
-    bias = np.cumsum(rng.normal(0.0, 0.02, (len(t_gnss), 3)), axis=0) + [0.8, -0.5, 0.3]
+    bias = np.cumsum(rng.normal(0.0, 0.02, (len(t_gnss), 3)), axis=0) + np.array([0.8, -0.5, 0.3])
     pos = drone_path(t_gnss) + bias + rng.normal(0.0, 0.05, (len(t_gnss), 3))
     lat, lon, alt = frame.to_geodetic(pos[:, 0], pos[:, 1], pos[:, 2])
     t_rtt = np.sort(rng.uniform(0.0, 240.0, 960))
@@ -58,11 +58,11 @@ def main(path: str, seed: int = 7) -> None:
                             alt_m=round(aalt, 3), concealment="open"))
         recs = []
         for k, t in enumerate(t_gnss):
-            recs.append(GnssFix(t_ns=t0_ns + int(round(t * 1e9)), lat_deg=round(float(lat[k]), 9),
+            recs.append(GnssFix(t_ns=t0_ns + round(t * 1e9), lat_deg=round(float(lat[k]), 9),
                                 lon_deg=round(float(lon[k]), 9), alt_m=round(float(alt[k]), 3),
                                 acc_m=0.9, vacc_m=1.5, fix="3d", sats=21))
         for k, t in enumerate(t_rtt):
-            recs.append(RangeSample(t_ns=t0_ns + int(round(t * 1e9)), bssid=BSSID, status="ok",
+            recs.append(RangeSample(t_ns=t0_ns + round(t * 1e9), bssid=BSSID, status="ok",
                                     range_m=round(float(meas[k]), 3),
                                     range_std_m=round(float(sigma[k]), 3),
                                     rssi_dbm=float(rssi[k]), attempted=8, successful=7))
