@@ -1,0 +1,889 @@
+"""Upload, download and verify missions over MAVLink (pymavlink or MAVSDK).
+
+Two transports with one interface (:class:`MissionLink`):
+
+- :class:`PymavlinkLink` for pymavlink URLs (``udpout:127.0.0.1:14550``,
+  ``udpin:0.0.0.0:14550``, ``tcp:host:port``, ``/dev/ttyACM0``): the MAVLink
+  mission protocol written out here (MISSION_COUNT, MISSION_REQUEST_INT, and the
+  legacy MISSION_REQUEST answered with MISSION_ITEM_INT too, MISSION_ACK), with
+  a per-message timeout and a bounded number of resends.
+- :class:`MavsdkLink` for MAVSDK URLs (``udpin://``, ``udpout://``, ``tcp://``,
+  ``serial://``): ``mavsdk.plugins.mission_raw.MissionRaw``; each call is started
+  with the library's callback API and waited for with a deadline, then cancelled.
+
+Items go on the wire as MISSION_ITEM_INT (:class:`WireItem`): frame as given
+(default 6, GLOBAL_RELATIVE_ALT_INT), x/y = :func:`planner.mission.deg_to_e7`,
+contiguous seq, exactly one ``current`` item (seq 0) for the mission. Fence
+polygons go as ``NAV_FENCE_POLYGON_VERTEX_*`` (param1 = vertex count), circles as
+``NAV_FENCE_CIRCLE_*`` (param1 = radius), rally points as ``NAV_RALLY_POINT``.
+
+:func:`upload_mission` uploads fence, rally points and mission, downloads them
+back and compares item by item; it returns an :class:`UploadReport` only when the
+vehicle holds exactly what was sent, and raises an :class:`UploadError` otherwise.
+MAVLINK20=1 is set before pymavlink is imported (shared/guide/mavlink.md).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import math
+import os
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+os.environ["MAVLINK20"] = "1"  # before pymavlink: else mission_type is dropped
+
+from pymavlink import mavutil
+
+from planner.mission import (
+    MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
+    MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
+    MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION,
+    MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+    MAV_CMD_NAV_RALLY_POINT,
+    MAV_FRAME_GLOBAL,
+    MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    MAV_MISSION_TYPE_FENCE,
+    MAV_MISSION_TYPE_MISSION,
+    MAV_MISSION_TYPE_RALLY,
+    FenceCircle,
+    FencePolygon,
+    Mission,
+    MissionItem,
+    deg_to_e7,
+    e7_to_deg,
+)
+
+if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pymavlink was imported before us
+    mavutil.set_dialect(mavutil.current_dialect)
+
+__all__ = [
+    "InvalidConnectionError",
+    "MavsdkLink",
+    "MissionLink",
+    "MissionRejectedError",
+    "NoVehicleError",
+    "ProtocolError",
+    "PymavlinkLink",
+    "TransferConfig",
+    "UploadError",
+    "UploadReport",
+    "UploadTimeoutError",
+    "VerifyMismatchError",
+    "WireItem",
+    "compare_wire",
+    "connected",
+    "download_wire",
+    "fence_to_wire",
+    "is_mavsdk_url",
+    "mission_to_wire",
+    "open_link",
+    "quiet_mavsdk_logs",
+    "rally_to_wire",
+    "upload_mission",
+    "upload_on_link",
+    "wire_to_mission",
+]
+
+MISSION_TYPE_NAMES = {
+    MAV_MISSION_TYPE_MISSION: "mission",
+    MAV_MISSION_TYPE_FENCE: "fence",
+    MAV_MISSION_TYPE_RALLY: "rally",
+}
+GCS_SYSTEM_ID = 255
+GCS_COMPONENT_ID = 190  # MAV_COMP_ID_MISSIONPLANNER
+MAV_TYPE_GCS = 6
+MAV_AUTOPILOT_INVALID = 8
+MAV_MISSION_ACCEPTED = mavutil.mavlink.MAV_MISSION_ACCEPTED  # 0
+MAV_MISSION_OPERATION_CANCELLED = mavutil.mavlink.MAV_MISSION_OPERATION_CANCELLED  # 15
+ALT_TOLERANCE_M = 1e-3
+HEARTBEAT_PERIOD_S = 1.0
+_FLOAT32_MAX = 3.4028234663852886e38
+
+
+# ---------------------------------------------------------------- errors
+
+
+class UploadError(Exception):
+    """A mission transfer that did not leave the vehicle holding the mission."""
+
+
+class InvalidConnectionError(UploadError, ValueError):
+    """A connection URL that neither pymavlink nor MAVSDK can open."""
+
+
+class NoVehicleError(UploadError):
+    """No vehicle heartbeat within the connection timeout."""
+
+
+class UploadTimeoutError(UploadError):
+    """The vehicle stopped answering in the middle of a transfer."""
+
+
+class ProtocolError(UploadError):
+    """The vehicle broke the mission protocol (early ACK, bad seq, float items)."""
+
+
+class MissionRejectedError(UploadError):
+    """The vehicle answered with a MISSION_ACK error (a MAV_MISSION_RESULT NACK).
+
+    ``result_name`` is the MAV_MISSION_RESULT name on the pymavlink path (e.g.
+    ``MAV_MISSION_NO_SPACE``) and the ``MissionRawResult`` name on the MAVSDK path
+    (e.g. ``TOO_MANY_MISSION_ITEMS``), which folds some results together.
+    """
+
+    def __init__(self, result_name: str, *, mission_type: int = MAV_MISSION_TYPE_MISSION,
+                 result_code: int | None = None, detail: str = "") -> None:
+        self.result_name = result_name
+        self.result_code = result_code
+        self.mission_type = mission_type
+        kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
+        super().__init__(f"vehicle rejected the {kind} upload: {result_name}"
+                         + (f" ({detail})" if detail else ""))
+
+
+class VerifyMismatchError(UploadError):
+    """The items read back from the vehicle differ from the items sent."""
+
+    def __init__(self, differences: Sequence[str], *,
+                 mission_type: int = MAV_MISSION_TYPE_MISSION) -> None:
+        self.differences = list(differences)
+        self.mission_type = mission_type
+        kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
+        more = f" (+{len(self.differences) - 1} more)" if len(self.differences) > 1 else ""
+        super().__init__(f"{kind} read back differs: {self.differences[0]}{more}")
+
+
+# ---------------------------------------------------------------- wire items
+
+
+@dataclass(frozen=True, kw_only=True)
+class WireItem:
+    """One MISSION_ITEM_INT as sent or received (x/y int degE7, z metres)."""
+
+    seq: int
+    frame: int
+    command: int
+    current: int
+    autocontinue: int
+    param1: float
+    param2: float
+    param3: float
+    param4: float
+    x: int
+    y: int
+    z: float
+    mission_type: int = MAV_MISSION_TYPE_MISSION
+
+    @classmethod
+    def from_msg(cls, msg: Any) -> WireItem:
+        """From a pymavlink MISSION_ITEM_INT or a MAVSDK MissionRaw item."""
+        return cls(seq=int(msg.seq), frame=int(msg.frame), command=int(msg.command),
+                   current=int(msg.current), autocontinue=int(msg.autocontinue),
+                   param1=float(msg.param1), param2=float(msg.param2),
+                   param3=float(msg.param3), param4=float(msg.param4),
+                   x=int(msg.x), y=int(msg.y), z=float(msg.z),
+                   mission_type=int(getattr(msg, "mission_type", 0)))
+
+
+def _f32(x: float) -> float:
+    """The float32 the wire holds (NaN stays NaN)."""
+    if math.isnan(x):
+        return x
+    if abs(x) > _FLOAT32_MAX:
+        raise ValueError(f"{x!r} does not fit a float32 mission param")
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def _item_to_wire(it: MissionItem, seq: int, current: bool) -> WireItem:
+    return WireItem(seq=seq, frame=it.frame, command=it.command, current=int(current),
+                    autocontinue=int(bool(it.autocontinue)),
+                    param1=_f32(it.param1), param2=_f32(it.param2),
+                    param3=_f32(it.param3), param4=_f32(it.param4),
+                    x=deg_to_e7(it.lat_deg), y=deg_to_e7(it.lon_deg), z=_f32(it.alt_m),
+                    mission_type=MAV_MISSION_TYPE_MISSION)
+
+
+def mission_to_wire(mission: Mission) -> list[WireItem]:
+    """The mission items: seq 0.., item 0 the one current item."""
+    return [_item_to_wire(it, i, i == 0) for i, it in enumerate(mission.items)]
+
+
+def fence_to_wire(mission: Mission) -> list[WireItem]:
+    """Fence items: each polygon's vertices (param1 = vertex count), then the circles."""
+    out: list[WireItem] = []
+
+    def add(command: int, p1: float, lat: float, lon: float) -> None:
+        out.append(WireItem(seq=len(out), frame=MAV_FRAME_GLOBAL, command=command, current=0,
+                            autocontinue=0, param1=_f32(p1), param2=0.0, param3=0.0,
+                            param4=0.0, x=deg_to_e7(lat), y=deg_to_e7(lon), z=0.0,
+                            mission_type=MAV_MISSION_TYPE_FENCE))
+
+    for poly in mission.polygons:
+        cmd = (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION if poly.inclusion
+               else MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION)
+        for lat, lon in poly.vertices_deg:
+            add(cmd, float(len(poly.vertices_deg)), lat, lon)
+    for circle in mission.circles:
+        cmd = (MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION if circle.inclusion
+               else MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION)
+        add(cmd, circle.radius_m, circle.lat_deg, circle.lon_deg)
+    return out
+
+
+def rally_to_wire(mission: Mission) -> list[WireItem]:
+    """Rally points as NAV_RALLY_POINT, altitude relative to home (frame 6)."""
+    return [WireItem(seq=i, frame=MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                     command=MAV_CMD_NAV_RALLY_POINT, current=0, autocontinue=0,
+                     param1=0.0, param2=0.0, param3=0.0, param4=0.0,
+                     x=deg_to_e7(lat), y=deg_to_e7(lon), z=_f32(alt),
+                     mission_type=MAV_MISSION_TYPE_RALLY)
+            for i, (lat, lon, alt) in enumerate(mission.rally_deg)]
+
+
+def wire_to_mission(items: Sequence[WireItem], *, home: tuple[float, float, float],
+                    fence: Sequence[WireItem] = (), rally: Sequence[WireItem] = ()) -> Mission:
+    """A Mission from downloaded items (the vehicle does not say where home is)."""
+    mission_items = tuple(
+        MissionItem(command=w.command, frame=w.frame, lat_deg=e7_to_deg(w.x),
+                    lon_deg=e7_to_deg(w.y), alt_m=w.z, param1=w.param1, param2=w.param2,
+                    param3=w.param3, param4=w.param4, autocontinue=bool(w.autocontinue))
+        for w in items)
+    polygons: list[FencePolygon] = []
+    circles: list[FenceCircle] = []
+    k = 0
+    while k < len(fence):
+        w = fence[k]
+        if w.command in (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+                         MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION):
+            n = int(w.param1)
+            if n < 3 or k + n > len(fence):
+                raise ProtocolError(f"fence item {k}: polygon of {n} vertices does not fit")
+            verts = tuple((e7_to_deg(v.x), e7_to_deg(v.y)) for v in fence[k:k + n])
+            polygons.append(FencePolygon(
+                vertices_deg=verts,
+                inclusion=w.command == MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION))
+            k += n
+        elif w.command in (MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION):
+            circles.append(FenceCircle(lat_deg=e7_to_deg(w.x), lon_deg=e7_to_deg(w.y),
+                                       radius_m=w.param1,
+                                       inclusion=w.command == MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION))
+            k += 1
+        else:
+            raise ProtocolError(f"fence item {k}: unexpected command {w.command}")
+    return Mission(items=mission_items, home=home, polygons=tuple(polygons),
+                   circles=tuple(circles),
+                   rally_deg=tuple((e7_to_deg(w.x), e7_to_deg(w.y), w.z) for w in rally))
+
+
+def _same_f32(a: float, b: float) -> bool:
+    if math.isnan(a) or math.isnan(b):
+        return math.isnan(a) and math.isnan(b)
+    return _f32(a) == _f32(b)
+
+
+def compare_wire(sent: Sequence[WireItem], held: Sequence[WireItem]) -> list[str]:
+    """Differences between items sent and items read back (empty = identical).
+
+    Compares seq, frame, command, autocontinue, int x/y, params (as float32, NaN
+    equal to NaN), mission_type and z within 1e-3 m. ``current`` is not compared:
+    the vehicle moves its current item.
+    """
+    diffs: list[str] = []
+    if len(sent) != len(held):
+        diffs.append(f"vehicle holds {len(held)} items, {len(sent)} were sent")
+    for i, (a, b) in enumerate(zip(sent, held, strict=False)):
+        for name in ("seq", "frame", "command", "autocontinue", "x", "y", "mission_type"):
+            va, vb = getattr(a, name), getattr(b, name)
+            if va != vb:
+                diffs.append(f"item {i}: {name} {vb} != sent {va}")
+        for name in ("param1", "param2", "param3", "param4"):
+            va, vb = getattr(a, name), getattr(b, name)
+            if not _same_f32(va, vb):
+                diffs.append(f"item {i}: {name} {vb!r} != sent {va!r}")
+        if not (abs(a.z - b.z) <= ALT_TOLERANCE_M):
+            diffs.append(f"item {i}: z {b.z!r} != sent {a.z!r}")
+    return diffs
+
+
+# ---------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True, kw_only=True)
+class TransferConfig:
+    """Time bounds of a transfer.
+
+    Every wait for a vehicle message lasts at most ``message_timeout_s``; the
+    pymavlink path resends the last message at most ``retries`` times before
+    :class:`UploadTimeoutError`. A transfer of ``n`` items is also bounded as a
+    whole by ``(n + 3) * (retries + 1) * message_timeout_s`` (a vehicle that keeps
+    re-requesting). The MAVSDK path uses ``message_timeout_s`` as MAVSDK's own
+    timeout (its resend count is fixed by the library) under the same bound.
+    """
+
+    connect_timeout_s: float = 5.0  # wait for the vehicle's heartbeat
+    message_timeout_s: float = 0.5  # MAVLink mission protocol: MAVSDK's default
+    retries: int = 5
+
+    def transfer_bound_s(self, n_items: int) -> float:
+        return (n_items + 3) * (self.retries + 1) * self.message_timeout_s
+
+
+@dataclass(frozen=True)
+class UploadReport:
+    """What :func:`upload_mission` verified on the vehicle."""
+
+    items: int
+    fence_items: int
+    rally_items: int
+    elapsed_s: float
+    backend: str
+    vehicle: tuple[int, int] = (0, 0)  # system id, component id
+
+
+# ---------------------------------------------------------------- links
+
+
+class MissionLink(Protocol):
+    """A connection to one vehicle that can move mission items both ways."""
+
+    backend: str
+    vehicle: tuple[int, int]
+
+    def upload(self, items: Sequence[WireItem], mission_type: int) -> None: ...
+
+    def clear(self, mission_type: int) -> None: ...
+
+    def download(self, mission_type: int, expected_items: int = ...) -> list[WireItem]: ...
+
+    def close(self) -> None: ...
+
+
+MAVSDK_SCHEMES = ("udpin://", "udpout://", "udp://", "tcp://", "tcpin://", "tcpout://",
+                  "serial://")
+
+
+def is_mavsdk_url(url: str) -> bool:
+    """True for MAVSDK's ``scheme://`` URLs, False for pymavlink's ``scheme:`` forms."""
+    return "://" in url
+
+
+def open_link(url: str, config: TransferConfig | None = None) -> MavsdkLink | PymavlinkLink:
+    """Connect to the vehicle at ``url`` and wait for it (:class:`NoVehicleError`)."""
+    config = config or TransferConfig()
+    if is_mavsdk_url(url):
+        return MavsdkLink(url, config)
+    return PymavlinkLink(url, config)
+
+
+def _result_name(code: int) -> str:
+    entry = mavutil.mavlink.enums["MAV_MISSION_RESULT"].get(code)
+    return entry.name if entry is not None else f"MAV_MISSION_RESULT_{code}"
+
+
+class PymavlinkLink:
+    """The mission protocol over a pymavlink connection."""
+
+    backend = "pymavlink"
+
+    def __init__(self, url: str, config: TransferConfig | None = None, *,
+                 source_system: int = GCS_SYSTEM_ID,
+                 source_component: int = GCS_COMPONENT_ID) -> None:
+        self.config = config or TransferConfig()
+        self.url = url
+        self._src = (source_system, source_component)
+        self._last_heartbeat_s = -math.inf
+        self._conn = self._open(url)
+        try:
+            self.vehicle = self._wait_vehicle(self.config.connect_timeout_s)
+        except BaseException:
+            self._conn.close()
+            raise
+
+    def _open(self, url: str) -> Any:
+        if url.startswith("tcp:"):  # fail fast and bounded instead of pymavlink's retries
+            host, _, port = url[4:].rpartition(":")
+            try:
+                with socket.create_connection((host, int(port)),
+                                              timeout=self.config.connect_timeout_s):
+                    pass
+            except ValueError as exc:
+                raise InvalidConnectionError(f"bad TCP URL {url!r}: {exc}") from None
+            except OSError as exc:
+                raise NoVehicleError(f"no vehicle at {url}: {exc}") from None
+        try:
+            return mavutil.mavlink_connection(
+                url, source_system=self._src[0], source_component=self._src[1],
+                autoreconnect=False, retries=0, reconnect_delay=0.1)
+        except (ValueError, IndexError) as exc:
+            raise InvalidConnectionError(f"bad connection URL {url!r}: {exc}") from None
+        except OSError as exc:
+            raise InvalidConnectionError(f"cannot open {url}: {exc}") from None
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self._conn.close()
+
+    def __enter__(self) -> PymavlinkLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- low level
+
+    def _heartbeat(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self._last_heartbeat_s >= HEARTBEAT_PERIOD_S:
+            self._last_heartbeat_s = now
+            with contextlib.suppress(OSError):
+                self._conn.mav.heartbeat_send(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def _wait_vehicle(self, timeout_s: float) -> tuple[int, int]:
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            self._heartbeat()  # a udpin vehicle learns our address from it
+            msg = self._conn.recv_match(type="HEARTBEAT", blocking=True,
+                                        timeout=min(left, HEARTBEAT_PERIOD_S / 2))
+            if (msg is not None and msg.type != MAV_TYPE_GCS
+                    and msg.autopilot != MAV_AUTOPILOT_INVALID):
+                return msg.get_srcSystem(), msg.get_srcComponent()
+        raise NoVehicleError(f"no vehicle heartbeat on {self.url} within {timeout_s:g} s")
+
+    def _recv(self, types: Sequence[str], deadline: float) -> Any | None:
+        """The next message of ``types`` from the vehicle to us, or None at ``deadline``."""
+        sysid, compid = self.vehicle
+        while (left := deadline - time.monotonic()) > 0:
+            self._heartbeat()
+            msg = self._conn.recv_match(type=list(types), blocking=True,
+                                        timeout=min(left, HEARTBEAT_PERIOD_S))
+            if msg is None:
+                continue
+            if msg.get_srcSystem() != sysid or msg.get_srcComponent() != compid:
+                continue
+            if getattr(msg, "target_system", self._src[0]) not in (0, self._src[0]):
+                continue
+            return msg
+        return None
+
+    def _target(self) -> tuple[int, int]:
+        return self.vehicle
+
+    def _send_item(self, w: WireItem) -> None:
+        self._conn.mav.mission_item_int_send(
+            *self._target(), w.seq, w.frame, w.command, w.current, w.autocontinue,
+            w.param1, w.param2, w.param3, w.param4, w.x, w.y, w.z, w.mission_type)
+
+    def _cancel(self, mission_type: int) -> None:
+        with contextlib.suppress(OSError):
+            self._conn.mav.mission_ack_send(*self._target(), MAV_MISSION_OPERATION_CANCELLED,
+                                            mission_type)
+
+    # -- transfers
+
+    def upload(self, items: Sequence[WireItem], mission_type: int) -> None:
+        """Send ``items`` (seq 0..n-1 of ``mission_type``); return once ACCEPTED."""
+        _check_wire(items, mission_type)
+        if not items:
+            self.clear(mission_type)
+            return
+        n = len(items)
+        cfg = self.config
+        kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
+        self._drain()
+        end = time.monotonic() + cfg.transfer_bound_s(n)
+
+        def send_count() -> None:
+            self._conn.mav.mission_count_send(*self._target(), n, mission_type)
+
+        resend: Callable[[], None] = send_count
+        send_count()
+        deadline = time.monotonic() + cfg.message_timeout_s
+        tries = 0
+        sent = [False] * n
+        while True:
+            msg = self._recv(("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"),
+                             min(end, deadline))
+            if msg is not None and getattr(msg, "mission_type", 0) != mission_type:
+                continue  # another transfer's message
+            if msg is None:
+                if tries >= cfg.retries or time.monotonic() >= end:
+                    self._cancel(mission_type)
+                    raise UploadTimeoutError(
+                        f"{kind} upload timed out: no answer after {sum(sent)} of {n} items "
+                        f"({tries} resends, {cfg.message_timeout_s:g} s each); "
+                        f"the vehicle does not hold the {kind}")
+                tries += 1
+                resend()
+                deadline = time.monotonic() + cfg.message_timeout_s
+                continue
+            if msg.get_type() == "MISSION_ACK":
+                if msg.type != MAV_MISSION_ACCEPTED:
+                    raise MissionRejectedError(_result_name(msg.type), mission_type=mission_type,
+                                               result_code=int(msg.type))
+                if all(sent):
+                    return
+                raise ProtocolError(f"{kind} upload: vehicle accepted after {sum(sent)} of "
+                                    f"{n} items; the vehicle does not hold the {kind}")
+            seq = int(msg.seq)
+            if not 0 <= seq < n:
+                self._cancel(mission_type)
+                raise ProtocolError(f"{kind} upload: vehicle requested item {seq} of {n}")
+            item = items[seq]
+
+            def resend_item(item: WireItem = item) -> None:
+                self._send_item(item)
+
+            resend = resend_item
+            resend()
+            sent[seq] = True
+            tries = 0
+            deadline = time.monotonic() + cfg.message_timeout_s
+
+    def clear(self, mission_type: int) -> None:
+        """MISSION_CLEAR_ALL for ``mission_type``; return once ACCEPTED.
+
+        An empty upload is sent this way, never as MISSION_COUNT 0: MAVSDK 4.1's
+        MissionRawServer is left corrupted by a count of 0 (the next upload aborts)."""
+        cfg = self.config
+        kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
+        self._drain()
+        for _ in range(cfg.retries + 1):
+            self._conn.mav.mission_clear_all_send(*self._target(), mission_type)
+            deadline = time.monotonic() + cfg.message_timeout_s
+            while (msg := self._recv(("MISSION_ACK",), deadline)) is not None:
+                if getattr(msg, "mission_type", 0) != mission_type:
+                    continue
+                if msg.type != MAV_MISSION_ACCEPTED:
+                    raise MissionRejectedError(_result_name(msg.type), mission_type=mission_type,
+                                               result_code=int(msg.type), detail="clear all")
+                return
+        raise UploadTimeoutError(f"{kind} clear timed out: no MISSION_ACK after "
+                                 f"{cfg.retries} resends")
+
+    def _drain(self, max_messages: int = 1000) -> None:
+        """Drop messages already received (late answers of an earlier transfer)."""
+        for _ in range(max_messages):
+            if self._conn.recv_match(blocking=False) is None:
+                return
+
+    def download(self, mission_type: int, expected_items: int = 0) -> list[WireItem]:
+        """Read the vehicle's items of ``mission_type`` (MISSION_REQUEST_INT each).
+
+        ``expected_items`` is unused here: the bound follows the vehicle's count."""
+        cfg = self.config
+        kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
+
+        def ask(send: Callable[[], None], types: Sequence[str],
+                accept: Callable[[Any], bool], what: str, end: float) -> Any:
+            tries = 0
+            send()
+            deadline = time.monotonic() + cfg.message_timeout_s
+            while True:
+                msg = self._recv((*types, "MISSION_ACK"), min(deadline, end))
+                if msg is not None and getattr(msg, "mission_type", 0) != mission_type:
+                    continue
+                if msg is None:
+                    if tries >= cfg.retries or time.monotonic() >= end:
+                        self._cancel(mission_type)
+                        raise UploadTimeoutError(f"{kind} download timed out waiting for {what}")
+                    tries += 1
+                    send()
+                    deadline = time.monotonic() + cfg.message_timeout_s
+                    continue
+                if msg.get_type() == "MISSION_ACK":
+                    if msg.type == MAV_MISSION_ACCEPTED:
+                        continue  # a late ACK of an earlier transfer
+                    raise MissionRejectedError(_result_name(msg.type), mission_type=mission_type,
+                                               result_code=int(msg.type),
+                                               detail="during download")
+                if msg.get_type() == "MISSION_ITEM":
+                    self._cancel(mission_type)
+                    raise ProtocolError(f"{kind} download: vehicle sent float MISSION_ITEM")
+                if accept(msg):
+                    return msg
+
+        target = self._target()
+        self._drain()
+        count_msg = ask(lambda: self._conn.mav.mission_request_list_send(*target, mission_type),
+                        ("MISSION_COUNT",), lambda m: True, "MISSION_COUNT",
+                        time.monotonic() + cfg.transfer_bound_s(0))
+        n = int(count_msg.count)
+        end = time.monotonic() + cfg.transfer_bound_s(n)
+        out: list[WireItem] = []
+        for seq in range(n):
+            msg = ask(lambda seq=seq: self._conn.mav.mission_request_int_send(
+                          *target, seq, mission_type),
+                      ("MISSION_ITEM_INT", "MISSION_ITEM"), lambda m, seq=seq: m.seq == seq,
+                      f"item {seq} of {n}", end)
+            out.append(WireItem.from_msg(msg))
+        self._conn.mav.mission_ack_send(*target, MAV_MISSION_ACCEPTED, mission_type)
+        return out
+
+
+def _check_wire(items: Sequence[WireItem], mission_type: int) -> None:
+    """Refuse what a vehicle would NACK anyway: gaps, mixed types, current != 1 item."""
+    for i, w in enumerate(items):
+        if w.seq != i:
+            raise ValueError(f"item {i} has seq {w.seq}: seq must be contiguous from 0")
+        if w.mission_type != mission_type:
+            raise ValueError(f"item {i} has mission_type {w.mission_type}, not {mission_type}")
+    if mission_type == MAV_MISSION_TYPE_MISSION and items:
+        current = [w.seq for w in items if w.current]
+        if current != [0]:
+            raise ValueError(f"exactly item 0 must be current, got {current}")
+
+
+# MissionRawResult names that are not a vehicle's NACK; any other failure is one
+_MAVSDK_TIMEOUT = {"TIMEOUT"}
+_MAVSDK_NO_VEHICLE = {"NO_SYSTEM"}
+_MAVSDK_PROTOCOL = {"BUSY", "INT_MESSAGES_NOT_SUPPORTED"}
+
+
+class MavsdkLink:
+    """Mission transfers through MAVSDK's MissionRaw (libcmavsdk, no server binary)."""
+
+    backend = "mavsdk"
+
+    def __init__(self, url: str, config: TransferConfig | None = None) -> None:
+        from mavsdk import ComponentType, Configuration, Mavsdk
+        from mavsdk.cmavsdk_loader import _cmavsdk_lib
+        from mavsdk.connection_result import ConnectionResult
+        from mavsdk.plugins.mission_raw import MissionRaw
+
+        quiet_mavsdk_logs()
+        self.config = config or TransferConfig()
+        self.url = url
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(
+            ComponentType.GROUND_STATION))
+        try:
+            # per-message timeout of MAVSDK's transfers (not wrapped in Python)
+            _cmavsdk_lib.mavsdk_set_timeout_s.argtypes = [ctypes.c_void_p, ctypes.c_double]
+            _cmavsdk_lib.mavsdk_set_timeout_s.restype = None
+            _cmavsdk_lib.mavsdk_set_timeout_s(self._mavsdk._handle,
+                                              float(self.config.message_timeout_s))
+            result = self._mavsdk.add_any_connection(url)
+            if result != ConnectionResult.SUCCESS:
+                raise InvalidConnectionError(f"cannot open {url}: {result.name}")
+            system = self._mavsdk.first_autopilot(self.config.connect_timeout_s)
+            if system is None:
+                raise NoVehicleError(
+                    f"no vehicle heartbeat on {url} within {self.config.connect_timeout_s:g} s")
+            ids = system.component_ids()
+            self.vehicle = (system.get_system_id(), 1 if 1 in ids or not ids else ids[0])
+            self._system = system
+            self._plugin = MissionRaw(system)
+        except BaseException:
+            self._mavsdk.destroy()
+            raise
+
+    def close(self) -> None:
+        self._mavsdk.destroy()
+
+    def __enter__(self) -> MavsdkLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _wait(self, start: Callable[[Callable[..., None]], None], n_items: int,
+              what: str, mission_type: int, cancel: Callable[[], Any] | None) -> tuple[Any, Any]:
+        """Start a callback-style MAVSDK call and wait for it with a deadline."""
+        done = threading.Event()
+        box: list[tuple[Any, Any]] = []
+
+        def callback(result: Any, data: Any = None) -> None:
+            box.append((result, data))
+            done.set()
+
+        start(callback)
+        bound_s = self.config.transfer_bound_s(n_items) + 1.0
+        if not done.wait(bound_s):
+            if cancel is not None:
+                with contextlib.suppress(Exception):
+                    cancel()
+            raise UploadTimeoutError(f"{what} did not finish within {bound_s:g} s")
+        result, data = box[0]
+        name = result.name
+        if name == "SUCCESS":
+            return result, data
+        kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
+        if name in _MAVSDK_TIMEOUT:
+            raise UploadTimeoutError(f"{what} timed out (MAVSDK: {name}); "
+                                     f"the vehicle does not hold the {kind}")
+        if name in _MAVSDK_NO_VEHICLE:
+            raise NoVehicleError(f"{what}: vehicle lost (MAVSDK: {name})")
+        if name in _MAVSDK_PROTOCOL:
+            raise ProtocolError(f"{what} failed: MAVSDK {name}")
+        raise MissionRejectedError(name, mission_type=mission_type, result_code=int(result))
+
+    def upload(self, items: Sequence[WireItem], mission_type: int) -> None:
+        from mavsdk.plugins.mission_raw import MissionItem as RawItem
+
+        _check_wire(items, mission_type)
+        raw = [RawItem(seq=w.seq, frame=w.frame, command=w.command, current=w.current,
+                       autocontinue=w.autocontinue, param1=w.param1, param2=w.param2,
+                       param3=w.param3, param4=w.param4, x=w.x, y=w.y, z=w.z,
+                       mission_type=w.mission_type) for w in items]
+        p = self._plugin
+        if not items:  # MAVSDK refuses an empty upload (NO_MISSION_AVAILABLE): clear instead
+            self.clear(mission_type)
+            return
+        start, cancel = {
+            MAV_MISSION_TYPE_MISSION: (p.upload_mission_async, p.cancel_mission_upload),
+            MAV_MISSION_TYPE_FENCE: (p.upload_geofence_async, None),
+            MAV_MISSION_TYPE_RALLY: (p.upload_rally_points_async, None),
+        }[mission_type]
+        kind = MISSION_TYPE_NAMES[mission_type]
+        self._wait(lambda cb: start(raw, lambda r, ud: cb(r)), len(items),
+                   f"{kind} upload", mission_type, cancel)
+
+    def import_qgc_plan(self, path: str | os.PathLike[str]) -> dict[int, list[WireItem]]:
+        """MAVSDK's own reading of a QGroundControl ``.plan``: items per mission type.
+
+        An independent check of :func:`planner.files.write_plan` (no transfer)."""
+        from mavsdk.plugins.mission_raw import MissionRawError
+
+        try:
+            data = self._plugin.import_qgroundcontrol_mission(os.fspath(path))
+        except MissionRawError as exc:
+            raise ValueError(f"MAVSDK cannot import {path}: {exc.result.name}") from None
+        return {
+            MAV_MISSION_TYPE_MISSION: [WireItem.from_msg(m) for m in data.mission_items],
+            MAV_MISSION_TYPE_FENCE: [WireItem.from_msg(m) for m in data.geofence_items],
+            MAV_MISSION_TYPE_RALLY: [WireItem.from_msg(m) for m in data.rally_items],
+        }
+
+    def clear(self, mission_type: int) -> None:
+        """Clear the vehicle's mission (MissionRaw can clear the mission only)."""
+        if mission_type != MAV_MISSION_TYPE_MISSION:
+            raise ValueError("MAVSDK can only clear the mission, not the fence or rally points")
+        p = self._plugin
+        self._wait(lambda cb: p.clear_mission_async(lambda r, ud: cb(r)), 0,
+                   "mission clear", mission_type, None)
+
+    def download(self, mission_type: int, expected_items: int = 100) -> list[WireItem]:
+        """The vehicle's items; ``expected_items`` only sizes the time bound."""
+        p = self._plugin
+        start = {
+            MAV_MISSION_TYPE_MISSION: p.download_mission_async,
+            MAV_MISSION_TYPE_FENCE: p.download_geofence_async,
+            MAV_MISSION_TYPE_RALLY: p.download_rallypoints_async,
+        }[mission_type]
+        kind = MISSION_TYPE_NAMES[mission_type]
+        # the count is unknown before the download: bound as for a large mission
+        _, data = self._wait(lambda cb: start(lambda r, items, ud: cb(r, items)),
+                             expected_items, f"{kind} download", mission_type,
+                             p.cancel_mission_download)
+        return [WireItem.from_msg(m) for m in data or []]
+
+
+_LOG_LOCK = threading.Lock()
+_LOGS_QUIET = False
+
+
+def quiet_mavsdk_logs() -> None:
+    """Route MAVSDK's console log to Python logging (logger ``mavsdk``, silent unless
+    the application configures logging), once per process."""
+    global _LOGS_QUIET
+    with _LOG_LOCK:
+        if _LOGS_QUIET:
+            return
+        import logging
+
+        from mavsdk import LogLevel, log_subscribe
+
+        logger = logging.getLogger("mavsdk")
+        logger.addHandler(logging.NullHandler())  # no stderr fallback: errors are raised
+        levels = {LogLevel.DEBUG: logging.DEBUG, LogLevel.INFO: logging.DEBUG,
+                  LogLevel.WARN: logging.WARNING, LogLevel.ERROR: logging.ERROR}
+
+        def forward(level: Any, message: str, file: str | None, line: int) -> bool:
+            logger.log(levels.get(level, logging.INFO), "%s (%s:%s)", message, file, line)
+            return True
+
+        log_subscribe(forward)
+        _LOGS_QUIET = True
+
+
+# ---------------------------------------------------------------- high level
+
+
+@dataclass
+class _Plan:
+    mission_type: int
+    items: list[WireItem] = field(default_factory=list)
+
+
+def _plans(mission: Mission, fence: bool) -> list[_Plan]:
+    """What to send, in order: fence and rally first (a vehicle may check the mission
+    against its fence on upload), then the mission."""
+    plans = []
+    if fence:
+        fence_items = fence_to_wire(mission)
+        if fence_items:
+            plans.append(_Plan(MAV_MISSION_TYPE_FENCE, fence_items))
+        rally_items = rally_to_wire(mission)
+        if rally_items:
+            plans.append(_Plan(MAV_MISSION_TYPE_RALLY, rally_items))
+    plans.append(_Plan(MAV_MISSION_TYPE_MISSION, mission_to_wire(mission)))
+    return plans
+
+
+def upload_on_link(link: MissionLink, mission: Mission, *, fence: bool = True,
+                   verify: bool = True) -> tuple[int, int, int]:
+    """Upload (and read back) ``mission`` on an open link; item counts on success."""
+    try:
+        plans = _plans(mission, fence)
+    except ValueError as exc:
+        raise UploadError(f"mission cannot be sent: {exc}") from None
+    for plan in plans:
+        link.upload(plan.items, plan.mission_type)
+    if verify:
+        for plan in plans:
+            held = link.download(plan.mission_type, expected_items=len(plan.items))
+            diffs = compare_wire(plan.items, held)
+            if diffs:
+                raise VerifyMismatchError(diffs, mission_type=plan.mission_type)
+    counts = {p.mission_type: len(p.items) for p in plans}
+    return (counts.get(MAV_MISSION_TYPE_MISSION, 0), counts.get(MAV_MISSION_TYPE_FENCE, 0),
+            counts.get(MAV_MISSION_TYPE_RALLY, 0))
+
+
+def upload_mission(mission: Mission, url: str, *, config: TransferConfig | None = None,
+                   fence: bool = True, verify: bool = True) -> UploadReport:
+    """Upload ``mission`` (+ fence and rally points unless ``fence=False``) to the
+    vehicle at ``url``, read everything back and compare.
+
+    Returns only when the vehicle holds exactly what was sent; raises
+    :class:`UploadError` (one of its subclasses) otherwise.
+    """
+    t0 = time.perf_counter()
+    with contextlib.closing(open_link(url, config)) as link:
+        n_items, n_fence, n_rally = upload_on_link(link, mission, fence=fence, verify=verify)
+        return UploadReport(items=n_items, fence_items=n_fence, rally_items=n_rally,
+                            elapsed_s=time.perf_counter() - t0, backend=link.backend,
+                            vehicle=link.vehicle)
+
+
+def download_wire(url: str, mission_types: Sequence[int] = (MAV_MISSION_TYPE_MISSION,),
+                  *, config: TransferConfig | None = None) -> dict[int, list[WireItem]]:
+    """Download the vehicle's items of each of ``mission_types``."""
+    with contextlib.closing(open_link(url, config)) as link:
+        return {t: link.download(t) for t in mission_types}
+
+
+@contextlib.contextmanager
+def connected(url: str, config: TransferConfig | None = None) -> Iterator[MissionLink]:
+    """``with connected(url) as link:`` an open :class:`MissionLink`, closed after."""
+    link = open_link(url, config)
+    try:
+        yield link
+    finally:
+        link.close()

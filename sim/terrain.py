@@ -1,0 +1,161 @@
+"""Terrain height fields in the world's ENU frame.
+
+A terrain maps horizontal ENU coordinates (metres) to the ground's height ``u`` in the
+same frame (metres above the frame origin's tangent plane). Two kinds:
+
+- :class:`HillsTerrain`: an analytic, smooth hilly default (a sum of Gaussian hills and
+  a gentle sinusoidal ripple), standing in for the paper's "unstructured, mountainous
+  terrain" (sec. Experimental Setup).
+- :class:`GridTerrain`: a user-supplied regular grid with bilinear interpolation;
+  outside the grid the edge value is held.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from sim._config import check_finite, check_positive
+
+
+class Terrain(Protocol):
+    def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray: ...
+
+
+def bilinear(
+    values: np.ndarray,
+    x0: float,
+    y0: float,
+    dx: float,
+    dy: float,
+    x: ArrayLike,
+    y: ArrayLike,
+) -> np.ndarray:
+    """Bilinear interpolation of ``values[iy, ix]`` sampled at (x0 + ix dx, y0 + iy dy).
+
+    Points outside the grid take the nearest edge value.
+    """
+    ny, nx = values.shape
+    fx = np.clip((np.asarray(x, dtype=float) - x0) / dx, 0.0, nx - 1.0)
+    fy = np.clip((np.asarray(y, dtype=float) - y0) / dy, 0.0, ny - 1.0)
+    ix = np.minimum(fx.astype(np.intp), max(nx - 2, 0))
+    iy = np.minimum(fy.astype(np.intp), max(ny - 2, 0))
+    tx = fx - ix
+    ty = fy - iy
+    ix1 = np.minimum(ix + 1, nx - 1)
+    iy1 = np.minimum(iy + 1, ny - 1)
+    v00 = values[iy, ix]
+    v01 = values[iy, ix1]
+    v10 = values[iy1, ix]
+    v11 = values[iy1, ix1]
+    return (v00 * (1 - tx) + v01 * tx) * (1 - ty) + (v10 * (1 - tx) + v11 * tx) * ty
+
+
+@dataclass(frozen=True, kw_only=True)
+class Hill:
+    """One Gaussian hill (negative ``height_m``: a valley)."""
+
+    e_m: float
+    n_m: float
+    height_m: float
+    sigma_m: float
+
+    def __post_init__(self) -> None:
+        check_finite("hill e_m", self.e_m)
+        check_finite("hill n_m", self.n_m)
+        check_finite("hill height_m", self.height_m)
+        check_positive("hill sigma_m", self.sigma_m)
+
+
+# A hillside some 40 m of relief across ~600 m, like the UMA campus slopes
+# (sec. Experimental Setup: "unstructured, mountainous terrain").
+DEFAULT_HILLS: tuple[Hill, ...] = (
+    Hill(e_m=-260.0, n_m=260.0, height_m=28.0, sigma_m=170.0),
+    Hill(e_m=260.0, n_m=320.0, height_m=18.0, sigma_m=140.0),
+    Hill(e_m=120.0, n_m=-220.0, height_m=-14.0, sigma_m=130.0),
+    Hill(e_m=-80.0, n_m=-60.0, height_m=6.0, sigma_m=70.0),
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class HillsTerrain:
+    """Analytic smooth terrain: base + slope + Gaussian hills + a sinusoidal ripple."""
+
+    base_m: float = 0.0
+    slope_e: float = 0.02  # dimensionless gradient (m per m) towards east
+    slope_n: float = 0.04  # ... towards north
+    hills: tuple[Hill, ...] = DEFAULT_HILLS
+    ripple_amplitude_m: float = 2.5
+    ripple_wavelength_m: float = 180.0
+    ripple_direction_deg: float = 35.0  # direction of the ripple's wave vector, from east
+
+    def __post_init__(self) -> None:
+        for name in ("base_m", "slope_e", "slope_n", "ripple_direction_deg"):
+            check_finite(name, getattr(self, name))
+        check_positive("ripple_amplitude_m", self.ripple_amplitude_m, allow_zero=True)
+        check_positive("ripple_wavelength_m", self.ripple_wavelength_m)
+        if abs(self.slope_e) > 1.0 or abs(self.slope_n) > 1.0:
+            raise ValueError("terrain slopes steeper than 45 degrees are not flyable terrain")
+
+    def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray:
+        e = np.asarray(e_m, dtype=float)
+        n = np.asarray(n_m, dtype=float)
+        h = self.base_m + self.slope_e * e + self.slope_n * n
+        for hill in self.hills:
+            r2 = (e - hill.e_m) ** 2 + (n - hill.n_m) ** 2
+            h = h + hill.height_m * np.exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
+        if self.ripple_amplitude_m > 0:
+            a = math.radians(self.ripple_direction_deg)
+            k = 2.0 * math.pi / self.ripple_wavelength_m
+            h = h + self.ripple_amplitude_m * np.sin(k * (math.cos(a) * e + math.sin(a) * n))
+        return h
+
+
+@dataclass(frozen=True, eq=False)
+class GridTerrain:
+    """Heights on a regular grid, ``heights_m[i_n, i_e]`` at (e0 + i_e s, n0 + i_n s).
+
+    Bilinear in between; outside the grid the nearest edge value is held.
+    """
+
+    heights_m: np.ndarray
+    e0_m: float
+    n0_m: float
+    spacing_m: float
+
+    def __post_init__(self) -> None:
+        h = np.array(self.heights_m, dtype=float)
+        if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
+            raise ValueError(f"terrain grid must be 2-D with at least 2x2 cells, got {h.shape}")
+        if not np.all(np.isfinite(h)):
+            raise ValueError("terrain grid holds non-finite heights")
+        check_finite("e0_m", self.e0_m)
+        check_finite("n0_m", self.n0_m)
+        check_positive("spacing_m", self.spacing_m)
+        h.setflags(write=False)
+        object.__setattr__(self, "heights_m", h)
+
+    @classmethod
+    def from_file(cls, path: str | Path, *, e0_m: float, n0_m: float, spacing_m: float):
+        """Load a grid from ``.npy`` or a whitespace/comma separated text file (rows: north)."""
+        p = Path(path)
+        try:
+            if p.suffix == ".npy":
+                heights = np.load(p, allow_pickle=False)
+            else:
+                delimiter = "," if p.suffix == ".csv" else None
+                heights = np.loadtxt(p, delimiter=delimiter, ndmin=2)
+        except OSError as exc:
+            raise ValueError(f"cannot read terrain grid {p}: {exc.strerror or exc}") from exc
+        except ValueError as exc:
+            raise ValueError(f"terrain grid {p} is not a numeric table: {exc}") from exc
+        return cls(np.asarray(heights, dtype=float), e0_m, n0_m, spacing_m)
+
+    def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray:
+        s = self.spacing_m
+        return bilinear(self.heights_m, self.e0_m, self.n0_m, s, s, e_m, n_m)
