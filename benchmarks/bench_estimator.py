@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimator.filters import IEKF3D, UKF3D, IekfConfig, UkfConfig  # noqa: E402
-from estimator.pipeline import PAPER_MODES, SharedFront, Track  # noqa: E402
+from estimator.filters import IEKF3D, UKF3D, IekfConfig, UkfConfig
+from estimator.pipeline import PAPER_MODES, SharedFront, Track
 
 ANCHORS = [(40.0 * math.cos(a), 40.0 * math.sin(a), 45.0) for a in np.linspace(0, 6.28, 64)]
 AP = (5.0, -3.0, 0.0)
@@ -136,7 +136,7 @@ def make_replay_input(n_meas: int = 455, seed: int = 1):
 
         sim.simulate(sim.load_scenario("paper-ap1f"), seed, tmp)
         source = "sim paper-ap1f"
-    except Exception as exc:  # noqa: BLE001 - fall back to the shipped example log
+    except Exception as exc:
         print(f"(simulator unavailable: {exc}; using the example log)")
         tmp = Path(__file__).resolve().parents[1] / "examples" / "example_flight.jsonl"
         source = "examples/example_flight.jsonl"

@@ -181,6 +181,7 @@ class SharedFront:
         self._ground_med: float | None = None
         self.index = -1
         self._runs: dict[tuple, FilterRun] = {}
+        self._boot_cache: dict[str, tuple[int, BootstrapResult]] = {}
 
     def front(self, m: AssociatedRange, agl_m: float):
         """Gate result of ``m`` (computed once however many tracks ask)."""
@@ -197,6 +198,16 @@ class SharedFront:
         if self._ground_med is None:
             self._ground_med = median(self.ground)
         return self._ground_med
+
+    def bootstrap(self, kind: str, solver, samples) -> BootstrapResult:  # noqa: ANN001
+        """One bootstrap attempt per kind and measurement: runs that have not restarted
+        hold the same samples, so they share the result."""
+        hit = self._boot_cache.get(kind)
+        if hit is not None and hit[0] == self.index:
+            return hit[1]
+        res = solver.solve(list(samples))
+        self._boot_cache[kind] = (self.index, res)
+        return res
 
     def filter_run(self, spec: ModeSpec) -> FilterRun:
         key = (spec.filter, spec.noise, spec.bootstrap, spec.gnss_covariance)
@@ -283,7 +294,10 @@ class FilterRun:
         if not ready:
             return
         self.counts.n_bootstrap_attempts += 1
-        res = self.bootstrapper.solve(list(self._boot))
+        if self.generation == 0:
+            res = self.front.bootstrap(self.spec.bootstrap, self.bootstrapper, self._boot)
+        else:
+            res = self.bootstrapper.solve(list(self._boot))
         self.last_bootstrap = res
         if not res.ok:
             return

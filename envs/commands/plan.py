@@ -1,0 +1,418 @@
+"""``osa plan PATTERN -o FILE [options]`` (shared/spec/cli.md): write a mission.
+
+The ENU frame is centred on home (``--home``, default: the centre), so the mission's
+relative altitudes are the trajectory's z. The prior AP is at ``--center`` on the
+ground at home height (z = 0). ``--radius`` means, per pattern: the half-width of the
+search square (lawnmower, expanding-square), the orbit radius (helix, orbit), the
+outer ring radius (circles), half the leg length (close-pass) and the half-width of
+the keep-in square geofence (optimal).
+
+Exit status: 0 written; 1 the plan is not flyable (a pattern crosses a keep-out, the
+optimiser found nothing feasible); 2 bad input or an unwritable file, with one line on
+stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+PATTERNS = ("lawnmower", "expanding-square", "helix", "circles", "close-pass", "orbit", "optimal")
+MISSION_SUFFIXES = (".plan", ".waypoints", ".txt")
+DEFAULT_RADIUS_M = {
+    "lawnmower": 150.0,
+    "expanding-square": 150.0,
+    "helix": 50.0,
+    "circles": 60.0,
+    "close-pass": 100.0,
+    "orbit": 50.0,
+    "optimal": 200.0,
+}
+
+
+def _finite(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
+    return v
+
+
+def _positive(text: str) -> float:
+    v = _finite(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    return v
+
+
+def _latlon(text: str, n: int = 2) -> tuple[float, ...]:
+    parts = text.split(",")
+    if len(parts) != n:
+        want = "LAT,LON" if n == 2 else "LAT,LON,R"
+        raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}")
+    vals = tuple(_finite(p.strip()) for p in parts)
+    if not -90.0 <= vals[0] <= 90.0:
+        raise argparse.ArgumentTypeError(f"latitude {vals[0]:g} outside [-90, 90]")
+    if not -180.0 <= vals[1] <= 180.0:
+        raise argparse.ArgumentTypeError(f"longitude {vals[1]:g} outside [-180, 180]")
+    return vals
+
+
+def _home(text: str) -> tuple[float, ...]:
+    parts = text.split(",")
+    if len(parts) == 3:
+        return (*_latlon(",".join(parts[:2])), _finite(parts[2]))
+    return (*_latlon(text), 0.0)
+
+
+def _keep_out(text: str) -> tuple[float, ...]:
+    vals = _latlon(text, 3)
+    if vals[2] <= 0:
+        raise argparse.ArgumentTypeError(f"keep-out radius must be > 0: {text!r}")
+    return vals
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "plan",
+        help="plan a search or localisation flight and write it as a mission",
+        description=(
+            "Plan a flight pattern (or the CasADi information-optimal path) around a centre "
+            "and write it as a QGroundControl .plan or a QGC WPL 110 .waypoints mission. "
+            "Negative coordinates need '=': --center=-33.86,151.21."
+        ),
+    )
+    p.add_argument("pattern", metavar="PATTERN", choices=PATTERNS, help=" | ".join(PATTERNS))
+    p.add_argument("-o", "--output", required=True, metavar="FILE", help=".plan or .waypoints")
+    p.add_argument(
+        "--center", required=True, type=_latlon, metavar="LAT,LON",
+        help="centre of the search area / prior AP estimate (degrees)",
+    )  # fmt: skip
+    p.add_argument("--radius", type=_positive, metavar="M", help="see the module doc (m)")
+    p.add_argument(
+        "--alt",
+        type=_positive,
+        default=45.0,
+        metavar="M",
+        help="altitude above home (m, default 45: the paper's 35-55 m AGL)",
+    )
+    p.add_argument(
+        "--home",
+        type=_home,
+        metavar="LAT,LON[,ALT]",
+        help="home/takeoff point and its altitude (default: the centre, 0 m)",
+    )
+    p.add_argument(
+        "--speed",
+        type=_positive,
+        default=5.0,
+        metavar="M/S",
+        help="commanded speed; the speed limit for optimal (default 5)",
+    )
+    p.add_argument(
+        "--spacing",
+        type=_positive,
+        metavar="M",
+        help="track spacing (default 2 R_det (1 - overlap))",
+    )
+    p.add_argument(
+        "--overlap",
+        type=_finite,
+        default=0.5,
+        metavar="F",
+        help="track overlap fraction in [0, 1) (default 0.5)",
+    )
+    p.add_argument(
+        "--heading",
+        type=_finite,
+        default=0.0,
+        metavar="DEG",
+        help="track / first leg / pass heading, clockwise from north (default 0)",
+    )
+    p.add_argument("--turns", type=_positive, metavar="N", help="helix 3, orbit 1 by default")
+    p.add_argument(
+        "--climb",
+        type=_finite,
+        default=30.0,
+        metavar="M",
+        help="helix altitude change (negative descends, default 30)",
+    )
+    p.add_argument("--rings", type=int, default=3, metavar="N", help="circles: rings (default 3)")
+    p.add_argument(
+        "--alt-step",
+        type=_finite,
+        default=10.0,
+        metavar="M",
+        help="circles: altitude step between rings (default 10)",
+    )
+    p.add_argument(
+        "--offset",
+        type=_finite,
+        default=10.0,
+        metavar="M",
+        help="close-pass: horizontal offset from the centre (default 10)",
+    )
+    p.add_argument(
+        "--time-budget",
+        type=_positive,
+        default=120.0,
+        metavar="S",
+        help="optimal: flight time of the horizon (default 120)",
+    )
+    p.add_argument(
+        "--prior-sigma",
+        type=_positive,
+        default=10.0,
+        metavar="M",
+        help="optimal: horizontal 1-sigma of the prior AP position (default 10)",
+    )
+    p.add_argument(
+        "--keep-out",
+        type=_keep_out,
+        action="append",
+        default=[],
+        metavar="LAT,LON,R",
+        help="keep-out cylinder (repeatable)",
+    )
+    p.add_argument(
+        "--tolerance",
+        type=_positive,
+        default=1.0,
+        metavar="M",
+        help="waypoint decimation tolerance (default 1)",
+    )
+    p.add_argument("--no-rtl", action="store_true", help="no RETURN_TO_LAUNCH item at the end")
+    p.add_argument("--geojson", metavar="PATH", help="also write the plan as GeoJSON")
+    p.set_defaults(func=run)
+    return p
+
+
+class PlanError(Exception):
+    """A request that cannot be planned: one line for stderr and the exit status."""
+
+    def __init__(self, message: str, status: int = 2) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class PlanOutput:
+    """What ``osa plan`` computed (before writing files)."""
+
+    trajectory: Any  # estimator.records.Trajectory
+    mission: Any  # planner.mission.Mission
+    prior_enu_m: Any  # numpy array (3,)
+    note: str = ""
+
+
+def _fail(message: str, status: int = 2) -> int:
+    print(f"osa plan: {message}", file=sys.stderr)
+    return status
+
+
+def _fmt(v: float, unit: str = " m") -> str:
+    return f"{v:.2f}{unit}" if math.isfinite(v) else "inf"
+
+
+def _pattern(args: argparse.Namespace, pat: Any, radius: float, center, prior, start, home):
+    flight = pat.FlightConfig(speed_m_s=args.speed, alt_m=args.alt, origin=home)
+    name = args.pattern
+    if name == "lawnmower":
+        return pat.lawnmower(
+            center,
+            radius,
+            spacing_m=args.spacing,
+            heading_deg=args.heading,
+            overlap=args.overlap,
+            flight=flight,
+            start_enu_m=start,
+        )
+    if name == "expanding-square":
+        return pat.expanding_square(
+            center,
+            radius,
+            spacing_m=args.spacing,
+            heading_deg=args.heading,
+            overlap=args.overlap,
+            flight=flight,
+            start_enu_m=start,
+        )
+    if name == "helix":
+        if args.alt + args.climb <= 0:
+            raise PlanError(f"--alt {args.alt:g} with --climb {args.climb:g} goes below home")
+        return pat.helix(
+            center,
+            radius,
+            alt_start_m=args.alt,
+            alt_end_m=args.alt + args.climb,
+            turns=args.turns or 3.0,
+            flight=flight,
+            start_enu_m=start,
+        )
+    if name == "circles":
+        radii = [radius * (k + 1) / args.rings for k in range(args.rings)]
+        alts = [args.alt + k * args.alt_step for k in range(args.rings)]
+        if min(alts) <= 0:
+            raise PlanError("--alt-step takes a ring below home")
+        return pat.concentric_circles(center, radii, alts_m=alts, flight=flight, start_enu_m=start)
+    if name == "close-pass":
+        return pat.close_pass(
+            prior,
+            args.offset,
+            leg_length_m=2.0 * radius,
+            heading_deg=args.heading,
+            flight=flight,
+            start_enu_m=start,
+        )
+    return pat.orbit(center, radius, turns=args.turns or 1.0, flight=flight, start_enu_m=start)
+
+
+def build_plan(args: argparse.Namespace) -> PlanOutput:
+    """Plan from parsed arguments (no file written); raises :class:`PlanError`."""
+    if Path(args.output).suffix.lower() not in MISSION_SUFFIXES:
+        raise PlanError(f"{args.output}: unknown mission type (use .plan, .waypoints or .txt)")
+    if not 0.0 <= args.overlap < 1.0:
+        raise PlanError(f"--overlap must be in [0, 1), got {args.overlap:g}")
+    if args.rings < 1:
+        raise PlanError(f"--rings must be >= 1, got {args.rings}")
+
+    import numpy as np
+
+    from estimator.geodesy import ExactENU
+    from planner import patterns as pat
+    from planner.convert import trajectory_to_mission
+
+    name = args.pattern
+    radius = args.radius if args.radius is not None else DEFAULT_RADIUS_M[name]
+    clat, clon = args.center
+    home = tuple(args.home) if args.home is not None else (clat, clon, 0.0)
+    frame = ExactENU(*home)
+    cx, cy, _ = frame.to_enu(clat, clon, home[2])
+    center = (cx, cy)
+    prior = np.array([cx, cy, 0.0])
+    keep_outs = []
+    for lat, lon, r in args.keep_out:
+        e, n, _ = frame.to_enu(lat, lon, home[2])
+        keep_outs.append(pat.KeepOut(east_m=e, north_m=n, radius_m=r))
+    start = (0.0, 0.0, args.alt)  # airborne above home after the takeoff item
+    fence = None
+    note = ""
+    try:
+        if name == "optimal":
+            traj, note, fence = _optimal(args, radius, center, prior, start, keep_outs, home)
+        else:
+            traj = _pattern(args, pat, radius, center, prior, start, home)
+    except ValueError as exc:
+        raise PlanError(str(exc)) from None
+    if name != "optimal":
+        problems = pat.airspace_violations(traj.enu_m, None, keep_outs)
+        if problems:
+            raise PlanError(f"{name} path {problems[0]}; move the area or plan 'optimal'", 1)
+    mission = trajectory_to_mission(
+        traj,
+        tolerance_m=args.tolerance,
+        rtl=not args.no_rtl,
+        fence=fence,
+        keep_outs=keep_outs,
+        name=f"osa plan {name}",
+    )
+    return PlanOutput(trajectory=traj, mission=mission, prior_enu_m=prior, note=note)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        plan = build_plan(args)
+    except PlanError as exc:
+        return _fail(str(exc), exc.status)
+
+    import dataclasses
+
+    import numpy as np
+
+    from planner.files import MissionFileError, write_mission
+    from planner.mission import MAV_CMD_NAV_WAYPOINT
+    from planner.scoring import score_trajectory
+
+    out = Path(args.output)
+    traj, mission = plan.trajectory, plan.mission
+    fence_note = ""
+    if out.suffix.lower() != ".plan" and (mission.polygons or mission.circles):
+        mission = dataclasses.replace(mission, polygons=(), circles=())
+        fence_note = "not written: a .waypoints file holds no geofence (write a .plan)"
+    try:
+        write_mission(mission, out)
+    except MissionFileError as exc:
+        return _fail(str(exc))
+    if args.geojson:
+        from planner.geojson import plan_geojson, write_geojson
+
+        collection = plan_geojson(
+            plan.mission, traj, prior_latlon=tuple(args.center), name=args.pattern
+        )
+        try:
+            write_geojson(collection, args.geojson)
+        except (OSError, ValueError) as exc:
+            return _fail(f"{args.geojson}: cannot write GeoJSON: {exc}")
+
+    score = score_trajectory(traj, plan.prior_enu_m)
+    n_wp = sum(1 for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT)
+    dt = float(np.median(np.diff(traj.t_s))) if len(traj.t_s) > 1 else 0.0
+    print(f"osa plan {args.pattern} -> {out}")
+    print(
+        f"  path      {traj.length_m:.1f} m, {traj.duration_s:.1f} s"
+        f" ({len(traj.t_s)} samples, {dt:g} s apart)"
+    )
+    print(
+        f"  mission   {len(mission.items)} items (takeoff, {n_wp} waypoints"
+        f"{'' if args.no_rtl else ', RTL'}), decimation tolerance {args.tolerance:g} m"
+    )
+    print(
+        f"  geometry  condition number {score.condition_number:.2f},"
+        f" GDOP {_fmt(score.gdop, '')}, closest {score.min_slant_m:.1f} m slant,"
+        f" {score.expected_measurements:.0f} expected ranges"
+    )
+    print(
+        f"  CRLB      horizontal {_fmt(score.crlb_h_m)}, vertical {_fmt(score.crlb_v_m)}"
+        f" (bias estimated); {_fmt(score.crlb_h_known_bias_m)} /"
+        f" {_fmt(score.crlb_v_known_bias_m)} (bias known)"
+    )
+    if fence_note:
+        print(f"  fence     {fence_note}")
+    if plan.note:
+        print(f"  optimal   {plan.note}")
+    return 0
+
+
+def _optimal(args, radius, center, prior, start, keep_outs, home):
+    """Solve the CasADi plan; returns (trajectory, note, fence); raises PlanError."""
+    import numpy as np
+
+    from planner.optimal import OptimalConfig, OptimalPlanner
+    from planner.patterns import Geofence
+
+    cfg = OptimalConfig()
+    fence = Geofence.square(center, radius)
+    if fence.signed_distance_m(np.array([start[:2]]))[0] > -cfg.fence_margin_m:
+        raise PlanError(f"home is outside the {radius:g} m keep-in square around --center")
+    sigma = args.prior_sigma
+    planner = OptimalPlanner(cfg)
+    band = (min(cfg.agl_min_m, args.alt), max(cfg.agl_max_m, args.alt))
+    res = planner.plan(prior, np.diag([sigma**2, sigma**2, 4.0]), start,
+                       horizon_s=args.time_budget, fence=fence, keep_outs=keep_outs,
+                       agl_band_m=band, limits=(args.speed, cfg.max_accel_m_s2, cfg.max_climb_m_s),
+                       origin=tuple(home))  # fmt: skip
+    if not res.feasible:
+        raise PlanError("no feasible plan: " + "; ".join(res.violations), 1)
+    note = (
+        f"ipopt {res.status} in {res.iterations} iterations, {res.solve_time_s * 1e3:.0f} ms;"
+        f" objective {res.objective:.3f}"
+    )
+    if res.fallback:
+        note += f"; solver path rejected ({'; '.join(res.violations)}), flying {res.fallback}"
+    return res.trajectory, note, fence
