@@ -271,21 +271,28 @@ def _height_update(f: IEKF3D | UKF3D, z_m: float, r_m2: float) -> None:
         g = (z_m - f.x[2]) / S
         x0, x1, x2, x3 = f.x
         x = [x0 + q0 * g, x1 + q1 * g, x2 + q2 * g, x3 + q3 * g]
-        # Joseph form with H = e_z: row_i = a_i - (a_i2 - R k_i) K, a_i = P_i - k_i P_2
-        rows = []
-        for Pi, ki in zip(P, (k0, k1, k2, k3), strict=True):
-            a0 = Pi[0] - ki * q0
-            a1 = Pi[1] - ki * q1
-            a2 = Pi[2] - ki * q2
-            a3 = Pi[3] - ki * q3
-            c = a2 - r_m2 * ki
-            rows.append((a0 - c * k0, a1 - c * k1, a2 - c * k2, a3 - c * k3))
-        r0, r1, r2, r3 = rows
+        # Joseph form with H = e_z: P+_ij = a_ij - (a_i2 - R k_i) k_j, a_ij = P_ij - k_i q_j
+        # (upper triangle; a_i2 = P_i2 - k_i q2 = q_i - k_i q2 by symmetry)
+        (p00, p01, p02, p03), (_, p11, p12, p13), _, (_, _, _, p33) = P
+        c0 = q0 - k0 * q2 - r_m2 * k0
+        c1 = q1 - k1 * q2 - r_m2 * k1
+        c2 = q2 - k2 * q2 - r_m2 * k2
+        c3 = q3 - k3 * q2 - r_m2 * k3
+        n00 = p00 - k0 * q0 - c0 * k0
+        n01 = p01 - k0 * q1 - c0 * k1
+        n02 = p02 - k0 * q2 - c0 * k2
+        n03 = p03 - k0 * q3 - c0 * k3
+        n11 = p11 - k1 * q1 - c1 * k1
+        n12 = p12 - k1 * q2 - c1 * k2
+        n13 = p13 - k1 * q3 - c1 * k3
+        n22 = q2 - k2 * q2 - c2 * k2
+        n23 = q3 - k2 * q3 - c2 * k3
+        n33 = p33 - k3 * q3 - c3 * k3
         Pn = [
-            [r0[0], r0[1], r0[2], r0[3]],
-            [r0[1], r1[1], r1[2], r1[3]],
-            [r0[2], r1[2], r2[2], r2[3]],
-            [r0[3], r1[3], r2[3], r3[3]],
+            [n00, n01, n02, n03],
+            [n01, n11, n12, n13],
+            [n02, n12, n22, n23],
+            [n03, n13, n23, n33],
         ]
         _check4(x, Pn)
     else:

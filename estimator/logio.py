@@ -266,21 +266,23 @@ def _parse_truth(obj: dict) -> TruthRecord:
 
 
 _PARSERS = {"gnss": _parse_gnss, "rtt": _parse_rtt, "truth": _parse_truth}
+# one decoder for all lines; NaN / Infinity tokens raise _Reject("non_finite")
+_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 
 def parse_line(line: bytes | str, counts: RejectCounts) -> Record | None:
     """Parse one log line; return its record, or ``None`` after counting why it was skipped."""
+    if not line.strip():
+        return None
+    counts.lines += 1
     if isinstance(line, bytes):
         try:
             line = line.decode("utf-8")
         except UnicodeDecodeError:
             counts.reject("not_utf8")
             return None
-    if not line.strip():
-        return None
-    counts.lines += 1
     try:
-        obj = json.loads(line, parse_constant=_reject_constant)
+        obj = _DECODER.decode(line)
     except _Reject as r:
         counts.reject(r.reason)
         return None

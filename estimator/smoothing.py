@@ -11,7 +11,6 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Protocol
 
-from estimator.gate import median
 
 
 class Smoother(Protocol):
@@ -34,7 +33,12 @@ class MedianSmoother:
         self._x.append(p[0])
         self._y.append(p[1])
         self._z.append(p[2])
-        return median(self._x), median(self._y), median(self._z)
+        out = []
+        for d in (self._x, self._y, self._z):
+            v = sorted(d)
+            h = len(v) >> 1
+            out.append(v[h] if len(v) & 1 else 0.5 * (v[h - 1] + v[h]))
+        return out[0], out[1], out[2]
 
 
 @dataclass(frozen=True, kw_only=True)
