@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -60,6 +61,16 @@ class BootstrapResult:
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+
+class _Prepared(NamedTuple):
+    u: np.ndarray
+    d: np.ndarray
+    w: np.ndarray
+    agl: np.ndarray
+    kappa: float
+    spread: float
+    n: int
 
 
 def _arrays(samples: Sequence[BootstrapSample]) -> tuple[np.ndarray, ...]:
@@ -128,16 +139,25 @@ class GaussNewtonBootstrap:
         spread = bbox_diagonal_m([s.anchor_enu_m for s in samples])
         return spread >= self.cfg.min_spread_m, spread
 
-    def solve(self, samples: Sequence[BootstrapSample]) -> BootstrapResult:
-        cfg = self.cfg
+    def _screen(self, samples: Sequence[BootstrapSample]) -> BootstrapResult | _Prepared:
+        """The checks before any solving: samples, spread, then the geometry (kappa_H)."""
         n = len(samples)
         ready, spread = self.ready(samples)
         if not ready:
             return BootstrapResult("waiting", n_samples=n, spread_m=spread)
         u, d, w, agl = _arrays(samples)
         kappa = horizontal_condition_number(u, w)
-        if cfg.max_condition is not None and not kappa < cfg.max_condition:
+        limit = self.cfg.max_condition
+        if limit is not None and not kappa < limit:
             return BootstrapResult("weak_geometry", kappa=kappa, spread_m=spread, n_samples=n)
+        return _Prepared(u, d, w, agl, kappa, spread, n)
+
+    def solve(self, samples: Sequence[BootstrapSample]) -> BootstrapResult:
+        cfg = self.cfg
+        prep = self._screen(samples)
+        if isinstance(prep, BootstrapResult):
+            return prep
+        u, d, w, agl, kappa, spread, n = prep
         try:
             pxy = stage1_linear_xy(u, d, w, agl)
             z0 = float(np.median(u[:, 2] - agl))  # eq. (8)
@@ -199,14 +219,10 @@ class RobustBootstrap(GaussNewtonBootstrap):
         from scipy.optimize import least_squares
 
         cfg = self.rcfg
-        n = len(samples)
-        ready, spread = self.ready(samples)
-        if not ready:
-            return BootstrapResult("waiting", n_samples=n, spread_m=spread)
-        u, d, w, agl = _arrays(samples)
-        kappa = horizontal_condition_number(u, w)
-        if cfg.max_condition is not None and not kappa < cfg.max_condition:
-            return BootstrapResult("weak_geometry", kappa=kappa, spread_m=spread, n_samples=n)
+        prep = self._screen(samples)
+        if isinstance(prep, BootstrapResult):
+            return prep
+        u, d, w, agl, kappa, spread, n = prep
         z_ground = float(np.median(u[:, 2] - agl))
         sw = np.sqrt(w)
 

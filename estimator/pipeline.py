@@ -199,7 +199,7 @@ class SharedFront:
             self._ground_med = median(self.ground)
         return self._ground_med
 
-    def bootstrap(self, kind: str, solver, samples) -> BootstrapResult:  # noqa: ANN001
+    def bootstrap(self, kind: str, solver, samples) -> BootstrapResult:
         """One bootstrap attempt per kind and measurement: runs that have not restarted
         hold the same samples, so they share the result."""
         hit = self._boot_cache.get(kind)

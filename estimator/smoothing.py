@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Protocol
 
 
-
 class Smoother(Protocol):
     def push(self, p: tuple[float, float, float]) -> tuple[float, float, float]: ...
 
