@@ -240,9 +240,28 @@ class IEKF3D:
                 )
             g = innov / Si
             xi0, xi1, xi2, xi3 = X + q0 * g, Y + q1 * g, Z + q2 * g, B + q3 * g
-        K = (q0 / Si, q1 / Si, q2 / Si, q3 / Si)
-        # covariance at the last linearisation point (H, K of the final iteration)
-        Pn = _joseph4(P, (h0, h1, h2, 1.0), K, (q0, q1, q2, q3), r_m2)
+        k0, k1, k2, k3 = q0 / Si, q1 / Si, q2 / Si, q3 / Si
+        # Joseph form at the last linearisation point (H, K of the final iteration),
+        # unrolled _joseph4: A P = P - K q^T (a_ij), c_i = (A P H)_i - R k_i,
+        # P+_ij = a_ij - c_i k_j (upper triangle, mirrored)
+        (p00, p01, p02, p03), (p10, p11, p12, p13), (p20, p21, p22, p23), (
+            p30, p31, p32, p33) = P
+        a00, a01, a02, a03 = p00 - k0 * q0, p01 - k0 * q1, p02 - k0 * q2, p03 - k0 * q3
+        a10, a11, a12, a13 = p10 - k1 * q0, p11 - k1 * q1, p12 - k1 * q2, p13 - k1 * q3
+        a20, a21, a22, a23 = p20 - k2 * q0, p21 - k2 * q1, p22 - k2 * q2, p23 - k2 * q3
+        a30, a31, a32, a33 = p30 - k3 * q0, p31 - k3 * q1, p32 - k3 * q2, p33 - k3 * q3
+        c0 = a00 * h0 + a01 * h1 + a02 * h2 + a03 - r_m2 * k0
+        c1 = a10 * h0 + a11 * h1 + a12 * h2 + a13 - r_m2 * k1
+        c2 = a20 * h0 + a21 * h1 + a22 * h2 + a23 - r_m2 * k2
+        c3 = a30 * h0 + a31 * h1 + a32 * h2 + a33 - r_m2 * k3
+        n01, n02, n03 = a01 - c0 * k1, a02 - c0 * k2, a03 - c0 * k3
+        n12, n13, n23 = a12 - c1 * k2, a13 - c1 * k3, a23 - c2 * k3
+        Pn = [
+            [a00 - c0 * k0, n01, n02, n03],
+            [n01, a11 - c1 * k1, n12, n13],
+            [n02, n12, a22 - c2 * k2, n23],
+            [n03, n13, n23, a33 - c3 * k3],
+        ]
         xn = [xi0, xi1, xi2, xi3]
         _check4(xn, Pn)
         self.x = xn
@@ -295,8 +314,24 @@ def _height_update(f: IEKF3D | UKF3D, z_m: float, r_m2: float) -> None:
             [n03, n13, n23, n33],
         ]
         _check4(x, Pn)
-    else:
-        x, Pn = _height_joseph(f.x, P, z_m, r_m2)
+    else:  # 3 states: the same Joseph update, unrolled (q = P e_z = row 2)
+        q0, q1, q2 = P[2]
+        S = q2 + r_m2
+        k0, k1, k2 = q0 / S, q1 / S, q2 / S
+        g = (z_m - f.x[2]) / S
+        x0, x1, x2 = f.x
+        x = [x0 + q0 * g, x1 + q1 * g, x2 + q2 * g]
+        (p00, p01, _), (_, p11, _), _ = P
+        c0 = q0 - k0 * q2 - r_m2 * k0
+        c1 = q1 - k1 * q2 - r_m2 * k1
+        c2 = q2 - k2 * q2 - r_m2 * k2
+        n00 = p00 - k0 * q0 - c0 * k0
+        n01 = p01 - k0 * q1 - c0 * k1
+        n02 = q0 - k0 * q2 - c0 * k2
+        n11 = p11 - k1 * q1 - c1 * k1
+        n12 = q1 - k1 * q2 - c1 * k2
+        n22 = q2 - k2 * q2 - c2 * k2
+        Pn = [[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]]
         _check(x, Pn)
     f.x = x
     f.P = Pn

@@ -155,9 +155,20 @@ class EmpiricalR:
 
     def __init__(self, cfg: EmpiricalRConfig = EmpiricalRConfig()) -> None:
         self.cfg = cfg
+        self._s0 = cfg.sigma0_m**2
+        self._a = cfg.alpha
+        self._b = cfg.beta_m2_per_db2
+        self._r = cfg.r_ref_db
 
     def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
-        return empirical_r_m2(m.meas.range_m, m.meas.rssi_dbm, m.sigma_gate_m, self.cfg)
+        """:func:`empirical_r_m2` with the constants held (called per measurement)."""
+        meas = m.meas
+        d = meas.range_m
+        rssi = meas.rssi_dbm
+        q = 0.0 if rssi is None else max(0.0, -rssi - self._r)
+        sg2 = m.sigma_gate_m * m.sigma_gate_m
+        model = self._s0 + self._a * d * d + self._b * q * q
+        return model if model > sg2 else sg2
 
 
 class AdaptiveR:

@@ -178,6 +178,7 @@ class SharedFront:
         self.ground: deque[float] = deque(maxlen=cfg.ground.window)
         self._m: AssociatedRange | None = None
         self._g = None
+        self._gm: GatedRange | None = None
         self._ground_med: float | None = None
         self.index = -1
         self._runs: dict[tuple, FilterRun] = {}
@@ -192,6 +193,13 @@ class SharedFront:
             self._ground_med = None
             self._g = self.gate.check(m.t_s, m.range_m)
         return self._g
+
+    def gated(self) -> GatedRange:
+        """The current measurement with its sigma_gate (one object for every mode)."""
+        gm = self._gm
+        if gm is None or gm.meas is not self._m:
+            gm = self._gm = GatedRange(self._m, self._g.sigma_gate_m)
+        return gm
 
     def ground_median(self) -> float:
         """z_prior = median of the last W (z_d - H_AGL), eq. (16)."""
@@ -248,9 +256,10 @@ class FilterRun:
 
     def step(self, m: AssociatedRange, g, agl_m: float) -> int:
         """Process ``m`` once (cached for the front end's current measurement)."""
-        if self._index == self.front.index:
+        index = self.front.index
+        if self._index == index:
             return self._out
-        self._index = self.front.index
+        self._index = index
         self._out = out = self._step(m, g, agl_m)
         return out
 
@@ -269,7 +278,7 @@ class FilterRun:
             c.n_mad += 1
             return MAD
         f = self.filter
-        gm = GatedRange(m, g.sigma_gate_m)
+        gm = self.front.gated()
         noise = self.noise
         try:
             f.predict()

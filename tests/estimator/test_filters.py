@@ -217,3 +217,15 @@ def test_filter_error_on_invalid_state():
     f.P[0][0] = -1.0
     with pytest.raises(FilterError):
         f.update_height(0.0, 25.0)
+
+
+def test_ukf_height_pseudo_measurement_matches_linear_kf():
+    f = UKF3D((3.0, 4.0, -30.0))
+    f.P = [[20.0, 1.0, 3.0], [1.0, 15.0, -2.0], [3.0, -2.0, 80.0]]
+    P, x = np.array(f.P), np.array(f.x)
+    f.update_height(-44.0, 25.0)
+    H = np.array([0.0, 0.0, 1.0])
+    K = P @ H / (P[2, 2] + 25.0)
+    A = np.eye(3) - np.outer(K, H)
+    np.testing.assert_allclose(f.x, x + K * (-44.0 - x[2]), atol=1e-9)
+    np.testing.assert_allclose(np.array(f.P), A @ P @ A.T + 25.0 * np.outer(K, K), atol=1e-9)
