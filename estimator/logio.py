@@ -272,15 +272,16 @@ _DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 def parse_line(line: bytes | str, counts: RejectCounts) -> Record | None:
     """Parse one log line; return its record, or ``None`` after counting why it was skipped."""
-    if not line.strip():
-        return None
-    counts.lines += 1
     if isinstance(line, bytes):
         try:
             line = line.decode("utf-8")
         except UnicodeDecodeError:
+            counts.lines += 1
             counts.reject("not_utf8")
             return None
+    if not line.strip():
+        return None
+    counts.lines += 1
     try:
         obj = _DECODER.decode(line)
     except _Reject as r:
