@@ -45,7 +45,7 @@ class ReplayOptions:
     projection: str = "tangent"  # "tangent" (eq. 1) or "wgs84" (exact, pymap3d)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
-    keep_history: bool = True
+    keep_history: bool = True  # published estimates per track (figures); off: O(1) memory
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.modes if m not in MODES]
@@ -229,6 +229,10 @@ def _associated(src: _LogSource, index: int) -> Iterator[tuple[float, int, int, 
 def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> ReplayReport:
     """Run every mode of ``opts`` over the logs; raises LogError for an unreadable log."""
     sources = _open_sources([str(p) for p in paths], opts)
+    truth: dict[str, TruthRecord] = {}
+    for s in sources:  # primed: every log's truth records are known before processing
+        for t in s.stream.truth:
+            truth.setdefault(t.bssid, t)
     streams = [_associated(s, i) for i, s in enumerate(sources)]
     merged = heapq.merge(*streams, key=lambda e: (e[0], e[1], e[2]))
     frame: EnuFrame | None = None
@@ -252,22 +256,22 @@ def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> 
         if g.bssid not in order:
             order.append(g.bssid)
             front = SharedFront(opts.pipeline)
+            tru = truth.get(g.bssid)
+            truth_enu = tuple(frame.to_enu(tru.lat_deg, tru.lon_deg, tru.alt_m)) if tru else None
             for mode in opts.modes:
                 tracks[(g.bssid, mode)] = Track(
-                    g.bssid, mode, opts.pipeline, keep_history=opts.keep_history, front=front
+                    g.bssid, mode, opts.pipeline, keep_history=opts.keep_history, front=front,
+                    truth_enu_m=truth_enu,
                 )
         for mode in opts.modes:
             tracks[(g.bssid, mode)].process(m)
 
     rejected = RejectCounts()
     assoc = AssociationStats()
-    truth: dict[str, TruthRecord] = {}
     for s in sources:
         rejected.merge(s.stream.counts)
         for name in ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated"):
             getattr(assoc, name).update(getattr(s.associator.stats, name))
-        for t in s.stream.truth:
-            truth.setdefault(t.bssid, t)
     for b in sorted(assoc.rtt):  # seen, never associated: no_data
         if b not in order:
             order.append(b)
@@ -337,7 +341,7 @@ def _result(
             res.err_3d_m = math.sqrt(
                 (p[0] - t[0]) ** 2 + (p[1] - t[1]) ** 2 + (p[2] - t[2]) ** 2
             )
-            res.twm_h_m = _twm(tr.history, t)
+            res.twm_h_m = tr.twm.twm_h_m if tr.twm is not None else _twm(tr.history, t)
     return res
 
 

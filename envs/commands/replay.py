@@ -51,7 +51,11 @@ def run(args: argparse.Namespace) -> int:
         print("osa replay: --agl must be >= 0", file=sys.stderr)
         return 2
     opts = ReplayOptions(
-        modes=modes, agl_m=args.agl, range_offset_m=args.range_offset, projection=args.projection
+        modes=modes,
+        agl_m=args.agl,
+        range_offset_m=args.range_offset,
+        projection=args.projection,
+        keep_history=False,  # TWM is accumulated online: memory stays bounded on long logs
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

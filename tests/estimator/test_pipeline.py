@@ -147,3 +147,17 @@ def test_parse_modes():
     with pytest.raises(ValueError):
         parse_modes("kalman")
     assert set(MODES) >= set(PAPER_MODES)
+
+
+def test_online_twm_equals_history_twm(flight, report):
+    from estimator.replay import _twm
+
+    lean = replay_logs([flight], ReplayOptions(modes=PAPER_MODES, keep_history=False))
+    for t in report.tracks:
+        if t.mode not in PAPER_MODES:
+            continue
+        u = lean.get(BSSID, t.mode)
+        assert u.history == []
+        assert u.twm_h_m == pytest.approx(_twm(t.history, t.truth_enu_m), abs=1e-9)
+        assert u.twm_h_m == pytest.approx(t.twm_h_m, abs=1e-9)
+        assert u.err_h_m == t.err_h_m
