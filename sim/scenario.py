@@ -93,8 +93,13 @@ class Scenario:
 
     def with_trajectory(self, trajectory: Trajectory, name: str | None = None) -> Scenario:
         """The same world and sensors flying ``trajectory`` instead."""
+        # the preset's configured H_AGL belongs to its own flight: the header of a
+        # trajectory's log gets the height actually flown (see run_scenario)
         return dataclasses.replace(
-            self, flight=TrajectoryFlight(trajectory), name=name or self.name
+            self,
+            flight=TrajectoryFlight(trajectory),
+            name=name or self.name,
+            log=dataclasses.replace(self.log, agl_m=None),
         )
 
 

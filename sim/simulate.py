@@ -161,7 +161,14 @@ def run_scenario(scenario: Scenario, seed: int) -> SimResult:
     header = LogHeader(
         agent=scenario.log.agent,
         start_utc=scenario.log.start_utc,
-        agl_m=round(scenario.header_agl_m, 3),
+        # configured H_AGL if the scenario sets one, else the median height flown above
+        # the ground (what a pilot would have configured for this flight)
+        agl_m=round(
+            scenario.log.agl_m
+            if scenario.log.agl_m is not None
+            else float(np.median(vehicle.agl_m)),
+            3,
+        ),
         range_offset_m=scenario.log.range_offset_m,
     )
     return SimResult(

@@ -196,13 +196,41 @@ def _hover_track(
     return VehicleTrack(t, enu, vel, np.zeros(n), ground, cfg.lever_arm_m)
 
 
+UNDERGROUND_TOLERANCE_M = 1.0  # wander and corner rounding may graze the ground by less
+
+
 def fly(
     traj: Trajectory,
     world: World,
     cfg: VehicleConfig,
     rng: np.random.Generator,
 ) -> VehicleTrack:
-    """Fly ``traj`` over ``world`` within the limits of ``cfg``; the whole flight at once."""
+    """Fly ``traj`` over ``world`` within the limits of ``cfg``; the whole flight at once.
+
+    Raises ``ValueError`` for a flight that would go below the terrain: that is almost
+    always a trajectory whose heights refer to another origin height or datum, and a
+    silent underground flight would still "measure" ranges.
+    """
+    track = _fly(traj, world, cfg, rng)
+    agl = track.agl_m
+    k = int(np.argmin(agl))
+    if agl[k] < -UNDERGROUND_TOLERANCE_M:
+        h0 = traj.origin[2]
+        raise ValueError(
+            f"trajectory {traj.name or ''!s} goes {-agl[k]:.1f} m below the terrain at "
+            f"t = {track.t_s[k]:.1f} s: check its height reference "
+            f"({traj.height_ref}) and origin height ({h0:g} m; the world's is "
+            f"{world.origin.h_m:g} m)"
+        )
+    return track
+
+
+def _fly(
+    traj: Trajectory,
+    world: World,
+    cfg: VehicleConfig,
+    rng: np.random.Generator,
+) -> VehicleTrack:
     if len(traj.t_s) == 0:
         raise ValueError("cannot fly an empty trajectory")
     t_ref = traj.t_s - traj.t_s[0]
