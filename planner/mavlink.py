@@ -17,6 +17,14 @@ contiguous seq, exactly one ``current`` item (seq 0) for the mission. Fence
 polygons go as ``NAV_FENCE_POLYGON_VERTEX_*`` (param1 = vertex count), circles as
 ``NAV_FENCE_CIRCLE_*`` (param1 = radius), rally points as ``NAV_RALLY_POINT``.
 
+Mission numbering follows the autopilot (``TransferConfig.autopilot``; "auto" reads
+the HEARTBEAT's ``autopilot`` field, MAV_AUTOPILOT_ARDUPILOTMEGA = 3): PX4 (and any
+other autopilot) takes mission item ``k`` as seq ``k``; ArduPilot keeps its home in
+seq 0 and overwrites it, so, as QGroundControl does, a home item (NAV_WAYPOINT,
+frame 0 = AMSL, the mission's planned home, current=1) goes first and item ``k`` is
+seq ``k + 1`` (DO_JUMP targets shifted with it); the read-back counts seq 0 but does
+not compare it. Fence and rally lists are numbered from 0 for every autopilot.
+
 :func:`upload_mission` uploads fence, rally points and mission, downloads them
 back and compares item by item; it returns an :class:`UploadReport` only when the
 vehicle holds exactly what was sent, and raises an :class:`UploadError` otherwise.
@@ -27,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import math
 import os
 import socket
@@ -47,6 +56,7 @@ from planner.mission import (
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION,
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
     MAV_CMD_NAV_RALLY_POINT,
+    MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL,
     MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
     MAV_MISSION_TYPE_FENCE,
@@ -64,6 +74,7 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pymavlink was imported bef
     mavutil.set_dialect(mavutil.current_dialect)
 
 __all__ = [
+    "AUTOPILOT_CHOICES",
     "InvalidConnectionError",
     "MavsdkLink",
     "MissionLink",
@@ -79,13 +90,16 @@ __all__ = [
     "WireItem",
     "compare_wire",
     "connected",
+    "detected_autopilot",
     "download_wire",
     "fence_to_wire",
+    "home_to_wire",
     "is_mavsdk_url",
     "mission_to_wire",
     "open_link",
     "quiet_mavsdk_logs",
     "rally_to_wire",
+    "resolve_autopilot",
     "upload_mission",
     "upload_on_link",
     "wire_to_mission",
@@ -99,7 +113,16 @@ MISSION_TYPE_NAMES = {
 GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = 190  # MAV_COMP_ID_MISSIONPLANNER
 MAV_TYPE_GCS = 6
+MAV_AUTOPILOT_GENERIC = 0
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_PX4 = 12
+MAV_CMD_DO_JUMP = 177  # param1 = target seq: shifted with the items on ArduPilot
+# TransferConfig.autopilot: "auto" = from the vehicle's HEARTBEAT; the others force
+# the mission numbering ("px4": item k is seq k; "ardupilot": home in seq 0, item k
+# is seq k + 1)
+AUTOPILOT_CHOICES = ("auto", "px4", "ardupilot")
+_NUMBERINGS = ("px4", "ardupilot")
 MAV_MISSION_ACCEPTED = mavutil.mavlink.MAV_MISSION_ACCEPTED  # 0
 MAV_MISSION_OPERATION_CANCELLED = mavutil.mavlink.MAV_MISSION_OPERATION_CANCELLED  # 15
 ALT_TOLERANCE_M = 1e-3
@@ -152,12 +175,14 @@ class VerifyMismatchError(UploadError):
     """The items read back from the vehicle differ from the items sent."""
 
     def __init__(self, differences: Sequence[str], *,
-                 mission_type: int = MAV_MISSION_TYPE_MISSION) -> None:
+                 mission_type: int = MAV_MISSION_TYPE_MISSION, hint: str = "") -> None:
         self.differences = list(differences)
         self.mission_type = mission_type
+        self.hint = hint
         kind = MISSION_TYPE_NAMES.get(mission_type, str(mission_type))
         more = f" (+{len(self.differences) - 1} more)" if len(self.differences) > 1 else ""
-        super().__init__(f"{kind} read back differs: {self.differences[0]}{more}")
+        super().__init__(f"{kind} read back differs: {self.differences[0]}{more}"
+                         + (f"; {hint}" if hint else ""))
 
 
 # ---------------------------------------------------------------- wire items
@@ -210,9 +235,39 @@ def _item_to_wire(it: MissionItem, seq: int, current: bool) -> WireItem:
                     mission_type=MAV_MISSION_TYPE_MISSION)
 
 
-def mission_to_wire(mission: Mission) -> list[WireItem]:
-    """The mission items: seq 0.., item 0 the one current item."""
-    return [_item_to_wire(it, i, i == 0) for i, it in enumerate(mission.items)]
+def _check_numbering(autopilot: str) -> None:
+    if autopilot not in _NUMBERINGS:
+        raise ValueError(f"mission numbering must be one of {_NUMBERINGS}, got {autopilot!r} "
+                         "(resolve 'auto' with resolve_autopilot first)")
+
+
+def home_to_wire(home: tuple[float, float, float]) -> WireItem:
+    """ArduPilot's seq 0: the planned home as QGroundControl sends it (NAV_WAYPOINT,
+    frame 0 = MAV_FRAME_GLOBAL with AMSL altitude, params 0, autocontinue 1,
+    current 1: the one current item of the upload). The vehicle overwrites it."""
+    lat, lon, alt = home
+    return WireItem(seq=0, frame=MAV_FRAME_GLOBAL, command=MAV_CMD_NAV_WAYPOINT, current=1,
+                    autocontinue=1, param1=0.0, param2=0.0, param3=0.0, param4=0.0,
+                    x=deg_to_e7(lat), y=deg_to_e7(lon), z=_f32(alt),
+                    mission_type=MAV_MISSION_TYPE_MISSION)
+
+
+def mission_to_wire(mission: Mission, *, autopilot: str = "px4") -> list[WireItem]:
+    """The mission list as sent, with exactly one current item (seq 0).
+
+    ``autopilot="px4"``: item ``k`` is seq ``k``. ``autopilot="ardupilot"``: seq 0 is
+    :func:`home_to_wire` (the mission's planned home), item ``k`` is seq ``k + 1``
+    and a DO_JUMP's target (param1) moves up by one with it."""
+    _check_numbering(autopilot)
+    if autopilot == "px4":
+        return [_item_to_wire(it, i, i == 0) for i, it in enumerate(mission.items)]
+    out = [home_to_wire(mission.home)]
+    for i, it in enumerate(mission.items):
+        w = _item_to_wire(it, i + 1, False)
+        if w.command == MAV_CMD_DO_JUMP:
+            w = dataclasses.replace(w, param1=_f32(it.param1 + 1))
+        out.append(w)
+    return out
 
 
 def fence_to_wire(mission: Mission) -> list[WireItem]:
@@ -248,13 +303,21 @@ def rally_to_wire(mission: Mission) -> list[WireItem]:
 
 
 def wire_to_mission(items: Sequence[WireItem], *, home: tuple[float, float, float],
-                    fence: Sequence[WireItem] = (), rally: Sequence[WireItem] = ()) -> Mission:
-    """A Mission from downloaded items (the vehicle does not say where home is)."""
+                    fence: Sequence[WireItem] = (), rally: Sequence[WireItem] = (),
+                    autopilot: str = "px4") -> Mission:
+    """A Mission from downloaded items (``home`` is not taken from the items).
+
+    ``autopilot="ardupilot"``: seq 0 (the vehicle's home) is dropped and DO_JUMP
+    targets move down by one, the inverse of :func:`mission_to_wire`."""
+    _check_numbering(autopilot)
+    skip = 1 if autopilot == "ardupilot" else 0
     mission_items = tuple(
         MissionItem(command=w.command, frame=w.frame, lat_deg=e7_to_deg(w.x),
-                    lon_deg=e7_to_deg(w.y), alt_m=w.z, param1=w.param1, param2=w.param2,
-                    param3=w.param3, param4=w.param4, autocontinue=bool(w.autocontinue))
-        for w in items)
+                    lon_deg=e7_to_deg(w.y), alt_m=w.z,
+                    param1=w.param1 - skip if w.command == MAV_CMD_DO_JUMP else w.param1,
+                    param2=w.param2, param3=w.param3, param4=w.param4,
+                    autocontinue=bool(w.autocontinue))
+        for w in items[skip:])
     polygons: list[FencePolygon] = []
     circles: list[FenceCircle] = []
     k = 0
@@ -288,27 +351,60 @@ def _same_f32(a: float, b: float) -> bool:
     return _f32(a) == _f32(b)
 
 
-def compare_wire(sent: Sequence[WireItem], held: Sequence[WireItem]) -> list[str]:
+# INT and float frames name the same reference (MAVLink common): a vehicle may answer a
+# MISSION_REQUEST_INT with the float frame number (ArduPilot's AP_Mission does)
+_SAME_FRAME = {5: 0, 6: 3, 11: 10}
+# commands that carry no position: a vehicle may store them with frame 0 and x = y = z = 0
+_POSITIONLESS = frozenset({20, *range(112, 160), *range(176, 253)})
+ARDUPILOT_ALT_TOLERANCE_M = 0.01  # ArduPilot stores altitudes in whole centimetres
+
+
+def _frame_class(frame: int) -> int:
+    return _SAME_FRAME.get(frame, frame)
+
+
+def compare_wire(sent: Sequence[WireItem], held: Sequence[WireItem], *,
+                 skip_seq0: bool = False) -> list[str]:
     """Differences between items sent and items read back (empty = identical).
 
     Compares seq, frame, command, autocontinue, int x/y, params (as float32, NaN
     equal to NaN), mission_type and z within 1e-3 m. ``current`` is not compared:
-    the vehicle moves its current item.
+    the vehicle moves its current item. ``skip_seq0`` leaves out item 0 (ArduPilot's
+    home, which the vehicle rewrites) but still counts it. "item i" is seq i.
+
+    What a vehicle may change without changing the mission is accepted: an INT frame
+    read back as its float twin (6 as 3, 5 as 0, 11 as 10), and for commands without
+    a position (RTL, CONDITION_*, DO_*) the frame and x/y/z. With ArduPilot numbering
+    (``skip_seq0``) altitudes match within its centimetre storage.
     """
     diffs: list[str] = []
+    alt_tol = max(ALT_TOLERANCE_M, ARDUPILOT_ALT_TOLERANCE_M) if skip_seq0 else ALT_TOLERANCE_M
     if len(sent) != len(held):
         diffs.append(f"vehicle holds {len(held)} items, {len(sent)} were sent")
     for i, (a, b) in enumerate(zip(sent, held, strict=False)):
-        for name in ("seq", "frame", "command", "autocontinue", "x", "y", "mission_type"):
+        if skip_seq0 and i == 0:
+            continue
+        positionless = a.command in _POSITIONLESS and b.command == a.command
+        for name in ("seq", "command", "autocontinue", "mission_type"):
             va, vb = getattr(a, name), getattr(b, name)
             if va != vb:
                 diffs.append(f"item {i}: {name} {vb} != sent {va}")
+        if positionless:
+            if (b.x, b.y) not in ((a.x, a.y), (0, 0)):
+                diffs.append(f"item {i}: x/y {b.x}/{b.y} != sent {a.x}/{a.y}")
+        else:
+            if _frame_class(a.frame) != _frame_class(b.frame):
+                diffs.append(f"item {i}: frame {b.frame} != sent {a.frame}")
+            for name in ("x", "y"):
+                va, vb = getattr(a, name), getattr(b, name)
+                if va != vb:
+                    diffs.append(f"item {i}: {name} {vb} != sent {va}")
+            if not (abs(a.z - b.z) <= alt_tol):
+                diffs.append(f"item {i}: z {b.z!r} != sent {a.z!r}")
         for name in ("param1", "param2", "param3", "param4"):
             va, vb = getattr(a, name), getattr(b, name)
             if not _same_f32(va, vb):
                 diffs.append(f"item {i}: {name} {vb!r} != sent {va!r}")
-        if not (abs(a.z - b.z) <= ALT_TOLERANCE_M):
-            diffs.append(f"item {i}: z {b.z!r} != sent {a.z!r}")
     return diffs
 
 
@@ -330,6 +426,13 @@ class TransferConfig:
     connect_timeout_s: float = 5.0  # wait for the vehicle's heartbeat
     message_timeout_s: float = 0.5  # MAVLink mission protocol: MAVSDK's default
     retries: int = 5
+    # mission numbering: "auto" (from the HEARTBEAT), "px4" or "ardupilot" (forced)
+    autopilot: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.autopilot not in AUTOPILOT_CHOICES:
+            raise ValueError(f"autopilot must be one of {AUTOPILOT_CHOICES}, "
+                             f"got {self.autopilot!r}")
 
     def transfer_bound_s(self, n_items: int) -> float:
         return (n_items + 3) * (self.retries + 1) * self.message_timeout_s
@@ -345,6 +448,8 @@ class UploadReport:
     elapsed_s: float
     backend: str
     vehicle: tuple[int, int] = (0, 0)  # system id, component id
+    # mission numbering used: "ardupilot" = home item in seq 0, not counted in items
+    autopilot: str = "px4"
 
 
 # ---------------------------------------------------------------- links
@@ -355,6 +460,7 @@ class MissionLink(Protocol):
 
     backend: str
     vehicle: tuple[int, int]
+    autopilot: int | None  # MAV_AUTOPILOT of the vehicle's HEARTBEAT (None: unknown)
 
     def upload(self, items: Sequence[WireItem], mission_type: int) -> None: ...
 
@@ -382,6 +488,22 @@ def open_link(url: str, config: TransferConfig | None = None) -> MavsdkLink | Py
     return PymavlinkLink(url, config)
 
 
+def detected_autopilot(link: Any) -> int | None:
+    """The MAV_AUTOPILOT the link saw in the vehicle's HEARTBEAT (None: unknown)."""
+    return getattr(link, "autopilot", None)
+
+
+def resolve_autopilot(choice: str, link: Any = None) -> str:
+    """The mission numbering for ``choice`` ("auto", "px4" or "ardupilot") on ``link``:
+    "ardupilot" when forced or when "auto" and the vehicle's HEARTBEAT says
+    MAV_AUTOPILOT_ARDUPILOTMEGA (3), else "px4" (PX4, generic, unknown)."""
+    if choice not in AUTOPILOT_CHOICES:
+        raise ValueError(f"autopilot must be one of {AUTOPILOT_CHOICES}, got {choice!r}")
+    if choice != "auto":
+        return choice
+    return "ardupilot" if detected_autopilot(link) == MAV_AUTOPILOT_ARDUPILOTMEGA else "px4"
+
+
 def _result_name(code: int) -> str:
     entry = mavutil.mavlink.enums["MAV_MISSION_RESULT"].get(code)
     return entry.name if entry is not None else f"MAV_MISSION_RESULT_{code}"
@@ -399,6 +521,7 @@ class PymavlinkLink:
         self.url = url
         self._src = (source_system, source_component)
         self._last_heartbeat_s = -math.inf
+        self.autopilot: int | None = None  # MAV_AUTOPILOT of the vehicle's HEARTBEAT
         self._conn = self._open(url)
         try:
             self.vehicle = self._wait_vehicle(self.config.connect_timeout_s)
@@ -453,6 +576,7 @@ class PymavlinkLink:
                                         timeout=min(left, HEARTBEAT_PERIOD_S / 2))
             if (msg is not None and msg.type != MAV_TYPE_GCS
                     and msg.autopilot != MAV_AUTOPILOT_INVALID):
+                self.autopilot = int(msg.autopilot)
                 return msg.get_srcSystem(), msg.get_srcComponent()
         raise NoVehicleError(f"no vehicle heartbeat on {self.url} within {timeout_s:g} s")
 
@@ -678,10 +802,29 @@ class MavsdkLink:
             ids = system.component_ids()
             self.vehicle = (system.get_system_id(), 1 if 1 in ids or not ids else ids[0])
             self._system = system
+            self.autopilot = self._autopilot_of(system)
             self._plugin = MissionRaw(system)
         except BaseException:
             self._mavsdk.destroy()
             raise
+
+    def _autopilot_of(self, system: Any, wait_s: float = 2 * HEARTBEAT_PERIOD_S) -> int | None:
+        """MAV_AUTOPILOT from MAVSDK's ``System.autopilot_type()`` (set from the
+        HEARTBEAT: PX4 -> 12, ArduPilot -> 3, anything else -> GENERIC -> 0); UNKNOWN,
+        polled for at most ``wait_s``, gives None."""
+        from mavsdk.autopilot import Autopilot
+
+        to_mav = {Autopilot.PX4: MAV_AUTOPILOT_PX4,
+                  Autopilot.ARDUPILOT: MAV_AUTOPILOT_ARDUPILOTMEGA,
+                  Autopilot.GENERIC: MAV_AUTOPILOT_GENERIC}
+        deadline = time.monotonic() + min(wait_s, self.config.connect_timeout_s)
+        while True:
+            kind = system.autopilot_type()
+            if kind in to_mav:
+                return to_mav[kind]
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.01)
 
     def close(self) -> None:
         self._mavsdk.destroy()
@@ -819,11 +962,13 @@ def quiet_mavsdk_logs() -> None:
 class _Plan:
     mission_type: int
     items: list[WireItem] = field(default_factory=list)
+    skip_seq0: bool = False  # ArduPilot's home item: sent, counted, not compared
 
 
-def _plans(mission: Mission, fence: bool) -> list[_Plan]:
+def _plans(mission: Mission, fence: bool, numbering: str = "px4") -> list[_Plan]:
     """What to send, in order: fence and rally first (a vehicle may check the mission
-    against its fence on upload), then the mission."""
+    against its fence on upload), then the mission (with ArduPilot's home item in seq
+    0 for ``numbering="ardupilot"``; fence and rally never have one)."""
     plans = []
     if fence:
         fence_items = fence_to_wire(mission)
@@ -832,44 +977,79 @@ def _plans(mission: Mission, fence: bool) -> list[_Plan]:
         rally_items = rally_to_wire(mission)
         if rally_items:
             plans.append(_Plan(MAV_MISSION_TYPE_RALLY, rally_items))
-    plans.append(_Plan(MAV_MISSION_TYPE_MISSION, mission_to_wire(mission)))
+    plans.append(_Plan(MAV_MISSION_TYPE_MISSION, mission_to_wire(mission, autopilot=numbering),
+                       skip_seq0=numbering == "ardupilot"))
     return plans
 
 
+def _verify_error(plan: _Plan, held: Sequence[WireItem], diffs: list[str],
+                  detected: int | None) -> VerifyMismatchError:
+    """The mismatch, with a hint when a PX4-numbered upload came back changed in item 0
+    only and the vehicle is (or item 0 looks like) an ArduPilot home."""
+    hint = ""
+    only_seq0 = (plan.mission_type == MAV_MISSION_TYPE_MISSION and not plan.skip_seq0
+                 and len(held) == len(plan.items)
+                 and not compare_wire(plan.items, held, skip_seq0=True))
+    if only_seq0 and (detected == MAV_AUTOPILOT_ARDUPILOTMEGA
+                      or (held[0].command == MAV_CMD_NAV_WAYPOINT
+                          and held[0].frame == MAV_FRAME_GLOBAL)):
+        said = (" (its heartbeat says ArduPilot)" if detected == MAV_AUTOPILOT_ARDUPILOTMEGA
+                else "")
+        hint = (f"the vehicle rewrote item 0 with a home position as ArduPilot does{said}; "
+                "upload with autopilot 'auto' or 'ardupilot'")
+    return VerifyMismatchError(diffs, mission_type=plan.mission_type, hint=hint)
+
+
 def upload_on_link(link: MissionLink, mission: Mission, *, fence: bool = True,
-                   verify: bool = True) -> tuple[int, int, int]:
-    """Upload (and read back) ``mission`` on an open link; item counts on success."""
+                   verify: bool = True, autopilot: str | None = None) -> tuple[int, int, int]:
+    """Upload (and read back) ``mission`` on an open link; item counts on success.
+
+    ``autopilot`` ("auto", "px4", "ardupilot"; None = the link's
+    ``config.autopilot``, else "auto") picks the mission numbering (see
+    :func:`resolve_autopilot`); the mission count never includes ArduPilot's home."""
+    if autopilot is None:
+        autopilot = getattr(getattr(link, "config", None), "autopilot", "auto")
+    numbering = resolve_autopilot(autopilot, link)
     try:
-        plans = _plans(mission, fence)
+        plans = _plans(mission, fence, numbering)
     except ValueError as exc:
         raise UploadError(f"mission cannot be sent: {exc}") from None
-    for plan in plans:
+    for plan in plans:  # an empty mission to ArduPilot is its home item alone (count 1)
         link.upload(plan.items, plan.mission_type)
     if verify:
         for plan in plans:
             held = link.download(plan.mission_type, expected_items=len(plan.items))
-            diffs = compare_wire(plan.items, held)
+            diffs = compare_wire(plan.items, held, skip_seq0=plan.skip_seq0)
             if diffs:
-                raise VerifyMismatchError(diffs, mission_type=plan.mission_type)
-    counts = {p.mission_type: len(p.items) for p in plans}
+                raise _verify_error(plan, held, diffs, detected_autopilot(link))
+    counts = {p.mission_type: len(p.items) - int(p.skip_seq0) for p in plans}
     return (counts.get(MAV_MISSION_TYPE_MISSION, 0), counts.get(MAV_MISSION_TYPE_FENCE, 0),
             counts.get(MAV_MISSION_TYPE_RALLY, 0))
 
 
 def upload_mission(mission: Mission, url: str, *, config: TransferConfig | None = None,
-                   fence: bool = True, verify: bool = True) -> UploadReport:
+                   fence: bool = True, verify: bool = True,
+                   autopilot: str | None = None) -> UploadReport:
     """Upload ``mission`` (+ fence and rally points unless ``fence=False``) to the
     vehicle at ``url``, read everything back and compare.
 
+    ``autopilot`` ("auto", "px4", "ardupilot"; None = ``config.autopilot``, default
+    "auto": from the vehicle's HEARTBEAT) picks the mission numbering: ArduPilot gets
+    its home item in seq 0 and the items from seq 1 (see the module docstring).
     Returns only when the vehicle holds exactly what was sent; raises
     :class:`UploadError` (one of its subclasses) otherwise.
     """
+    config = config or TransferConfig()
+    choice = config.autopilot if autopilot is None else autopilot
+    resolve_autopilot(choice)  # a bad choice fails before connecting
     t0 = time.perf_counter()
     with contextlib.closing(open_link(url, config)) as link:
-        n_items, n_fence, n_rally = upload_on_link(link, mission, fence=fence, verify=verify)
+        numbering = resolve_autopilot(choice, link)
+        n_items, n_fence, n_rally = upload_on_link(link, mission, fence=fence, verify=verify,
+                                                   autopilot=numbering)
         return UploadReport(items=n_items, fence_items=n_fence, rally_items=n_rally,
                             elapsed_s=time.perf_counter() - t0, backend=link.backend,
-                            vehicle=link.vehicle)
+                            vehicle=link.vehicle, autopilot=numbering)
 
 
 def download_wire(url: str, mission_types: Sequence[int] = (MAV_MISSION_TYPE_MISSION,),

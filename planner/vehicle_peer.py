@@ -8,6 +8,9 @@
 - :class:`ScriptedMavlinkVehicle`: a tiny pymavlink vehicle for the error paths
   MAVSDK's server cannot produce: a chosen MISSION_ACK NACK (on MISSION_COUNT or on
   an item), silence after N items, legacy MISSION_REQUEST, a corrupted read-back.
+- :class:`ArduPilotLikeVehicle`: the scripted vehicle with ArduPilot's heartbeat
+  (autopilot 3, quadrotor) and ArduPilot's mission storage: seq 0 is always the
+  vehicle's own home (whatever was uploaded there), the mission from seq 1.
 
 Both pick a free port at start and stop within a bounded time.
 
@@ -27,17 +30,31 @@ from dataclasses import dataclass
 from typing import Any
 
 from planner.mavlink import (
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_GENERIC,
     MAV_MISSION_ACCEPTED,
     WireItem,
     mavutil,
     quiet_mavsdk_logs,
 )
-from planner.mission import MAV_MISSION_TYPE_MISSION
+from planner.mission import (
+    MAV_CMD_NAV_WAYPOINT,
+    MAV_FRAME_GLOBAL,
+    MAV_MISSION_TYPE_MISSION,
+    deg_to_e7,
+)
 
-__all__ = ["MavsdkVehiclePeer", "ScriptedMavlinkVehicle", "VehicleScript", "free_udp_port"]
+__all__ = [
+    "ArduPilotLikeVehicle",
+    "MavsdkVehiclePeer",
+    "ScriptedMavlinkVehicle",
+    "VehicleScript",
+    "free_udp_port",
+]
 
 MAV_TYPE_QUADROTOR = 2
-MAV_AUTOPILOT_GENERIC = 0
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+MAV_STATE_STANDBY = 3
 LOOPBACK = "127.0.0.1"
 
 
@@ -190,12 +207,21 @@ class VehicleScript:
     nack_result: int = 1  # MAV_MISSION_RESULT, 1 = MAV_MISSION_ERROR
     silent_after_items: int | None = None  # stop answering transfers after N items
     legacy_requests: bool = False  # request items with MISSION_REQUEST, not _INT
-    download_x_offset_e7: int = 0  # report item 0's x off by this much on download
+    download_x_offset_e7: int = 0  # report item download_x_offset_seq's x off by this much
+    download_x_offset_seq: int = 0
     heartbeat_period_s: float = 0.1
 
 
 class ScriptedMavlinkVehicle:
-    """A minimal pymavlink vehicle (sys 1, comp 1) on ``udpin:127.0.0.1:PORT``."""
+    """A minimal pymavlink vehicle (sys 1, comp 1) on ``udpin:127.0.0.1:PORT``.
+
+    Its HEARTBEAT says quadrotor, MAV_AUTOPILOT_GENERIC (0): PX4-style numbering."""
+
+    mav_type = MAV_TYPE_QUADROTOR
+    autopilot = MAV_AUTOPILOT_GENERIC
+    base_mode = 0
+    custom_mode = 0
+    system_status = 0
 
     def __init__(self, script: VehicleScript | None = None, *, host: str = LOOPBACK) -> None:
         self.script = script or VehicleScript()
@@ -257,7 +283,8 @@ class ScriptedMavlinkVehicle:
             now = time.monotonic()
             if now >= next_hb:
                 next_hb = now + self.script.heartbeat_period_s
-                conn.mav.heartbeat_send(MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC, 0, 0, 0)
+                conn.mav.heartbeat_send(self.mav_type, self.autopilot, self.base_mode,
+                                        self.custom_mode, self.system_status)
             try:
                 msg = conn.recv_match(blocking=True, timeout=0.02)
             except OSError:
@@ -286,7 +313,7 @@ class ScriptedMavlinkVehicle:
             self._ack(self.script.nack_on_count, mission_type)
             return
         if msg.count == 0:
-            self._holdings.store(mission_type, [])
+            self._store(mission_type, [])
             self._ack(MAV_MISSION_ACCEPTED, mission_type)
             return
         self._rx = {"type": mission_type, "count": int(msg.count), "items": []}
@@ -313,10 +340,14 @@ class ScriptedMavlinkVehicle:
         rx["items"].append(WireItem.from_msg(msg))
         if len(rx["items"]) == rx["count"]:
             self._rx = None
-            self._holdings.store(rx["type"], rx["items"])
+            self._store(rx["type"], rx["items"])
             self._ack(MAV_MISSION_ACCEPTED, rx["type"])
         else:
             self._request(len(rx["items"]), rx["type"])
+
+    def _store(self, mission_type: int, items: list[WireItem]) -> None:
+        """Keep a completed upload (a subclass may rewrite it, as an autopilot does)."""
+        self._holdings.store(mission_type, items)
 
     def _on_mission_request_list(self, msg: Any) -> None:
         mission_type = int(msg.mission_type)
@@ -330,7 +361,8 @@ class ScriptedMavlinkVehicle:
             self._ack(mavutil.mavlink.MAV_MISSION_INVALID_SEQUENCE, mission_type)
             return
         w = held[seq]
-        x = w.x + (self.script.download_x_offset_e7 if seq == 0 else 0)
+        x = w.x + (self.script.download_x_offset_e7
+                   if seq == self.script.download_x_offset_seq else 0)
         self._conn.mav.mission_item_int_send(
             *self._gcs, w.seq, w.frame, w.command, w.current, w.autocontinue,
             w.param1, w.param2, w.param3, w.param4, x, w.y, w.z, mission_type)
@@ -340,3 +372,60 @@ class ScriptedMavlinkVehicle:
     def _on_mission_clear_all(self, msg: Any) -> None:
         self._holdings.clear(int(msg.mission_type))
         self._ack(MAV_MISSION_ACCEPTED, int(msg.mission_type))
+
+
+def _ardupilot_stored(it: WireItem) -> WireItem:
+    """An item as ArduPilot's AP_Mission gives it back: float frame numbers, altitude in
+    whole centimetres, commands without a position with frame 0 and x = y = z = 0."""
+    import dataclasses
+
+    if it.command in (20, *range(112, 160), *range(176, 253)):
+        return dataclasses.replace(it, frame=MAV_FRAME_GLOBAL, x=0, y=0, z=0.0)
+    frame = {5: 0, 6: 3, 11: 10}.get(it.frame, it.frame)
+    return dataclasses.replace(it, frame=frame, z=round(it.z * 100.0) / 100.0)
+
+
+class ArduPilotLikeVehicle(ScriptedMavlinkVehicle):
+    """A pymavlink vehicle that numbers its mission as ArduPilot does.
+
+    HEARTBEAT: MAV_TYPE_QUADROTOR (2), MAV_AUTOPILOT_ARDUPILOTMEGA (3), custom mode
+    enabled, STANDBY. Mission list (fence and rally are kept as sent): seq 0 is the
+    vehicle's home, NAV_WAYPOINT in frame 0 (AMSL) at :attr:`home` — an uploaded seq
+    0 is stored and then overwritten by it, never flown — and the uploaded items
+    follow from seq 1. With nothing uploaded (or after MISSION_CLEAR_ALL) it holds
+    its home alone (count 1). ``script`` misbehaviours work as in the base class.
+    """
+
+    autopilot = MAV_AUTOPILOT_ARDUPILOTMEGA
+    base_mode = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    custom_mode = 0  # Copter STABILIZE
+    system_status = MAV_STATE_STANDBY
+
+    # somewhere else than any planned home of the tests: the vehicle's own GPS home
+    DEFAULT_HOME = (36.7201234, -4.4702345, 121.5)
+
+    def __init__(self, script: VehicleScript | None = None, *, host: str = LOOPBACK,
+                 home: tuple[float, float, float] = DEFAULT_HOME) -> None:
+        super().__init__(script, host=host)
+        self.home = home
+        self.received: dict[int, list[WireItem]] = {}  # last uploads as they arrived
+
+    def home_item(self) -> WireItem:
+        lat, lon, alt = self.home
+        return WireItem(seq=0, frame=MAV_FRAME_GLOBAL, command=MAV_CMD_NAV_WAYPOINT,
+                        current=0, autocontinue=1, param1=0.0, param2=0.0, param3=0.0,
+                        param4=0.0, x=deg_to_e7(lat), y=deg_to_e7(lon), z=float(alt),
+                        mission_type=MAV_MISSION_TYPE_MISSION)
+
+    def _store(self, mission_type: int, items: list[WireItem]) -> None:
+        self.received[mission_type] = list(items)
+        if mission_type == MAV_MISSION_TYPE_MISSION:
+            # seq 0 is home, whatever was sent; the rest as AP_Mission stores them
+            items = [self.home_item(), *(_ardupilot_stored(it) for it in items[1:])]
+        self._holdings.store(mission_type, items)
+
+    def held(self, mission_type: int = MAV_MISSION_TYPE_MISSION) -> list[WireItem]:
+        items = self._holdings.held(mission_type)
+        if mission_type == MAV_MISSION_TYPE_MISSION and not items:
+            return [self.home_item()]  # never empty: home stays in seq 0
+        return items

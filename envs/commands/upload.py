@@ -37,6 +37,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "MAVSDK URLs use MAVSDK's own resend count)")
     p.add_argument("--no-fence", action="store_true",
                    help="upload the mission items only, not the geofence or rally points")
+    p.add_argument("--autopilot", choices=("auto", "px4", "ardupilot"), default="auto",
+                   help="mission numbering: 'auto' (default) from the vehicle's heartbeat "
+                   "(ArduPilot: a home item in seq 0, the mission from seq 1; anything else: "
+                   "the mission from seq 0); 'px4' or 'ardupilot' force it")
     p.set_defaults(func=run)
     return p
 
@@ -80,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     except MissionFileError as exc:
         return _fail(EXIT_USAGE, str(exc))
     config = TransferConfig(connect_timeout_s=args.timeout,
-                            message_timeout_s=args.message_timeout, retries=args.retries)
+                            message_timeout_s=args.message_timeout, retries=args.retries,
+                            autopilot=args.autopilot)
     try:
         report = upload_mission(mission, args.connection, config=config,
                                 fence=not args.no_fence)
@@ -88,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(EXIT_USAGE, str(exc))
     except UploadError as exc:
         return _fail(EXIT_VEHICLE, f"{type(exc).__name__}: {exc}")
+    numbering = ("ArduPilot numbering, home item in seq 0" if report.autopilot == "ardupilot"
+                 else "mission from seq 0")
     print(f"uploaded and verified {args.file} on vehicle {report.vehicle[0]}/{report.vehicle[1]} "
-          f"via {report.backend}: mission items {report.items}, fence items "
+          f"via {report.backend} ({numbering}): mission items {report.items}, fence items "
           f"{report.fence_items}, rally points {report.rally_items}, {report.elapsed_s:.2f} s")
     return EXIT_OK
