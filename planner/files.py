@@ -23,6 +23,7 @@ Mission -> file -> Mission is exact, well inside the int degE7 / 1e-6 m contract
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -224,6 +225,38 @@ def _global_alt_mode(items: tuple[MissionItem, ...]) -> int:
     return modes.pop() if len(modes) == 1 else (ALT_MODE_RELATIVE if not modes else ALT_MODE_MIXED)
 
 
+MAV_CMD_DO_JUMP = 177
+
+
+def _jump_out(it: MissionItem) -> float:
+    """param1 as files hold it: a DO_JUMP's target is item index + 1 in both formats
+    (QGC's doJumpId of the target, which we write as index + 1; a WPL line number,
+    home being line 0). In a Mission it is the target's item index (its seq on PX4)."""
+    return it.param1 + 1.0 if it.command == MAV_CMD_DO_JUMP else it.param1
+
+
+def _resolve_jumps(items: tuple[MissionItem, ...], raw: list) -> tuple[MissionItem, ...]:
+    """Map each DO_JUMP's param1 (a QGC doJumpId) to the target's item index."""
+    if not any(it.command == MAV_CMD_DO_JUMP for it in items):
+        return items
+    ids = {}
+    for i, r in enumerate(raw):
+        jid = r.get("doJumpId", i + 1) if isinstance(r, dict) else i + 1
+        if isinstance(jid, int | float) and not isinstance(jid, bool):
+            ids.setdefault(int(jid), i)
+    out = []
+    for i, it in enumerate(items):
+        if it.command == MAV_CMD_DO_JUMP:
+            target = ids.get(int(it.param1)) if math.isfinite(it.param1) else None
+            if target is None:
+                raise MissionFileError(
+                    f"mission.items[{i}]: DO_JUMP to doJumpId {it.param1:g}, which no item has"
+                )
+            it = dataclasses.replace(it, param1=float(target))
+        out.append(it)
+    return tuple(out)
+
+
 def plan_dict(mission: Mission) -> dict[str, Any]:
     """The ``.plan`` JSON object for ``mission`` (validated)."""
     _check_mission(mission)
@@ -249,7 +282,7 @@ def plan_dict(mission: Mission) -> dict[str, Any]:
                 "doJumpId": i + 1,
                 "frame": int(it.frame),
                 "params": [
-                    _json_num(it.param1),
+                    _json_num(_jump_out(it)),
                     _json_num(it.param2),
                     _json_num(it.param3),
                     _json_num(it.param4),
@@ -415,9 +448,9 @@ def parse_plan(obj: Any, source: str = "<plan>") -> Mission:
             raise MissionFileError("mission.plannedHomePosition: expected [lat, lon, alt]")
         home = tuple(_num(v, "mission.plannedHomePosition") for v in home_raw)
         _check_lat_lon(home[0], home[1], "mission.plannedHomePosition")
-        items = tuple(
-            _plan_item(raw, i) for i, raw in enumerate(_get(mission_obj, "items", list, "mission"))
-        )
+        raw_items = _get(mission_obj, "items", list, "mission")
+        items = _resolve_jumps(tuple(_plan_item(raw, i) for i, raw in enumerate(raw_items)),
+                               raw_items)
         firmware_code = _int(mission_obj.get("firmwareType", 0), "mission.firmwareType", 0, 255)
         vehicle_code = _int(mission_obj.get("vehicleType", 0), "mission.vehicleType", 0, 255)
         cruise = _num(mission_obj.get("cruiseSpeed", 10.0), "mission.cruiseSpeed")
@@ -535,7 +568,7 @@ def wpl_text(mission: Mission, *, drop_fence: bool = False) -> str:
                        lat, lon, alt, True)]
     for i, it in enumerate(mission.items, start=1):
         lines.append(_wpl_line(i, 0, it.frame, it.command,
-                               (it.param1, it.param2, it.param3, it.param4),
+                               (_jump_out(it), it.param2, it.param3, it.param4),
                                it.lat_deg, it.lon_deg, it.alt_m, it.autocontinue))
     return "\n".join(lines) + "\n"
 
@@ -603,6 +636,8 @@ def parse_wpl(text: str, source: str = "<wpl>") -> Mission:
         if index == 0:
             home = (lat, lon, alt)
             continue
+        if command == MAV_CMD_DO_JUMP:  # the file counts home as line 0
+            params[0] -= 1.0
         items.append(MissionItem(command=command, frame=frame, lat_deg=lat, lon_deg=lon,
                                  alt_m=alt, param1=params[0], param2=params[1],
                                  param3=params[2], param4=params[3],

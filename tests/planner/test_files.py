@@ -383,3 +383,23 @@ def test_missing_file_and_unwritable_values(tmp_path: Path) -> None:
             assert not (tmp_path / name).exists()
     with pytest.raises(MissionFileError, match="unknown firmware"):
         write_plan(Mission(items=m.items, home=m.home, firmware="betaflight"), tmp_path / "f.plan")
+
+
+def test_do_jump_target_survives_both_formats(tmp_path):
+    """DO_JUMP param1 is the target's item index in a Mission, index + 1 in the files."""
+    from planner.files import read_plan, read_wpl, write_plan, write_wpl
+    from planner.mission import Mission, MissionItem
+
+    wp = [MissionItem(lat_deg=36.715 + 1e-4 * k, lon_deg=-4.478, alt_m=40.0) for k in range(3)]
+    jump = MissionItem(command=177, frame=2, param1=1.0, param2=3.0, param4=0.0)
+    m = Mission(items=(*wp, jump), home=(36.715, -4.478, 100.0))
+    write_plan(m, tmp_path / "j.plan")
+    write_wpl(m, tmp_path / "j.waypoints")
+    import json
+
+    raw = json.loads((tmp_path / "j.plan").read_text())["mission"]["items"]
+    assert raw[3]["params"][0] == 2.0 and raw[1]["doJumpId"] == 2  # QGC: doJumpId of item 1
+    wpl_line = (tmp_path / "j.waypoints").read_text().splitlines()[5].split("\t")
+    assert float(wpl_line[4]) == 2.0  # item 1 is line 2 (home is line 0)
+    for back in (read_plan(tmp_path / "j.plan"), read_wpl(tmp_path / "j.waypoints")):
+        assert back.items[3].command == 177 and back.items[3].param1 == 1.0
