@@ -1,21 +1,43 @@
 """Trajectory -> MAVLink mission (:class:`planner.mission.Mission`).
 
 Every path, curves included, becomes plain MAV_CMD_NAV_WAYPOINT items: a takeoff item
-first, the decimated path, and optionally RETURN_TO_LAUNCH last. Decimation is 3-D
-Douglas-Peucker with ``tolerance_m`` (default 1 m): every sample of the trajectory lies
-within ``tolerance_m`` of the straight legs between the kept waypoints, so an orbit of
-radius r keeps a vertex every 2 sqrt(2 r tol) metres or so (about 20 m for r = 50 m)
-and still flies as a circle. The mission's home is the trajectory's origin (the ENU
-frame is centred on home), waypoint coordinates go through the exact WGS84 ENU frame.
+at home first, the decimated path, and optionally RETURN_TO_LAUNCH last.
 
-Heights: a trajectory with ``height_ref="origin"`` gives frame 6
-(MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, altitude above home) with alt = z. A
-``"terrain"`` trajectory gives frame 6 with alt = z + terrain(x, y) when a terrain
-model (ground height above home) is passed, else frame 11 (MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
-altitude above terrain, resolved by the autopilot) with alt = z.
+Heights. The mission frame is chosen first and every trajectory sample is expressed in
+it before anything is dropped:
+
+- frame 6 (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, altitude relative to home), for a
+  ``height_ref="origin"`` trajectory, and for a ``"terrain"`` one when a terrain model
+  (ground height above the trajectory origin) is passed. The sample's absolute position
+  is (e, n, z) in the trajectory's exact WGS84 ENU frame, z plus terrain(e, n) for a
+  terrain-referenced path; its altitude is alt = h(point) - home_h, with h the height
+  from the exact geodesy (:class:`estimator.geodesy.ExactENU`, pymap3d). With home = the
+  trajectory origin (the default) alt is z less the tangent plane's drop d^2 / 2R
+  (8 mm at 320 m).
+- frame 11 (MAV_FRAME_GLOBAL_TERRAIN_ALT_INT, altitude above terrain, resolved by the
+  autopilot) for a ``"terrain"`` trajectory without a terrain model: alt = z.
+
+Decimation is 3-D Douglas-Peucker with ``tolerance_m`` (default 1 m) on (east, north,
+alt) in that mission frame, so every dropped sample lies within ``tolerance_m`` of the
+straight legs the autopilot flies between the kept waypoints (which are straight in
+latitude, longitude and the frame's altitude). A constant-height-above-terrain pass
+over a hill therefore keeps the vertices that follow the hill in frame 6. An orbit of
+radius r keeps a vertex every 2 sqrt(2 r tol) metres or so (about 20 m for r = 50 m)
+and still flies as a circle.
+
+Home. ``home=(lat, lon, h)`` defaults to the trajectory origin; a trajectory whose
+origin is not the takeoff point gets its relative altitudes from the given home.
+``h`` must be in the same vertical datum as the trajectory origin's height: the frames
+here treat both as WGS84 ellipsoidal heights. We have no geoid model, so nothing is
+converted to AMSL: :attr:`Mission.home` holds exactly the ``home`` given (or the
+origin), i.e. whatever datum the caller used (``osa plan --home LAT,LON,ALT`` takes ALT
+as the home's height in the datum the vehicle reports). The waypoint items themselves
+are relative to home (frame 6) or to the terrain (frame 11), so they do not depend on
+that datum; only the planned-home record and heights derived from it (GeoJSON) do.
 
 The keep-in fence becomes an inclusion polygon, keep-out cylinders exclusion circles
-(mission_type FENCE); rally points are optional.
+(mission_type FENCE); rally points (ENU, z above the trajectory origin) are optional and
+get altitudes relative to home like the waypoints.
 """
 
 from __future__ import annotations
@@ -103,6 +125,47 @@ def _median_speed_m_s(traj: Trajectory) -> float | None:
     return float(np.median(v))
 
 
+def _home(traj: Trajectory, home: Sequence[float] | None) -> tuple[float, float, float]:
+    if home is None:
+        return (float(traj.origin[0]), float(traj.origin[1]), float(traj.origin[2]))
+    h = tuple(float(v) for v in home)
+    if len(h) != 3 or not all(math.isfinite(v) for v in h):
+        raise ValueError("home must be 3 finite numbers (lat_deg, lon_deg, h_m)")
+    if not (-90.0 <= h[0] <= 90.0 and -180.0 <= h[1] <= 180.0):
+        raise ValueError(f"home out of range: {h!r}")
+    return h  # type: ignore[return-value]
+
+
+def mission_frame_points(
+    traj: Trajectory,
+    *,
+    home: Sequence[float] | None = None,
+    terrain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """(frame, lat_deg, lon_deg, alt_m) of every trajectory sample in the mission frame.
+
+    Frame 6: alt = h(point) - home_h through the exact geodesy (the absolute point is z
+    above the trajectory origin, plus terrain(e, n) for a terrain-referenced path).
+    Frame 11 (terrain-referenced, no terrain model): alt = z above terrain.
+    """
+    frame_enu = ExactENU(*traj.origin)
+    e, n, z = traj.enu_m[:, 0], traj.enu_m[:, 1], traj.enu_m[:, 2]
+    if traj.height_ref == "terrain" and terrain is None:
+        lat, lon, _ = frame_enu.to_geodetic(e, n, np.zeros(len(e)))
+        return (
+            MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
+            np.atleast_1d(lat),
+            np.atleast_1d(lon),
+            np.array(z, dtype=float),
+        )
+    up = np.array(z, dtype=float)
+    if traj.height_ref == "terrain":
+        up = up + np.asarray(terrain(e, n), dtype=float)  # type: ignore[misc]
+    lat, lon, h = frame_enu.to_geodetic(e, n, up)
+    alt = np.atleast_1d(h) - _home(traj, home)[2]
+    return MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, np.atleast_1d(lat), np.atleast_1d(lon), alt
+
+
 def trajectory_to_mission(
     traj: Trajectory,
     *,
@@ -113,32 +176,28 @@ def trajectory_to_mission(
     keep_outs: Sequence[KeepOut] = (),
     rally_enu_m: Sequence[Sequence[float]] = (),
     terrain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    home: Sequence[float] | None = None,
     cruise_speed_m_s: float | None = None,
     name: str | None = None,
 ) -> Mission:
-    """Mission flying ``traj``: takeoff, decimated waypoints, optional RTL; home = origin.
+    """Mission flying ``traj``: takeoff at home, decimated waypoints, optional RTL.
 
+    ``home`` = (lat_deg, lon_deg, h_m), default the trajectory origin; ``h_m`` in the
+    datum of the origin's height (see the module docstring). ``terrain`` (ground height
+    above the trajectory origin at (e, n)) turns a terrain-referenced path into frame 6.
     ``takeoff_alt_m`` defaults to the first waypoint's altitude; ``cruise_speed_m_s``
     to the trajectory's median speed.
     """
     if len(traj.t_s) == 0:
         raise ValueError("empty trajectory")
+    home_t = _home(traj, home)
     frame_enu = ExactENU(*traj.origin)
-    pts = traj.enu_m
+    frame, lat_all, lon_all, alt_all = mission_frame_points(traj, home=home_t, terrain=terrain)
+    # decimate in the mission's own frame: (east, north, alt as flown)
+    pts = np.column_stack([traj.enu_m[:, 0], traj.enu_m[:, 1], alt_all])
     keep = douglas_peucker(pts, tolerance_m)
-    kept = pts[keep]
-    if traj.height_ref == "terrain" and terrain is None:
-        frame = MAV_FRAME_GLOBAL_TERRAIN_ALT_INT
-        alts = kept[:, 2]
-    else:
-        frame = MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
-        alts = kept[:, 2].copy()
-        if traj.height_ref == "terrain":
-            alts += np.asarray(terrain(kept[:, 0], kept[:, 1]), dtype=float)  # type: ignore[misc]
-    h0 = traj.origin[2]
-    lat, lon, _ = frame_enu.to_geodetic(kept[:, 0], kept[:, 1], np.zeros(len(kept)))
-    lat, lon = np.atleast_1d(lat), np.atleast_1d(lon)
-    home_lat, home_lon = traj.origin[0], traj.origin[1]
+    lat, lon, alts = lat_all[keep], lon_all[keep], alt_all[keep]
+    home_lat, home_lon, home_h = home_t
     t_alt = float(alts[0]) if takeoff_alt_m is None else float(takeoff_alt_m)
     if not math.isfinite(t_alt):
         raise ValueError("takeoff altitude must be finite")
@@ -194,8 +253,8 @@ def trajectory_to_mission(
         )
     rally = []
     for r in rally_enu_m:
-        rlat, rlon, _ = frame_enu.to_geodetic(float(r[0]), float(r[1]), 0.0)
-        rally.append((float(rlat), float(rlon), float(r[2])))
+        rlat, rlon, rh = frame_enu.to_geodetic(float(r[0]), float(r[1]), float(r[2]))
+        rally.append((float(rlat), float(rlon), float(rh) - home_h))  # relative to home
     speed = cruise_speed_m_s if cruise_speed_m_s is not None else _median_speed_m_s(traj)
     extra = (
         {}
@@ -204,7 +263,7 @@ def trajectory_to_mission(
     )
     return Mission(
         items=tuple(items),
-        home=(home_lat, home_lon, h0),
+        home=home_t,
         polygons=polygons,
         circles=tuple(circles),
         rally_deg=tuple(rally),
@@ -213,6 +272,7 @@ def trajectory_to_mission(
             "source": traj.name,
             "tolerance_m": tolerance_m,
             "height_ref": traj.height_ref,
+            "frame": frame,
             "length_m": traj.length_m,
             "duration_s": traj.duration_s,
             "kept_indices": keep,
@@ -222,12 +282,20 @@ def trajectory_to_mission(
 
 
 def mission_waypoints_enu_m(mission: Mission) -> np.ndarray:
-    """ENU (home-centred) positions of the NAV_WAYPOINT items, z = the item altitude."""
+    """Positions of the NAV_WAYPOINT items in the ENU frame centred on ``mission.home``.
+
+    Frame-6 items are inverted exactly (the point at height home_h + alt): for a mission
+    exported with home = the trajectory origin this gives back the trajectory's
+    (e, n, z). Items in other frames (11: above terrain) keep z = their altitude.
+    """
     frame = ExactENU(*mission.home)
     wps = [it for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT]
     if not wps:
         return np.zeros((0, 3))
     lat = np.array([it.lat_deg for it in wps])
     lon = np.array([it.lon_deg for it in wps])
-    e, n, _ = frame.to_enu(lat, lon, np.full(len(wps), mission.home[2]))
-    return np.column_stack([np.atleast_1d(e), np.atleast_1d(n), [it.alt_m for it in wps]])
+    alt = np.array([it.alt_m for it in wps])
+    relative = np.array([it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT for it in wps])
+    e, n, u = frame.to_enu(lat, lon, mission.home[2] + np.where(relative, alt, 0.0))
+    z = np.where(relative, np.atleast_1d(u), alt)
+    return np.column_stack([np.atleast_1d(e), np.atleast_1d(n), z])

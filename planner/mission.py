@@ -89,7 +89,11 @@ class FenceCircle:
 
 @dataclass(frozen=True, kw_only=True)
 class Mission:
-    """A mission: items (seq = index), planned home (lat, lon, AMSL alt), fence, rally.
+    """A mission: items (seq = index), planned home (lat, lon, alt), fence, rally.
+
+    The home altitude is in the datum the vehicle reports (we carry no geoid model:
+    ``osa plan --home LAT,LON,ALT`` writes ALT unchanged); items in frame 6 are relative
+    to home, so they do not depend on it.
 
     The current item on upload is item 0 (exactly one ``current=1``).
     """

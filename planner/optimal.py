@@ -21,13 +21,20 @@ penalty on the second differences keeps the path smooth. The ten distinct entrie
 each J_k are lifted into extra variables (equality constraints), which keeps the
 Hessian of the Lagrangian block-sparse: this is what makes re-solves fast.
 
-Constraints (all on waypoints; straight flight between them):
+Constraints (on waypoints, and the altitude band on leg midpoints too; straight flight
+between waypoints):
 - start: p_0 = the current position; (p_1 - p_0)/dt - v_0 bounded like the accel;
 - speed |p_{i+1} - p_i| <= v_max dt, climb |z_{i+1} - z_i| <= v_z dt;
 - acceleration |p_{i+1} - 2 p_i + p_{i-1}| <= a_max dt^2;
-- altitude band: agl_min <= z_i - terrain(x_i, y_i) <= agl_max for i >= 1, with the
-  terrain a smooth function CasADi can evaluate (:class:`FlatTerrain`,
-  :class:`GaussianHills`);
+- altitude band: agl_min <= z - terrain(x, y) <= agl_max at the waypoints i >= 1 and
+  at the midpoints of the legs, with the terrain a smooth function CasADi can evaluate
+  (:class:`FlatTerrain`, :class:`GaussianHills`). A straight leg over a hill top sags
+  towards the ground between its ends (its height above terrain is convex where the
+  terrain is concave), so over curved terrain both sets of points keep a sag margin
+  m = kappa (v_max dt / 2)^2 / 8 inside the band (kappa the terrain's curvature bound,
+  :meth:`GaussianHills.sag_curvature`): every half-leg then stays inside the band
+  (flat terrain: no midpoints, no margin). The first leg starts where the drone is, so
+  its midpoint keeps the band widened to the start's own height above terrain;
 - keep-in geofence: a convex polygon as half-planes a_j . (x, y) <= b_j - margin,
   joined per waypoint by a log-sum-exp smooth max (above the true max, so
   conservative; convexity keeps whole legs inside when their ends are);
@@ -41,9 +48,12 @@ re-solves, warm-started (primal and dual) from the previous solution. Unused fen
 edges and keep-outs are padded with rows that always hold.
 
 The solver's own status is never trusted: :meth:`OptimalPlanner.check` re-checks every
-constraint numerically (legs densely for fence and keep-outs, without margins); if
-the optimiser's path fails, the planner falls back to the best feasible orbit about the
-prior mean flown by an acceleration-limited guidance law from the current pose.
+constraint numerically (legs densely, every 1 m, for the altitude band, the fence and
+the keep-outs, without margins); if the optimiser's path fails, the planner falls back
+to the best feasible orbit about the prior mean flown by an acceleration-limited
+guidance law from the current pose. If CasADi raises, there is no optimiser path: the
+initial guess is returned if it passes the check, labelled as a fallback, and is not
+kept as a warm start.
 """
 
 from __future__ import annotations
@@ -57,7 +67,7 @@ import casadi as ca
 import numpy as np
 
 from estimator.records import Trajectory
-from planner.patterns import PAPER_SITE, Geofence, KeepOut, airspace_violations
+from planner.patterns import PAPER_SITE, Geofence, KeepOut, airspace_violations, densify
 from planner.scoring import ScoringConfig, prior_points
 
 _FAR_M = 1e5  # padding: an unused fence edge or keep-out this far away never binds
@@ -78,6 +88,10 @@ class FlatTerrain:
     def __call__(self, x, y):
         return 0.0 * x + self.height_m
 
+    def sag_curvature(self) -> tuple[float, float]:
+        """Bounds on -T'' and +T'' along any horizontal line (1/m): none for flat ground."""
+        return 0.0, 0.0
+
 
 @dataclass(frozen=True)
 class GaussianHills:
@@ -94,6 +108,33 @@ class GaussianHills:
         for e, n, h, s in self.hills:
             out = out + h * exp(-((x - e) ** 2 + (y - n) ** 2) / (2.0 * s * s))
         return out
+
+    def sag_curvature(self) -> tuple[float, float]:
+        """Bounds (concave, convex) on -T'' and +T'' along any horizontal line (1/m).
+
+        Along a line at offset a from a hill's centre, T = h exp(-(a^2 + s^2) / 2 sigma^2)
+        has T'' = h (s^2 / sigma^2 - 1) / sigma^2 exp(...): at most h / sigma^2 in
+        magnitude on the concave side (the top, s = a = 0) and 2 e^-1.5 h / sigma^2 =
+        0.446 h / sigma^2 on the convex side (the foot, s^2 = 3 sigma^2). The bounds of
+        the hills add (conservative where they do not overlap).
+        """
+        foot = 2.0 * math.exp(-1.5)
+        concave = convex = 0.0
+        for _e, _n, h, s in self.hills:
+            k = abs(h) / (s * s)
+            concave += k if h > 0 else foot * k
+            convex += foot * k if h > 0 else k
+        return concave, convex
+
+
+def sag_margins_m(terrain, leg_m: float) -> tuple[float, float]:
+    """How far the height above ``terrain`` can dip below (first) or rise above (second)
+    the straight interpolation of its values at the ends of a horizontal leg ``leg_m``
+    long: kappa leg^2 / 8, kappa the terrain's curvature bound along a line. Terrains
+    without ``sag_curvature`` count as flat (the dense check still catches a sag)."""
+    bound = getattr(terrain, "sag_curvature", None)
+    concave, convex = bound() if bound is not None else (0.0, 0.0)
+    return concave * leg_m * leg_m / 8.0, convex * leg_m * leg_m / 8.0
 
 
 # --------------------------------------------------------------------------- config
@@ -141,8 +182,11 @@ class PlanResult:
     """Output of :meth:`OptimalPlanner.plan`.
 
     ``violations`` lists what the optimiser's own path broke (empty when it passed the
-    check); ``fallback`` names the pattern used instead (None when the optimiser's path
-    is returned); ``feasible`` says whether the returned path passes the check.
+    check; when CasADi raised, first "no solver path ..." and then what the initial
+    guess broke); ``fallback`` names what is returned instead of an optimiser path (None
+    only when the optimiser's path is returned): ``"orbit r=.. m"`` or, after a solver
+    error, ``"initial guess: ..."``; ``feasible`` says whether the returned path passes
+    the check.
     """
 
     trajectory: Trajectory
@@ -355,7 +399,7 @@ class OptimalPlanner:
         p_vel = opti.parameter(3)
         p_dt = opti.parameter()
         p_lim = opti.parameter(3)  # v_max, a_max, v_z
-        p_band = opti.parameter(2)  # agl min, max
+        p_band = opti.parameter(4)  # agl min, max; the first leg's min, max
         p_fence = opti.parameter(E, 3)  # a_x, a_y, b (m, margin applied)
         p_keep = opti.parameter(M, 3)  # c_x, c_y (m), effective radius^2 (m^2)
         P = S * X
@@ -385,7 +429,19 @@ class OptimalPlanner:
         first = X[:, 1] - X[:, 0] - p_vel * p_dt / S
         opti.subject_to(ca.sumsqr(first) <= amax_dt2**2)
         agl = X[2, 1:] - cfg.terrain(P[0, 1:], P[1, 1:]) / S
-        per_leg(opti.bounded(p_band[0] / S, agl, p_band[1] / S))
+        concave, convex = sag_margins_m(cfg.terrain, 1.0)  # kappa / 8 per m^2 of leg
+        if concave > 0.0 or convex > 0.0:
+            # sag margins of a half-leg, m = kappa (v_max dt / 2)^2 / 8, in scaled units
+            half2 = (p_lim[0] * p_dt / 2) ** 2
+            m_lo, m_hi = concave * half2 / S, convex * half2 / S
+            per_leg(opti.bounded(p_band[0] / S + m_lo, agl, p_band[1] / S - m_hi))
+            mid = 0.5 * (P[:, 1:] + P[:, :-1])
+            agl_mid = 0.5 * (X[2, 1:] + X[2, :-1]) - cfg.terrain(mid[0, :], mid[1, :]) / S
+            lo_mid = ca.horzcat(p_band[2], ca.repmat(p_band[0], 1, N - 2)) / S + m_lo
+            hi_mid = ca.horzcat(p_band[3], ca.repmat(p_band[1], 1, N - 2)) / S - m_hi
+            per_leg(opti.bounded(lo_mid, agl_mid, hi_mid))
+        else:  # flat: the height above terrain is linear along a leg, the ends suffice
+            per_leg(opti.bounded(p_band[0] / S, agl, p_band[1] / S))
         # keep-in: smooth max over the edges (log-sum-exp >= max, so conservative by at
         # most fence_smoothing_m log E), one row per waypoint whatever E
         edge = ca.vertcat(
@@ -474,7 +530,10 @@ class OptimalPlanner:
         agl_band_m: tuple[float, float] | None = None,
         limits: tuple[float, float, float] | None = None,
     ) -> list[str]:
-        """Every constraint of the problem, checked numerically; empty when all hold."""
+        """Every constraint of the problem, checked numerically; empty when all hold.
+
+        The altitude band is checked every 1 m along the straight legs; the first leg,
+        which starts where the drone already is, against :meth:`first_leg_band`."""
         cfg = self.cfg
         W = np.asarray(waypoints_enu_m, dtype=float)
         tol = cfg.check_tolerance_m
@@ -496,13 +555,32 @@ class OptimalPlanner:
         accel = np.linalg.norm(np.diff(vel, axis=0), axis=1) / dt_s
         if accel.max() > amax + tol / dt_s**2:
             out.append(f"acceleration {accel.max():.2f} m/s^2 > {amax:g}")
-        agl = W[1:, 2] - np.asarray(cfg.terrain(W[1:, 0], W[1:, 1]), dtype=float)
-        if agl.min() < lo - tol or agl.max() > hi + tol:
-            out.append(
-                f"height above terrain {agl.min():.1f}..{agl.max():.1f} m outside {lo:g}..{hi:g}"
-            )
+        # the altitude band along the legs (every 1 m), not only at the waypoints: a
+        # straight leg over a hill top sags towards the ground between its ends
+        lo1, hi1 = self.first_leg_band(W[0], (lo, hi), vmax, dt_s)
+        for name, pts, (b_lo, b_hi) in (
+            ("", densify(W[1:], 1.0), (lo, hi)),
+            ("first leg: ", densify(W[:2], 1.0)[1:], (lo1, hi1)),
+        ):
+            agl = pts[:, 2] - np.asarray(cfg.terrain(pts[:, 0], pts[:, 1]), dtype=float)
+            if agl.min() < b_lo - tol or agl.max() > b_hi + tol:
+                out.append(
+                    f"{name}height above terrain {agl.min():.2f}..{agl.max():.2f} m"
+                    f" outside {b_lo:g}..{b_hi:g}"
+                )
         out += airspace_violations(W, fence, keep_outs, tolerance_m=tol)
         return out
+
+    def first_leg_band(
+        self, start_enu_m: Sequence[float], band: tuple[float, float], v_max: float, dt_s: float
+    ) -> tuple[float, float]:
+        """The band on the first leg: widened to the start's own height above terrain,
+        less (more) the sag margin of half a leg, which is what the NLP can guarantee
+        from a start it cannot move."""
+        p = np.asarray(start_enu_m, dtype=float).reshape(3)
+        agl0 = float(p[2] - np.asarray(self.cfg.terrain(p[0], p[1]), dtype=float))
+        m_lo, m_hi = sag_margins_m(self.cfg.terrain, v_max * dt_s / 2.0)
+        return min(band[0], agl0 - m_lo), max(band[1], agl0 + m_hi)
 
     # ---------------------------------------------------------------- plan
     def reset_warm_start(self) -> None:
@@ -562,37 +640,48 @@ class OptimalPlanner:
         fence_rows = self._fence_rows(fence)
         keep_rows = self._keep_rows(keep_outs, lim[0] * dt)
 
+        agl0 = float(start[2] - np.asarray(cfg.terrain(start[0], start[1]), dtype=float))
+        band4 = (*band, min(band[0], agl0), max(band[1], agl0))
+
         S = cfg.position_scale_m
         if warm_start and self._warm is not None:
             solve = self._solve_warm
             x0, lam0 = self._shift(*self._warm, start / S)
+            guess = "previous plan, shifted"
         else:
             solve = self._solve_cold
-            x0 = self._initial_guess(start, vel, mean, pts, dt, lim, band)[1].T / S
+            r0, W0 = self._initial_guess(start, vel, mean, pts, dt, lim, band)
+            x0 = W0.T / S
             lam0 = np.zeros(self._n_g)
+            guess = f"orbit r={r0:g} m"
         f0 = np.column_stack([_info_entries(x0.T * S, s, cfg, dt) for s in pts])
         f0 /= cfg.information_scale
         t0 = time.perf_counter()
+        error = None
         try:
             x, _fv, lam, _ = solve(
-                pts.T, start, vel, dt, lim, band, fence_rows, keep_rows, x0, f0, lam0
+                pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, x0, f0, lam0
             )
             stats = solve.stats()
-        except RuntimeError as exc:  # CasADi evaluation errors: judged like any failure
-            x, lam, stats = x0, lam0, {"return_status": f"error: {exc}".splitlines()[0]}
+        except RuntimeError as exc:  # CasADi evaluation errors: no optimiser path
+            error = f"error: {exc}".splitlines()[0]
+            x, lam, stats = x0, lam0, {"return_status": error}
         solve_time = time.perf_counter() - t0
         status = str(stats.get("return_status", "unknown"))
         W = np.asarray(x).T * S
         violations = self.check(
             W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim
         )
-        if not violations:
-            self._warm = (np.asarray(x), np.asarray(lam).ravel())
-        else:
-            self._warm = None
+        # only an optimiser path that passed the check warm-starts the next solve
+        self._warm = None if violations or error else (np.asarray(x), np.asarray(lam).ravel())
         fallback = None
         feasible = not violations
-        if violations:
+        if error is not None:
+            # the solver raised: what we hold is the initial guess, never an optimiser result
+            violations = [f"no solver path (CasADi {error})", *violations]
+            if feasible:
+                fallback = f"initial guess: {guess}"
+        if not feasible:
             ok, r, W = self._fallback(start, vel, mean, pts, dt, lim, band, fence, keep_outs)
             fallback = f"orbit r={r:g} m"
             feasible = ok

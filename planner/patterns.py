@@ -36,7 +36,10 @@ from estimator.geodesy import ExactENU
 from estimator.records import Trajectory
 from planner.scoring import ResponseModel
 
-PAPER_SITE = (36.715, -4.478, 0.0)  # University of Malaga campus (sec. Experimental Setup)
+# University of Malaga campus (sec. Experimental Setup); h = 140 m is the ellipsoidal
+# height of the ground there, the same default origin as sim.world.Origin, so a default
+# pattern flown in the simulator is above ground, not 140 m under it
+PAPER_SITE = (36.715, -4.478, 140.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -178,7 +181,10 @@ def detection_range_m(
     """Horizontal distance at which P(response) = p_detect for an AP ``alt_m`` below."""
     slant = response.slant_at(p_detect)
     if slant <= abs(alt_m):
-        raise ValueError(f"no detection at {alt_m} m height (reach {slant:.0f} m slant)")
+        raise ValueError(
+            f"no detection at {alt_m:g} m height (the {p_detect:.0%} response reach is"
+            f" {slant:.1f} m slant): fly lower or give the track spacing"
+        )
     return math.sqrt(slant * slant - alt_m * alt_m)
 
 
@@ -235,9 +241,12 @@ def lawnmower(
     """Boustrophedon over a rectangle centred on ``center_enu_m``.
 
     Tracks run along ``heading_deg`` (length 2 x ``half_length_m``, default the width)
-    and step right across 2 x ``half_width_m``; the outer tracks sit half a spacing in
-    from the edges. ``spacing_m`` defaults to :func:`lawnmower_spacing_m` of the
-    detection range at ``flight.alt_m``.
+    and step right across 2 x ``half_width_m``: n = ceil(2 hw / spacing) tracks exactly
+    ``spacing_m`` apart, centred on the rectangle. The outer tracks therefore sit
+    (2 hw - (n - 1) spacing) / 2 in from the edges: half a spacing only when 2 hw /
+    spacing is an integer, less otherwise (never 0: every point of the rectangle is
+    within half a spacing of a track). ``spacing_m`` defaults to
+    :func:`lawnmower_spacing_m` of the detection range at ``flight.alt_m``.
     """
     cx, cy = _xy(center_enu_m)
     hw = _positive("half_width_m", half_width_m)
@@ -414,8 +423,8 @@ def to_geodetic(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(lat_deg, lon_deg, h_m) of the samples through the exact WGS84 ENU frame.
 
     ``h_m`` is the ellipsoidal height of the ENU point for ``height_ref="origin"``
-    (origin h + z, less the tangent plane's drop of d^2 / 2R: 8 mm at 320 m) and the
-    height above terrain (z itself) for ``"terrain"``.
+    (origin h + z plus d^2 / 2R, as the tangent plane rises above the ellipsoid: 8 mm at
+    320 m) and the height above terrain (z itself) for ``"terrain"``.
     """
     frame = ExactENU(*traj.origin)
     e, n, u = traj.enu_m[:, 0], traj.enu_m[:, 1], traj.enu_m[:, 2]

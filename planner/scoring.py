@@ -5,7 +5,8 @@ n_i ~ N(0, sigma_i^2), with p the AP position, u_i the initiator (drone) positio
 b the residual FTM bias. Per sample of the path the scorer predicts:
 
 - the slant range d_i = |p - u_i|;
-- the response probability P(d_i): logistic in slant range (:class:`ResponseModel`);
+- the response probability P(d_i): logistic in slant range (:class:`ResponseModel`,
+  by default the simulator's link: 50 % at 57.5 m slant);
 - the expected RSSI from the log-distance path loss of eq. (11) (:class:`RssiModel`);
 - the range variance sigma_i^2 from Empirical-R, eq. (13), with that RSSI and the MAD
   gate's floor sigma_floor as sigma_gate (the outer max of eq. 13 then never binds);
@@ -15,11 +16,23 @@ The Fisher information of theta = (x, y, z, b) is J = sum_i n_i h_i h_i^T / sigm
 with h_i = ((p - u_i)/|p - u_i|, 1) (the Jacobian row of eq. 17). The IEKF estimates b
 (sec. Sequential Bayesian Filtering), so the headline CRLB treats the bias as a
 *nuisance* parameter (the position block of J^-1); the known-bias CRLB (the inverse of
-the 3 x 3 position block of J) is reported beside it. A flight at one altitude cannot
-tell the AP's height from the bias (both shift every range alike when all elevation
-angles are equal): its vertical CRLB is then infinite, which is the paper's point on
-altitude variation (sec. Conclusions). No prior information enters the CRLB: it says
-what the flight itself delivers.
+the 3 x 3 position block of J) is reported beside it. An orbit at one altitude centred
+on the AP cannot tell the AP's height from the bias: every sample sees the AP at the
+same elevation angle, so a height change shifts every range alike, as the bias does,
+and the vertical CRLB is infinite. That holds exactly only for the centred orbit: off
+centre (or on any one-altitude path whose elevation angles differ) the bound is finite,
+but large while the angles stay bunched: a 60 m orbit at 45 m, 10 m off centre, gives
+a vertical bound of ~300 m and a horizontal one of ~24 m (0.9 m when centred, where the
+height-bias direction decouples); 1 m off centre the information in that direction is
+below ``rcond`` and the bound is reported infinite. Flying several altitudes spreads the
+elevation angles, which is the paper's point on altitude variation (sec. Conclusions). No prior
+information enters the CRLB: it says what the flight itself delivers.
+
+The range noise sigma(d) is the estimator's Empirical-R, eq. (13), i.e. the R the filter
+uses. The simulator draws its true noise as 0.3 x eq. (13) (``noise_scale`` in
+sim/ftm.py, because eq. 13 is a deliberately inflated R) at its own link's RSSI, about
+0.27 x the sigma here (0.78 m against 2.87 m at 57.5 m), so against simulated truth the
+CRLBs are conservative by about that factor.
 
 CRLBs follow the paper's sigma_H / sigma_Z, eq. (19): crlb_h = sqrt([J^-1]_xx +
 [J^-1]_yy), crlb_v = sqrt([J^-1]_zz). A parameter that the geometry cannot estimate
@@ -43,18 +56,45 @@ Terrain = Callable[[np.ndarray, np.ndarray], np.ndarray]
 _NLOS = NlosConfig()
 
 
+# The simulator's default FTM link, restated from sim/ftm.py (FtmConfig) because the
+# planner does not import sim: mean RSSI(d) = -38 dBm - 25 log10(d) (rssi_1m_dbm,
+# path_loss_exponent 2.5), and an ``ok`` result with probability logistic in RSSI, 50 %
+# at -82 dBm (response_rssi50_dbm) with a 3.5 dB scale (response_slope_db), times
+# response_max = 0.95. Keep these in step with sim/ftm.py (tests/planner/test_scoring.py
+# checks them against it).
+SIM_RSSI_1M_DBM = -38.0
+SIM_PATH_LOSS_EXPONENT = 2.5
+SIM_RESPONSE_RSSI50_DBM = -82.0
+SIM_RESPONSE_SLOPE_DB = 3.5
+# In slant range: P = 1 / (1 + (d / d50)^k), 50 % at
+#   d50 = 10^((RSSI_1m - RSSI50) / (10 eta)) = 10^(44 / 25) = 57.5 m,
+# with k = 10 eta / (slope ln 10) = 3.10; the logistic in d with the same slope at d50
+# has the width d50 / k = d50 slope ln 10 / (10 eta) = 18.5 m.
+DEFAULT_REACH_M = 10.0 ** (
+    (SIM_RSSI_1M_DBM - SIM_RESPONSE_RSSI50_DBM) / (10.0 * SIM_PATH_LOSS_EXPONENT)
+)
+DEFAULT_WIDTH_M = (
+    DEFAULT_REACH_M * SIM_RESPONSE_SLOPE_DB * math.log(10.0) / (10.0 * SIM_PATH_LOSS_EXPONENT)
+)
+
+
 @dataclass(frozen=True, kw_only=True)
 class ResponseModel:
     """Probability that one ranging attempt at slant range d answers: logistic in d.
 
-    P(d) = 1 / (1 + exp((d - reach_m) / width_m)). The paper gives WiFi FTM an outdoor
-    reach of more than 100 m (sec. Introduction) and a median range of 74 m on AP_1F
-    (sec. Results); 130 m at 50 % with a 10 m scale (P = 90 % at 108 m, 10 % at 152 m)
-    is our reading of both, not a fitted value.
+    P(d) = 1 / (1 + exp((d - reach_m) / width_m)). The defaults are the simulator's
+    default link (sim/ftm.py, restated above): 50 % at 57.5 m slant, width 18.5 m
+    (P = 90 % at 16.8 m, 10 % at 98.3 m). Against the simulator's mean response (its
+    0.95 cap, 2 dB shadowing and 2 dB fading included) this is within 0.04 out to 65 m
+    slant; further out the simulator's response falls more slowly (a logistic in RSSI
+    is a power law in distance): 0.22 against 0.15 at 90 m, 0.14 against 0.06 at 110 m,
+    so the expected counts of far samples are low (conservative). The paper's figures
+    (an outdoor reach of more than 100 m, sec. Introduction; AP_1F's median range 74 m,
+    sec. Results) are of ranges that answered, not of the 50 % point.
     """
 
-    reach_m: float = 130.0
-    width_m: float = 10.0
+    reach_m: float = DEFAULT_REACH_M
+    width_m: float = DEFAULT_WIDTH_M
 
     def probability(self, slant_m: np.ndarray | float) -> np.ndarray:
         z = (np.asarray(slant_m, dtype=float) - self.reach_m) / self.width_m

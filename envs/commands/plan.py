@@ -1,11 +1,24 @@
 """``osa plan PATTERN -o FILE [options]`` (shared/spec/cli.md): write a mission.
 
 The ENU frame is centred on home (``--home``, default: the centre), so the mission's
-relative altitudes are the trajectory's z. The prior AP is at ``--center`` on the
-ground at home height (z = 0). ``--radius`` means, per pattern: the half-width of the
-search square (lawnmower, expanding-square), the orbit radius (helix, orbit), the
-outer ring radius (circles), half the leg length (close-pass) and the half-width of
-the keep-in square geofence (optimal).
+relative altitudes are the trajectory's z (exactly: the height above home through the
+WGS84 geodesy, z + d^2 / 2R, 8 mm at 320 m). The prior AP is at ``--center`` on the
+ground at home height (z = 0).
+
+Home height: ``--home LAT,LON,ALT`` takes ALT as the home's height in the same datum
+the vehicle reports (default 0). There is no geoid model here, so it is not converted
+between AMSL and the WGS84 ellipsoid: the geodesy uses it as the ENU origin's height
+(an error of a geoid undulation, < 110 m, changes horizontal positions by < 2e-5 of
+their distance from home) and it is written unchanged as the mission's planned home
+(``Mission.home``, the .plan plannedHomePosition / the .waypoints home line), which is
+therefore in the vehicle's datum, not necessarily AMSL. Every mission item is relative
+to home (frame 6, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT), so the items do not depend on
+ALT (beyond that 2e-5 scale); only that home record and the GeoJSON heights do.
+
+``--radius`` means, per pattern: the half-width of the search square (lawnmower,
+expanding-square), the orbit radius (helix, orbit), the outer ring radius (circles),
+half the leg length (close-pass) and the half-width of the keep-in square geofence
+(optimal).
 
 Exit status: 0 written; 1 the plan is not flyable (a pattern crosses a keep-out, the
 optimiser found nothing feasible); 2 bad input or an unwritable file, with one line on
@@ -106,7 +119,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--home",
         type=_home,
         metavar="LAT,LON[,ALT]",
-        help="home/takeoff point and its altitude (default: the centre, 0 m)",
+        help=(
+            "home/takeoff point and its height in the datum the vehicle reports (no geoid "
+            "conversion; the items are relative to home, so they do not depend on it; "
+            "default: the centre, 0 m)"
+        ),
     )
     p.add_argument(
         "--speed",
@@ -320,6 +337,7 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
         rtl=not args.no_rtl,
         fence=fence,
         keep_outs=keep_outs,
+        home=home,  # the ENU origin: relative altitudes are the trajectory's z
         name=f"osa plan {name}",
     )
     return PlanOutput(trajectory=traj, mission=mission, prior_enu_m=prior, note=note)
@@ -414,5 +432,5 @@ def _optimal(args, radius, center, prior, start, keep_outs, home):
         f" objective {res.objective:.3f}"
     )
     if res.fallback:
-        note += f"; solver path rejected ({'; '.join(res.violations)}), flying {res.fallback}"
+        note += f"; solver path not used ({'; '.join(res.violations)}), flying {res.fallback}"
     return res.trajectory, note, fence

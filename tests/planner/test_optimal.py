@@ -199,3 +199,119 @@ def test_bad_requests_are_refused(planner: OptimalPlanner) -> None:
             START,
             keep_outs=[KeepOut(east_m=900.0 + k, north_m=0.0, radius_m=1.0) for k in range(9)],
         )
+
+
+TWO_HILLS = GaussianHills(hills=((0.0, 0.0, 25.0, 25.0), (-50.0, -30.0, 20.0, 20.0)))
+
+
+def _dense_agl(W, terrain, step=0.25):
+    d = densify(np.asarray(W)[1:], step)
+    return d[:, 2] - terrain(d[:, 0], d[:, 1])
+
+
+def test_check_sees_a_leg_sagging_over_a_hill_top(planner: OptimalPlanner) -> None:
+    """Both ends 30 m above the ground 10 m either side of a 25 m (sigma 25 m) top: the
+    straight leg passes the top 28.08 m above it."""
+    p = OptimalPlanner.__new__(OptimalPlanner)  # the check needs only the config
+    p.cfg = OptimalConfig(terrain=GaussianHills(hills=((0.0, 0.0, 25.0, 25.0),)))
+    ground = float(p.cfg.terrain(10.0, 0.0))
+    assert ground == pytest.approx(25.0 * math.exp(-0.08))
+    W = np.array([[-20.0, 0.0, 30.0 + ground], [-10.0, 0.0, 30.0 + ground],
+                  [10.0, 0.0, 30.0 + ground], [20.0, 0.0, 30.0 + ground]])  # fmt: skip
+    problems = p.check(W, W[0], (5.0, 0.0, 0.0), 2.0, limits=(20.0, 10.0, 3.0))
+    assert problems == ["height above terrain 28.08..34.92 m outside 30..80"]
+    W[:, 2] += 30.0 - 28.08 + 0.01
+    assert p.check(W, W[0], (5.0, 0.0, 0.0), 2.0, limits=(20.0, 10.0, 3.0)) == []
+
+
+def test_hill_curvature_bounds_hold_along_lines() -> None:
+    hills = GaussianHills(hills=((0.0, 0.0, 25.0, 25.0), (300.0, 0.0, -10.0, 10.0)))
+    concave, convex = hills.sag_curvature()
+    foot = 2.0 * math.exp(-1.5)
+    assert concave == pytest.approx(25.0 / 625.0 + foot * 10.0 / 100.0)
+    assert convex == pytest.approx(foot * 25.0 / 625.0 + 10.0 / 100.0)
+    s = np.linspace(-150.0, 150.0, 30001)
+    h = s[1] - s[0]
+
+    def d2(cx: float, a: float) -> np.ndarray:  # T'' along the east-west line n = a
+        t = hills(cx + s, np.full_like(s, a))
+        return (t[2:] - 2 * t[1:-1] + t[:-2]) / h**2
+
+    lines = [d2(0.0, 0.0), d2(0.0, 10.0), d2(300.0, 0.0), d2(300.0, 5.0)]
+    assert max(-c.min() for c in lines) <= concave and max(c.max() for c in lines) <= convex
+    assert -d2(0.0, 0.0).min() == pytest.approx(25.0 / 625.0, rel=1e-3)  # the hill top
+    assert d2(0.0, 0.0).max() == pytest.approx(foot * 25.0 / 625.0, rel=1e-3)  # its foot
+    assert d2(300.0, 0.0).max() == pytest.approx(10.0 / 100.0, rel=1e-3)  # the pit bottom
+    assert -d2(300.0, 0.0).min() == pytest.approx(foot * 10.0 / 100.0, rel=1e-3)  # its rim
+
+
+def test_plan_keeps_the_band_between_waypoints_over_convex_terrain() -> None:
+    """Two hills (25 m, sigma 25; 20 m, sigma 20), band 30-80: the waypoint-only NLP
+    returned feasible=True with the trajectory 28.4 m above ground between waypoints;
+    now the band holds every 0.25 m along the returned trajectory and plan."""
+    cfg = OptimalConfig(terrain=TWO_HILLS, n_prior_points=4, max_keep_outs=1, max_fence_edges=4)
+    p = OptimalPlanner(cfg)
+    fence = Geofence.square((0, 0), 200)
+    start = (-150.0, -100.0, 45.0)
+    r = p.plan((0.0, 0.0, 25.0), COV, start, fence=fence)
+    assert r.feasible and r.fallback is None, r.violations
+    assert _dense_agl(r.waypoints_enu_m, TWO_HILLS).min() >= 30.0 - 0.01
+    t = r.trajectory.enu_m[1:]
+    assert (t[:, 2] - TWO_HILLS(t[:, 0], t[:, 1])).min() >= 30.0 - 0.01
+    assert_feasible(r.waypoints_enu_m, start, np.zeros(3), r.dt_s, cfg, fence, [],
+                    terrain=TWO_HILLS)  # fmt: skip
+    # the margin is what one half-leg can sag: kappa (v_max dt / 2)^2 / 8 = 1.70 m here
+    kappa = TWO_HILLS.sag_curvature()[0]
+    assert kappa * (cfg.max_speed_m_s * r.dt_s / 2) ** 2 / 8 == pytest.approx(1.70, abs=0.01)
+    # a warm re-solve after a step along the plan keeps it too
+    W = r.waypoints_enu_m
+    r2 = p.plan((5.0, -3.0, 25.0), 0.8 * COV, W[1], (W[2] - W[1]) / r.dt_s, fence=fence)
+    assert r2.feasible and r2.fallback is None, r2.violations
+    assert _dense_agl(r2.waypoints_enu_m, TWO_HILLS).min() >= 30.0 - 0.01
+
+
+def test_first_leg_band_starts_from_where_the_drone_is() -> None:
+    p = OptimalPlanner.__new__(OptimalPlanner)
+    p.cfg = OptimalConfig(terrain=TWO_HILLS)
+    assert p.first_leg_band((-150.0, -100.0, 45.0), (30.0, 80.0), 8.0, 3.0) == (30.0, 80.0)
+    agl0 = 45.0 - float(TWO_HILLS(0.0, 0.0))  # 19.72 m above the hill top
+    lo, hi = p.first_leg_band((0.0, 0.0, 45.0), (30.0, 80.0), 8.0, 3.0)
+    assert hi == 80.0 and lo == pytest.approx(agl0 - 0.09 * 12**2 / 8)  # half leg 12 m
+    flat = OptimalPlanner.__new__(OptimalPlanner)
+    flat.cfg = OptimalConfig()
+    assert flat.first_leg_band((0.0, 0.0, 90.0), (30.0, 80.0), 8.0, 3.0) == (30.0, 90.0)
+
+
+def test_a_solver_error_returns_a_labelled_fallback_and_no_warm_start(
+    planner: OptimalPlanner, monkeypatch
+) -> None:
+    class Raising:
+        def __call__(self, *args):
+            raise RuntimeError("Error in Function::call for 'optimal_plan_cold'\nmore")
+
+        def stats(self) -> dict:
+            raise AssertionError("no stats after an error")
+
+    monkeypatch.setattr(planner, "_solve_cold", Raising())
+    planner.reset_warm_start()
+    r = planner.plan((0.0, 0.0, 0.0), COV, START, fence=FENCE)  # the guess passes the check
+    assert r.status.startswith("error: Error in Function::call") and not r.solver_success
+    assert r.violations[0].startswith("no solver path (CasADi error")
+    assert r.fallback is not None and r.fallback.startswith("initial guess: orbit r=")
+    assert r.feasible and planner._warm is None
+    assert_feasible(r.waypoints_enu_m, START, np.zeros(3), r.dt_s, planner.cfg, FENCE, [])
+    assert len(r.violations) == 1
+    # with the tower the guess (the best orbit) crosses it: the feasible-first fallback
+    r = planner.plan((0.0, 0.0, 0.0), COV, START, fence=FENCE, keep_outs=[TOWER])
+    assert r.violations[0].startswith("no solver path") and "keep-out" in r.violations[1]
+    assert r.fallback.startswith("orbit r=") and r.feasible and planner._warm is None
+    monkeypatch.undo()
+    # warm: the shifted previous plan is the guess; still a fallback, still no warm start
+    good = planner.plan((0.0, 0.0, 0.0), COV, START, fence=FENCE, keep_outs=[TOWER])
+    assert good.fallback is None and planner._warm is not None
+    monkeypatch.setattr(planner, "_solve_warm", Raising())
+    r = planner.plan((2.0, 1.0, 0.0), COV, START, fence=FENCE, keep_outs=[TOWER])
+    assert r.fallback is not None and r.feasible and not r.solver_success
+    assert r.fallback == "initial guess: previous plan, shifted" or r.fallback.startswith("orbit")
+    assert r.violations[0].startswith("no solver path") and planner._warm is None
+    planner.reset_warm_start()

@@ -198,3 +198,31 @@ def test_geofence_and_keep_out_checks() -> None:
     assert any("geofence" in p for p in airspace_violations(outside, fence, ko))
     with pytest.raises(ValueError, match="convex"):
         Geofence(vertices_m=((0, 0), (10, 0), (5, 2), (10, 10), (0, 10)))
+
+
+def test_default_lawnmower_spacing_uses_the_simulators_reach() -> None:
+    """50 % response at 57.5 m slant (sim/ftm.py): from 45 m up, R_det = 35.86 m."""
+    r_det = detection_range_m(45.0)
+    assert r_det == pytest.approx(math.sqrt(57.544**2 - 45.0**2), abs=0.01)
+    assert r_det == pytest.approx(35.86, abs=0.01)
+    t = lawnmower((0.0, 0.0), 150.0, flight=FlightConfig(alt_m=45.0))
+    xs = _track_offsets(t, axis=0)
+    assert len(xs) == 9 and np.allclose(np.diff(xs), r_det)  # ceil(300 / 35.86)
+    with pytest.raises(ValueError, match="no detection"):
+        detection_range_m(60.0)  # above the 50 % reach
+
+
+@pytest.mark.parametrize(
+    ("half_width", "spacing", "n_tracks", "inset"),
+    [(100.0, 40.0, 5, 20.0), (100.0, 45.0, 5, 10.0), (100.0, 70.0, 3, 30.0), (10.0, 40.0, 1, 10.0)],
+)
+def test_lawnmower_outer_tracks_sit_at_most_half_a_spacing_in(
+    half_width, spacing, n_tracks, inset
+) -> None:
+    t = lawnmower((0.0, 0.0), half_width, spacing_m=spacing, flight=FLIGHT)
+    xs = _track_offsets(t, axis=0) if n_tracks > 1 else np.unique(np.round(t.enu_m[:, 0], 6))
+    assert len(xs) == n_tracks
+    assert half_width - xs.max() == pytest.approx(inset) and xs.min() + half_width == pytest.approx(
+        inset
+    )
+    assert 0.0 < inset <= spacing / 2

@@ -174,3 +174,46 @@ def test_score_over_prior_is_the_mean_over_draws() -> None:
     draws = prior_points((0, 0, 0), cov, 8, np.random.default_rng(1))
     assert a.crlb_h_m == b.crlb_h_m
     assert a.crlb_h_m == pytest.approx(np.mean([score_trajectory(t, p).crlb_h_m for p in draws]))
+
+
+def test_default_response_is_the_simulators_link() -> None:
+    """sim/ftm.py: RSSI = -38 - 25 log10(d), P(ok) logistic in RSSI, 50 % at -82 dBm,
+    3.5 dB: 50 % at 57.5 m slant, logistic width 18.5 m in distance."""
+    from sim.ftm import FtmConfig
+
+    sim = FtmConfig()
+    eta = sim.path_loss_exponent
+    d50 = 10.0 ** ((sim.rssi_1m_dbm - sim.response_rssi50_dbm) / (10.0 * eta))
+    width = d50 * sim.response_slope_db * math.log(10.0) / (10.0 * eta)
+    m = ResponseModel()
+    assert (m.reach_m, m.width_m) == pytest.approx((d50, width), rel=1e-12)
+    assert (m.reach_m, m.width_m) == pytest.approx((57.54, 18.55), abs=0.01)
+    # same 50 % point and slope as the simulator's logistic in RSSI
+    logistic = lambda d: sim.response_probability(sim.mean_rssi_dbm(d)) / sim.response_max  # noqa: E731
+    assert logistic(d50) == pytest.approx(0.5) and m.probability(d50) == pytest.approx(0.5)
+    h = 1e-3
+    slope_sim = (logistic(d50 + h) - logistic(d50 - h)) / (2 * h)
+    assert (m.probability(d50 + h) - m.probability(d50 - h)) / (2 * h) == pytest.approx(
+        slope_sim, rel=1e-6
+    )
+    # the simulator's mean response (0.95 cap, 2 dB shadowing + 2 dB fading) out to 65 m
+    x, w = np.polynomial.hermite_e.hermegauss(40)
+    rssi_sigma = math.hypot(sim.open.shadowing_sigma_db, sim.fading_sigma_db)
+    d = np.linspace(5.0, 65.0, 61)
+    mean_rssi = sim.mean_rssi_dbm(d)[:, None] + rssi_sigma * x[None, :]
+    p_sim = (sim.response_probability(mean_rssi) * w).sum(axis=1) / w.sum()
+    assert np.abs(m.probability(d) - p_sim).max() <= 0.04
+    # further out the model is low (conservative): 0.15 against ~0.22 at 90 m
+    assert m.probability(90.0) == pytest.approx(0.148, abs=0.001)
+
+
+def test_one_altitude_orbit_height_is_unobservable_only_when_centred() -> None:
+    """A 60 m orbit at 45 m, 72 samples of 1 s: centred, z and the bias are
+    indistinguishable (infinite vertical CRLB); 10 m off centre the bound is finite."""
+    th = 2 * math.pi * np.arange(72) / 72
+    ring = np.column_stack([60 * np.cos(th), 60 * np.sin(th), np.full(72, 45.0)])
+    centred = score_anchors(ring, np.ones(72), (0.0, 0.0, 0.0))
+    off = score_anchors(ring + np.array([10.0, 0.0, 0.0]), np.ones(72), (0.0, 0.0, 0.0))
+    assert math.isinf(centred.crlb_v_m) and centred.crlb_h_m == pytest.approx(0.889, abs=0.001)
+    assert off.crlb_v_m == pytest.approx(295.1, rel=0.01)
+    assert off.crlb_h_m == pytest.approx(23.99, rel=0.01)
