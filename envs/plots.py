@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -36,6 +37,35 @@ def _plt():
     return plt
 
 
+def with_plot_frame(report: ReplayReport, log_paths: Sequence[str | Path]) -> ReplayReport:
+    """The report, with an ENU frame even when no range was associated (then the frame
+    is eq. (1) at the first GNSS fix, and surveyed responders are placed in it), so a
+    flight without a single usable range still shows its path and its responders."""
+    if report.frame is not None:
+        return report
+    from estimator.geodesy import TangentPlaneENU
+    from estimator.logio import iter_log
+    from estimator.records import GnssFix
+
+    first = None
+    for p in log_paths:
+        for r in iter_log(p):
+            if isinstance(r, GnssFix) and (first is None or r.t_ns < first.t_ns):
+                first = r
+    if first is None:
+        return report
+    frame = TangentPlaneENU(first.lat_deg, first.lon_deg, first.alt_m)
+    tracks = []
+    for t in report.tracks:
+        tru = report.truth.get(t.bssid)
+        if tru is not None and t.truth_enu_m is None:
+            t = dataclasses.replace(
+                t, truth_enu_m=tuple(frame.to_enu(tru.lat_deg, tru.lon_deg, tru.alt_m))
+            )
+        tracks.append(t)
+    return dataclasses.replace(report, tracks=tracks, frame=frame)
+
+
 def gnss_track_enu(report: ReplayReport, log_paths: Sequence[str | Path]) -> list[np.ndarray]:
     """The logged GNSS fixes of each log in the report's ENU frame (N x 3 each)."""
     from estimator.logio import iter_log
@@ -61,6 +91,7 @@ def plot_trajectory(
     report: ReplayReport, log_paths: Sequence[str | Path], path: str | Path, title: str = ""
 ) -> Path:
     """The paper's trajectory figure (Fig. "trajectory") as PNG: map and zoom panel."""
+    report = with_plot_frame(report, log_paths)
     plt = _plt()
     fig, (ax, ins) = plt.subplots(
         1, 2, figsize=(12, 6), gridspec_kw={"width_ratios": [1.6, 1.0]}
@@ -77,6 +108,9 @@ def plot_trajectory(
     best = _best_observed(report)
     if best is None or best.truth_enu_m is None:
         ins.set_axis_off()
+        lines = sorted({f"{t.bssid}: {t.status}" for t in report.tracks})
+        ins.text(0.5, 0.5, "no estimate to zoom on\n\n" + "\n".join(lines[:12]),
+                 ha="center", va="center", fontsize=9, transform=ins.transAxes)
     else:
         _draw_aps(ins, report, legend=False, only=best.bssid)
         t = best.truth_enu_m
@@ -156,6 +190,10 @@ def plot_convergence(report: ReplayReport, path: str | Path, bssid: str | None =
             if t.err_h_m is not None:
                 a2.annotate(f"{t.err_h_m:.1f} m", (ts[-1], err[-1]), fontsize=7, color=c,
                             xytext=(3, 0), textcoords="offset points")
+    if not any(t.bssid == target and t.history for t in report.tracks):
+        for a in (a1, a2):
+            a.text(0.5, 0.5, "no published estimate", ha="center", va="center",
+                   transform=a.transAxes)
     a1.axhline(2.5, ls="--", color="k", lw=0.8, label="sigma_H = 2.5 m")
     a1.set_ylabel("sigma_H [m] (internal)")
     a1.set_title(f"(a) horizontal uncertainty, {target}")
