@@ -240,18 +240,9 @@ def _fmt(v: float, unit: str = " m") -> str:
 def _pattern(args: argparse.Namespace, pat: Any, radius: float, center, prior, start, home):
     flight = pat.FlightConfig(speed_m_s=args.speed, alt_m=args.alt, origin=home)
     name = args.pattern
-    if name == "lawnmower":
-        return pat.lawnmower(
-            center,
-            radius,
-            spacing_m=args.spacing,
-            heading_deg=args.heading,
-            overlap=args.overlap,
-            flight=flight,
-            start_enu_m=start,
-        )
-    if name == "expanding-square":
-        return pat.expanding_square(
+    if name in ("lawnmower", "expanding-square"):
+        area_pattern = pat.lawnmower if name == "lawnmower" else pat.expanding_square
+        return area_pattern(
             center,
             radius,
             spacing_m=args.spacing,
