@@ -34,6 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from envs.commands._args import finite_float, positive_float
+
 PATTERNS = ("lawnmower", "expanding-square", "helix", "circles", "close-pass", "orbit", "optimal")
 MISSION_SUFFIXES = (".plan", ".waypoints", ".txt")
 DEFAULT_RADIUS_M = {
@@ -47,29 +49,12 @@ DEFAULT_RADIUS_M = {
 }
 
 
-def _finite(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
-    return v
-
-
-def _positive(text: str) -> float:
-    v = _finite(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
-
-
 def _latlon(text: str, n: int = 2) -> tuple[float, ...]:
     parts = text.split(",")
     if len(parts) != n:
         want = "LAT,LON" if n == 2 else "LAT,LON,R"
         raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}")
-    vals = tuple(_finite(p.strip()) for p in parts)
+    vals = tuple(finite_float(p.strip()) for p in parts)
     if not -90.0 <= vals[0] <= 90.0:
         raise argparse.ArgumentTypeError(f"latitude {vals[0]:g} outside [-90, 90]")
     if not -180.0 <= vals[1] <= 180.0:
@@ -80,7 +65,7 @@ def _latlon(text: str, n: int = 2) -> tuple[float, ...]:
 def _home(text: str) -> tuple[float, ...]:
     parts = text.split(",")
     if len(parts) == 3:
-        return (*_latlon(",".join(parts[:2])), _finite(parts[2]))
+        return (*_latlon(",".join(parts[:2])), finite_float(parts[2]))
     return (*_latlon(text), 0.0)
 
 
@@ -107,10 +92,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--center", required=True, type=_latlon, metavar="LAT,LON",
         help="centre of the search area / prior AP estimate (degrees)",
     )  # fmt: skip
-    p.add_argument("--radius", type=_positive, metavar="M", help="see the module doc (m)")
+    p.add_argument("--radius", type=positive_float, metavar="M", help="see the module doc (m)")
     p.add_argument(
         "--alt",
-        type=_positive,
+        type=positive_float,
         default=45.0,
         metavar="M",
         help="altitude above home (m, default 45: the paper's 35-55 m AGL)",
@@ -127,35 +112,35 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument(
         "--speed",
-        type=_positive,
+        type=positive_float,
         default=5.0,
         metavar="M/S",
         help="commanded speed; the speed limit for optimal (default 5)",
     )
     p.add_argument(
         "--spacing",
-        type=_positive,
+        type=positive_float,
         metavar="M",
         help="track spacing (default 2 R_det (1 - overlap))",
     )
     p.add_argument(
         "--overlap",
-        type=_finite,
+        type=finite_float,
         default=0.5,
         metavar="F",
         help="track overlap fraction in [0, 1) (default 0.5)",
     )
     p.add_argument(
         "--heading",
-        type=_finite,
+        type=finite_float,
         default=0.0,
         metavar="DEG",
         help="track / first leg / pass heading, clockwise from north (default 0)",
     )
-    p.add_argument("--turns", type=_positive, metavar="N", help="helix 3, orbit 1 by default")
+    p.add_argument("--turns", type=positive_float, metavar="N", help="helix 3, orbit 1 by default")
     p.add_argument(
         "--climb",
-        type=_finite,
+        type=finite_float,
         default=30.0,
         metavar="M",
         help="helix altitude change (negative descends, default 30)",
@@ -163,28 +148,28 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--rings", type=int, default=3, metavar="N", help="circles: rings (default 3)")
     p.add_argument(
         "--alt-step",
-        type=_finite,
+        type=finite_float,
         default=10.0,
         metavar="M",
         help="circles: altitude step between rings (default 10)",
     )
     p.add_argument(
         "--offset",
-        type=_finite,
+        type=finite_float,
         default=10.0,
         metavar="M",
         help="close-pass: horizontal offset from the centre (default 10)",
     )
     p.add_argument(
         "--time-budget",
-        type=_positive,
+        type=positive_float,
         default=120.0,
         metavar="S",
         help="optimal: flight time of the horizon (default 120)",
     )
     p.add_argument(
         "--prior-sigma",
-        type=_positive,
+        type=positive_float,
         default=10.0,
         metavar="M",
         help="optimal: horizontal 1-sigma of the prior AP position (default 10)",
@@ -199,7 +184,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument(
         "--tolerance",
-        type=_positive,
+        type=positive_float,
         default=1.0,
         metavar="M",
         help="waypoint decimation tolerance (default 1)",

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import warnings
+
+from envs.commands._args import finite_float, non_negative_float
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -23,9 +24,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="baseline, nlos, empirical-r, ukf, ema, adaptive-r, all (the paper's six), "
         "robust (ours), or a comma-separated list (default: baseline)",
     )
-    p.add_argument("--agl", type=float, default=None, metavar="M",
+    p.add_argument("--agl", type=non_negative_float, default=None, metavar="M",
                    help="configured flight height above ground (m); default: header, else 45")
-    p.add_argument("--range-offset", type=float, default=None, metavar="M",
+    p.add_argument("--range-offset", type=finite_float, default=None, metavar="M",
                    help="pre-flight range calibration offset b0 (m); default: header, else 0")
     p.add_argument("--projection", choices=("tangent", "wgs84"), default="tangent",
                    help="ENU frame: the paper's tangent plane (eq. 1, default) or exact WGS84")
@@ -42,13 +43,6 @@ def run(args: argparse.Namespace) -> int:
         modes = parse_modes(args.mode)
     except ValueError as exc:
         print(f"osa replay: {exc}", file=sys.stderr)
-        return 2
-    for name, v in (("--agl", args.agl), ("--range-offset", args.range_offset)):
-        if v is not None and not math.isfinite(v):
-            print(f"osa replay: {name} must be a finite number", file=sys.stderr)
-            return 2
-    if args.agl is not None and args.agl < 0:
-        print("osa replay: --agl must be >= 0", file=sys.stderr)
         return 2
     opts = ReplayOptions(
         modes=modes,

@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from envs.commands._args import non_negative_int, positive_float
+
 EXIT_OK = 0
 EXIT_VEHICLE = 1
 EXIT_USAGE = 2
@@ -28,11 +30,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("file", metavar="FILE", help="mission file (.plan, .waypoints or .txt)")
     p.add_argument("--connection", "-c", metavar="URL", required=True,
                    help="vehicle connection, e.g. udpout:127.0.0.1:14550 or udpin://0.0.0.0:14540")
-    p.add_argument("--timeout", metavar="S", type=_positive_float, default=5.0,
+    p.add_argument("--timeout", metavar="S", type=positive_float, default=5.0,
                    help="seconds to wait for the vehicle's heartbeat (default 5)")
-    p.add_argument("--message-timeout", metavar="S", type=_positive_float, default=0.5,
+    p.add_argument("--message-timeout", metavar="S", type=positive_float, default=0.5,
                    help="seconds to wait for each answer during a transfer (default 0.5)")
-    p.add_argument("--retries", metavar="N", type=_non_negative_int, default=5,
+    p.add_argument("--retries", metavar="N", type=non_negative_int, default=5,
                    help="resends of an unanswered message before giving up (default 5; "
                    "MAVSDK URLs use MAVSDK's own resend count)")
     p.add_argument("--no-fence", action="store_true",
@@ -43,26 +45,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "the mission from seq 0); 'px4' or 'ardupilot' force it")
     p.set_defaults(func=run)
     return p
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds: {text!r}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
-    return value
 
 
 def _fail(status: int, message: str) -> int:

@@ -73,3 +73,21 @@ def sample_mission(n_waypoints: int = 20) -> Mission:
                              inclusion=True)),
         rally_deg=((36.7140, -4.4790, 30.0), (36.7160, -4.4770, 35.5)),
         name="sample")
+
+
+def write_mission_file(m: Mission, directory, suffix: str) -> tuple[Mission, object]:
+    """Write ``m`` as ``.plan`` or ``.waypoints`` (WPL holds no fence: dropped there);
+    return the mission the file holds and its path."""
+    from planner.files import write_plan, write_wpl
+
+    path = directory / f"mission{suffix}"
+    if suffix == ".plan":
+        write_plan(m, path)
+    else:
+        m = Mission(items=m.items, home=m.home)
+        write_wpl(m, path)
+    return m, path
+
+
+# the short transfer bounds every CLI upload test uses
+CLI_FAST = ("--timeout", "3", "--message-timeout", "0.2", "--retries", "3")

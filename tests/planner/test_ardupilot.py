@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from envs.cli import main as osa_main
-from planner.files import write_plan, write_wpl
+from planner.files import write_plan
 from planner.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     TransferConfig,
@@ -43,7 +43,7 @@ from planner.mission import (
     deg_to_e7,
 )
 from planner.vehicle_peer import ArduPilotLikeVehicle, MavsdkVehiclePeer, VehicleScript
-from tests.planner.conftest import FAST, sample_mission
+from tests.planner.conftest import CLI_FAST, FAST, sample_mission, write_mission_file
 
 BACKENDS = ["pymavlink", "mavsdk"]
 VEHICLE_HOME = (36.7201234, -4.4702345, 121.5)  # the vehicle's own home: not the plan's
@@ -207,15 +207,9 @@ def test_ardupilot_silent_mid_upload_is_not_uploaded() -> None:
                                                   ("mavsdk", ".waypoints")])
 def test_osa_upload_to_ardupilot(tmp_path: Path, ardupilot: ArduPilotLikeVehicle, capsys,
                                  backend: str, suffix: str) -> None:
-    m = sample_mission(12)  # 16 items
-    path = tmp_path / f"mission{suffix}"
-    if suffix == ".plan":
-        write_plan(m, path)
-    else:
-        m = Mission(items=m.items, home=m.home)
-        write_wpl(m, path)
+    m, path = write_mission_file(sample_mission(12), tmp_path, suffix)  # 16 items
     status = osa_main(["upload", str(path), "--connection", url_of(ardupilot, backend),
-                       "--timeout", "3", "--message-timeout", "0.2", "--retries", "3"])
+                       *CLI_FAST])
     out, err = capsys.readouterr()
     assert (status, err) == (0, "")
     assert "mission items 16," in out and "ArduPilot numbering" in out and backend in out
@@ -231,8 +225,7 @@ def test_forced_px4_on_ardupilot_fails_verify(tmp_path: Path, ardupilot: ArduPil
     path = tmp_path / "m.plan"
     write_plan(m, path)
     status = osa_main(["upload", str(path), "--connection", url_of(ardupilot, backend),
-                       "--timeout", "3", "--message-timeout", "0.2", "--retries", "3",
-                       "--no-fence", "--autopilot", "px4"])
+                       *CLI_FAST, "--no-fence", "--autopilot", "px4"])
     out, err = capsys.readouterr()
     assert status == 1 and out == ""
     assert err.count("\n") == 1

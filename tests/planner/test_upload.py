@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from envs.cli import main as osa_main
-from planner.files import write_plan, write_wpl
+from planner.files import write_plan
 from planner.mavlink import (
     InvalidConnectionError,
     MissionRejectedError,
@@ -37,7 +37,7 @@ from planner.mission import (
     deg_to_e7,
 )
 from planner.vehicle_peer import MavsdkVehiclePeer, VehicleScript, free_udp_port
-from tests.planner.conftest import FAST, sample_mission
+from tests.planner.conftest import CLI_FAST, FAST, sample_mission, write_mission_file
 
 BACKENDS = ["pymavlink", "mavsdk"]
 
@@ -241,15 +241,9 @@ def test_read_back_mismatch(scripted_vehicle, backend: str) -> None:
                                                   ("mavsdk", ".waypoints")])
 def test_osa_upload_end_to_end(tmp_path: Path, mavsdk_peer: MavsdkVehiclePeer, capsys,
                                backend: str, suffix: str) -> None:
-    m = sample_mission(15)
-    path = tmp_path / f"mission{suffix}"
-    if suffix == ".plan":
-        write_plan(m, path)
-    else:
-        m = Mission(items=m.items, home=m.home)
-        write_wpl(m, path)
+    m, path = write_mission_file(sample_mission(15), tmp_path, suffix)
     status = osa_main(["upload", str(path), "--connection", url_of(mavsdk_peer, backend),
-                       "--timeout", "3", "--message-timeout", "0.2", "--retries", "3"])
+                       *CLI_FAST])
     out, err = capsys.readouterr()
     assert (status, err) == (0, "")
     assert f"mission items {len(m.items)}" in out and backend in out
