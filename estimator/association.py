@@ -88,6 +88,10 @@ class Associator:
         self._pending.append((rec, prev))
         return out
 
+    def earliest_pending_ns(self) -> int | None:
+        """Time of the oldest ok sample still waiting for its next fix (None if none)."""
+        return self._pending[0][0].t_ns if self._pending else None
+
     def flush(self) -> list[GeoRange]:
         """End of stream: resolve every waiting sample without a following fix."""
         out: list[GeoRange] = []

@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from estimator.bootstrap import (
     BootstrapConfig,
@@ -139,7 +140,11 @@ def make_noise(spec: ModeSpec, cfg: PipelineConfig) -> NoiseModel:
 
 
 class Published(NamedTuple):
-    """One published (smoothed) estimate in the track's history."""
+    """One published (smoothed) estimate in the track's history.
+
+    ``cov_m2`` is the filter's 3 x 3 position covariance at publication (row-major
+    tuples); ``sigma_h_m`` = sqrt(P_xx + P_yy) and ``sigma_z_m`` = sqrt(P_zz) (eq. 21).
+    """
 
     t_s: float
     enu_m: tuple[float, float, float]
@@ -148,6 +153,24 @@ class Published(NamedTuple):
     bias_m: float
     stable: bool
     accepted_index: int
+    cov_m2: tuple[tuple[float, float, float], ...] | None = None
+
+
+def position_cov(P) -> tuple[tuple[float, float, float], ...]:
+    """The 3 x 3 position block of a filter covariance, as tuples."""
+    return (
+        (P[0][0], P[0][1], P[0][2]),
+        (P[1][0], P[1][1], P[1][2]),
+        (P[2][0], P[2][1], P[2][2]),
+    )
+
+
+class TrackObserver(Protocol):
+    """Told of what a track publishes (evaluation hooks in here: the track never sees truth)."""
+
+    def published(self, track: Track, pub: Published) -> None: ...
+
+    def restarted(self, track: Track) -> None: ...
 
 
 @dataclass
@@ -329,51 +352,6 @@ class FilterRun:
         self.noise = make_noise(self.spec, self.cfg)
 
 
-class TwmAccumulator:
-    """Online time-weighted mean of the 2-D error (Table "Filter comparison", TWM column).
-
-    Each estimate's error is weighted by the time until the next one:
-    TWM = sum_k e_k (t_{k+1} - t_k) / (t_n - t_1); a single estimate gives its error.
-    Kept over the stable estimates and, as a fallback, over all published ones, so a
-    replay needs no history to report it.
-    """
-
-    def __init__(self, truth_enu_m: tuple[float, float, float]) -> None:
-        self.truth = truth_enu_m
-        self._stable = [0.0, None, None, 0.0, 0]  # acc, t_first, (t_last, e_last), n
-        self._all = [0.0, None, None, 0.0, 0]
-
-    @staticmethod
-    def _add(st: list, t_s: float, e: float) -> None:
-        if st[1] is None:
-            st[1] = t_s
-        else:
-            t_prev, e_prev = st[2]
-            st[0] += e_prev * (t_s - t_prev)
-        st[2] = (t_s, e)
-        st[3] += e
-        st[4] += 1
-
-    def add(self, pub: Published) -> None:
-        tr = self.truth
-        e = math.hypot(pub.enu_m[0] - tr[0], pub.enu_m[1] - tr[1])
-        self._add(self._all, pub.t_s, e)
-        if pub.stable:
-            self._add(self._stable, pub.t_s, e)
-
-    @staticmethod
-    def _value(st: list) -> float | None:
-        if st[4] == 0:
-            return None
-        span = st[2][0] - st[1]
-        return st[3] / st[4] if st[4] == 1 or span <= 0 else st[0] / span
-
-    @property
-    def twm_h_m(self) -> float | None:
-        v = self._value(self._stable)
-        return v if v is not None else self._value(self._all)
-
-
 class Track:
     """The real-time pipeline for one BSSID in one mode (sec. System Architecture).
 
@@ -389,10 +367,10 @@ class Track:
         *,
         keep_history: bool = True,
         front: SharedFront | None = None,
-        truth_enu_m: tuple[float, float, float] | None = None,
+        observers: Sequence[TrackObserver] = (),
     ) -> None:
         self.bssid = bssid
-        self.twm = TwmAccumulator(truth_enu_m) if truth_enu_m is not None else None
+        self.observers = tuple(observers)
         self.spec = MODES[mode] if isinstance(mode, str) else mode
         self.cfg = cfg
         self.front = front if front is not None else SharedFront(cfg)
@@ -422,8 +400,8 @@ class Track:
             self.monitor = ConvergenceMonitor(self.cfg.convergence)
             self.last = None
             self.last_stable = None
-            if self.twm is not None:
-                self.twm = TwmAccumulator(self.twm.truth)
+            for obs in self.observers:
+                obs.restarted(self)
         if out == ACC:
             self.monitor.on_accepted()
             return self._publish(m.t_s)
@@ -440,14 +418,14 @@ class Track:
         pos = self.smoother.push(f.position_enu_m)
         n_acc = self.run.counts.n_acc
         stable = self.monitor.on_published(pos, sigma_h, sigma_z, n_acc)
-        pub = Published(t_s, pos, sigma_h, sigma_z, f.bias_m, stable, n_acc)
+        pub = Published(t_s, pos, sigma_h, sigma_z, f.bias_m, stable, n_acc, position_cov(P))
         self.last = pub
         if stable:
             self.last_stable = pub
         if self.keep_history:
             self.history.append(pub)
-        if self.twm is not None:
-            self.twm.add(pub)
+        for obs in self.observers:
+            obs.published(self, pub)
         return pub
 
     # ------------------------------------------------------------------ outcome
@@ -504,4 +482,5 @@ class Track:
             f.bias_m,
             False,
             0,
+            position_cov(P),
         )

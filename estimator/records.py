@@ -105,7 +105,7 @@ class AssociatedRange:
 
 
 EstimateStatus = Literal[
-    "converged", "tracking", "bootstrapping", "weak_geometry", "diverged", "no_data"
+    "converged", "tracking", "bootstrapping", "weak_geometry", "diverged", "no_data", "ambiguous"
 ]
 STATUSES: tuple[str, ...] = (
     "converged",
@@ -114,22 +114,61 @@ STATUSES: tuple[str, ...] = (
     "weak_geometry",
     "diverged",
     "no_data",
+    "ambiguous",
 )
 
 
 @dataclass(frozen=True, kw_only=True)
+class Candidate:
+    """One of several positions the data cannot tell apart (status ``ambiguous``)."""
+
+    mean_enu_m: tuple[float, float, float]
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    sigma_h_m: float
+    weight: float  # relative likelihood; the candidates' weights sum to 1
+
+
+@dataclass(frozen=True, kw_only=True)
 class Estimate:
-    """A published AP estimate (after output smoothing) in the replay's ENU frame."""
+    """What the estimator says of one responder in one mode at time ``t_s``.
+
+    Position fields (``mean_enu_m``, ``cov_m2``, ``lat_deg``...) are ``None`` when there
+    is no estimate yet (``bootstrapping``, ``weak_geometry``, ``no_data``...). ENU is the
+    estimator's frame (:attr:`estimator.online.OnlineEstimator.frame`); ``cov_m2`` is the
+    3 x 3 position covariance. ``t_s`` is the estimator's timeline (the phone clock of
+    the first agent, shifted by the agents' start times when several are fused).
+    """
 
     t_s: float
     bssid: str
-    mean_enu_m: tuple[float, float, float]
-    cov_m2: tuple[tuple[float, float, float], ...]
-    bias_m: float
-    sigma_h_m: float
-    sigma_z_m: float
-    stable: bool
+    mode: str
     status: str
+    mean_enu_m: tuple[float, float, float] | None = None
+    cov_m2: tuple[tuple[float, float, float], ...] | None = None
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    alt_m: float | None = None
+    bias_m: float | None = None
+    sigma_h_m: float | None = None
+    sigma_z_m: float | None = None
+    r95_h_m: float | None = None
+    stable: bool = False
+    n_meas: int = 0
+    n_bootstrap: int = 0
+    n_acc: int = 0
+    n_gate: int = 0
+    kappa: float | None = None
+    candidates: tuple[Candidate, ...] = ()
+
+    @property
+    def has_position(self) -> bool:
+        return self.mean_enu_m is not None
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
 
 
 @dataclass(frozen=True, eq=False)

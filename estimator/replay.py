@@ -14,25 +14,22 @@ from __future__ import annotations
 
 import heapq
 import math
-import warnings
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from datetime import datetime
 
-from estimator.association import AssociationConfig, AssociationStats, Associator, GeoRange
-from estimator.geodesy import EnuFrame, make_frame
-from estimator.logio import LogStream, LogWarning, RejectCounts, iter_log_sorted
+from estimator.association import AssociationConfig, AssociationStats
+from estimator.evaluation import TruthScorer, errors_m, twm_of_history
+from estimator.geodesy import EnuFrame
+from estimator.logio import LogStream, RejectCounts, iter_log_sorted
+from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
 from estimator.pipeline import (
-    DEFAULT_AGL_M,
     MODES,
     PAPER_MODES,
     PipelineConfig,
     Published,
-    SharedFront,
-    Track,
 )
-from estimator.records import AssociatedRange, TruthRecord
+from estimator.records import Estimate, TruthRecord
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -88,6 +85,7 @@ class TrackResult:
     concealment: str | None = None
     history: list[Published] = field(default_factory=list, repr=False)
     bootstrap_t_s: float | None = None
+    estimated: Estimate | None = field(default=None, repr=False)
 
     @property
     def converged(self) -> bool:
@@ -117,7 +115,24 @@ class TrackResult:
             d["kappa"] = round(self.kappa, 3)
         if self.concealment is not None:
             d["concealment"] = self.concealment
+        d.update(estimate_extras(self.estimated))
         return d
+
+
+def estimate_extras(e: Estimate | None) -> dict:
+    """The added JSON fields of modes beyond the paper's: ``r95_h_m``, ``candidates``."""
+    out: dict = {}
+    if e is None:
+        return out
+    if e.r95_h_m is not None and math.isfinite(e.r95_h_m):
+        out["r95_h_m"] = round(e.r95_h_m, 4)
+    if e.candidates:
+        out["candidates"] = [
+            {"lat": round(c.lat_deg, 8), "lon": round(c.lon_deg, 8), "alt_m": round(c.alt_m, 3),
+             "sigma_h_m": round(c.sigma_h_m, 4), "weight": round(c.weight, 6)}
+            for c in e.candidates
+        ]
+    return out
 
 
 @dataclass
@@ -162,153 +177,106 @@ class ReplayReport:
         raise KeyError((bssid, mode))
 
 
-def _utc_epoch_s(text: str | None) -> float | None:
-    if not text:
-        return None
-    try:
-        return datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
-    except ValueError:
-        return None
+class _End:
+    """Marks the end of one log's records in the merged stream."""
 
 
-@dataclass
-class _LogSource:
-    stream: LogStream
-    records: Iterator
-    first: object | None
-    agl_m: float
-    associator: Associator
-    offset_s: float = 0.0
+_END = _End()
 
 
-def _open_sources(paths: Sequence[str], opts: ReplayOptions) -> list[_LogSource]:
-    sources = []
-    for p in paths:
-        st = LogStream(path=str(p))
-        it = iter_log_sorted(p, st)
-        first = next(it, None)  # primes the reader: header and truth are known now
-        hdr = st.header
-        assert hdr is not None
-        agl = opts.agl_m if opts.agl_m is not None else hdr.agl_m
-        agl = agl if agl is not None else DEFAULT_AGL_M
-        off = opts.range_offset_m if opts.range_offset_m is not None else hdr.range_offset_m
-        acfg = AssociationConfig(
-            t_sync_s=opts.association.t_sync_s,
-            max_acc_m=opts.association.max_acc_m,
-            range_offset_m=off if off is not None else 0.0,
-        )
-        sources.append(_LogSource(st, it, first, agl, Associator(acfg)))
-    if len(sources) > 1:
-        epochs = [_utc_epoch_s(s.stream.header.start_utc) for s in sources]
-        known = [e for e in epochs if e is not None]
-        ref = min(known) if known else 0.0
-        for s, e in zip(sources, epochs, strict=True):
-            t0 = s.first.t_ns * 1e-9 if s.first is not None else 0.0
-            if e is None:
-                warnings.warn(
-                    f"{s.stream.path}: no start_utc in header; assumed to start with the "
-                    "earliest log",
-                    LogWarning,
-                    stacklevel=3,
-                )
-                e = ref
-            s.offset_s = (e - ref) - t0
-    return sources
-
-
-def _associated(src: _LogSource, index: int) -> Iterator[tuple[float, int, int, GeoRange, float]]:
-    def recs() -> Iterator:
-        if src.first is not None:
-            yield src.first
-        yield from src.records
-
-    for seq, g in enumerate(src.associator.run(recs())):
-        yield (g.t_ns * 1e-9 + src.offset_s, index, seq, g, src.agl_m)
+def _log_records(stream: LogStream, it: Iterator, first, index: int, offset_s: float):
+    """(common time, log index, seq, record) of one log, then an end marker."""
+    seq = 0
+    key = -math.inf
+    if first is not None:
+        key = first.t_ns * 1e-9 + offset_s
+        yield (key, index, seq, first)
+        seq += 1
+    for rec in it:
+        key = rec.t_ns * 1e-9 + offset_s
+        yield (key, index, seq, rec)
+        seq += 1
+    yield (key, index, seq, _END)
 
 
 def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> ReplayReport:
-    """Run every mode of ``opts`` over the logs; raises LogError for an unreadable log."""
-    sources = _open_sources([str(p) for p in paths], opts)
+    """Run every mode of ``opts`` over the logs; raises LogError for an unreadable log.
+
+    A file adapter over :class:`estimator.online.OnlineEstimator`: the logs' records
+    are merged on the common timeline and pushed one at a time; truth records (if any)
+    score the estimates through a :class:`estimator.evaluation.TruthScorer`.
+    """
+    streams, iters, firsts = [], [], []
+    for p in paths:
+        st = LogStream(path=str(p))
+        it = iter_log_sorted(p, st)
+        firsts.append(next(it, None))  # primes the reader: header and truth are known now
+        streams.append(st)
+        iters.append(it)
     truth: dict[str, TruthRecord] = {}
-    for s in sources:  # primed: every log's truth records are known before processing
-        for t in s.stream.truth:
+    for st in streams:
+        for t in st.truth:
             truth.setdefault(t.bssid, t)
-    streams = [_associated(s, i) for i, s in enumerate(sources)]
-    merged = heapq.merge(*streams, key=lambda e: (e[0], e[1], e[2]))
-    frame: EnuFrame | None = None
-    tracks: dict[tuple[str, str], Track] = {}
-    order: list[str] = []
-    for t_s, _i, _seq, g, agl in merged:
-        if frame is None:
-            frame = make_frame(opts.projection, g.lat_deg, g.lon_deg, g.alt_m)
-        e, n, u = frame.to_enu(g.lat_deg, g.lon_deg, g.alt_m)
-        m = AssociatedRange(
-            t_s=t_s,
-            bssid=g.bssid,
-            range_m=g.range_m,
-            rssi_dbm=g.rssi_dbm,
-            anchor_enu_m=(e, n, u),
-            anchor_acc_m=g.acc_m,
-            anchor_vacc_m=g.vacc_m,
-            agl_m=agl,
-            agent=sources[_i].stream.header.agent,
+    scorer = TruthScorer(truth, frame=lambda: est.frame)
+    est = OnlineEstimator(
+        EstimatorOptions(
+            modes=opts.modes,
+            pipeline=opts.pipeline,
+            association=opts.association,
+            projection=opts.projection,
+            keep_history=opts.keep_history,
+        ),
+        observers=(scorer,),
+    )
+    for i, st in enumerate(streams):
+        hdr = st.header
+        assert hdr is not None
+        f = firsts[i]
+        est.add_agent(
+            f"{hdr.agent}#{i}",
+            header=hdr,
+            agl_m=opts.agl_m,
+            range_offset_m=opts.range_offset_m,
+            first_t_ns=f.t_ns if f is not None else None,
         )
-        if g.bssid not in order:
-            order.append(g.bssid)
-            front = SharedFront(opts.pipeline)
-            tru = truth.get(g.bssid)
-            truth_enu = tuple(frame.to_enu(tru.lat_deg, tru.lon_deg, tru.alt_m)) if tru else None
-            for mode in opts.modes:
-                tracks[(g.bssid, mode)] = Track(
-                    g.bssid, mode, opts.pipeline, keep_history=opts.keep_history, front=front,
-                    truth_enu_m=truth_enu,
-                )
-        for mode in opts.modes:
-            tracks[(g.bssid, mode)].process(m)
+    est.start()  # fixes the common timeline: the merge needs the agents' offsets
+    merged = heapq.merge(
+        *[
+            _log_records(st, it, firsts[i], i, est.agents[i].offset_s or 0.0)
+            for i, (st, it) in enumerate(zip(streams, iters, strict=True))
+        ],
+        key=lambda e: (e[0], e[1], e[2]),
+    )
+    for _t, i, _seq, rec in merged:
+        if rec is _END:
+            est.finish(i)
+        else:
+            est.push(rec, i)
+    est.finish()
 
     rejected = RejectCounts()
-    assoc = AssociationStats()
-    for s in sources:
-        rejected.merge(s.stream.counts)
-        for name in ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated"):
-            getattr(assoc, name).update(getattr(s.associator.stats, name))
-    for b in sorted(assoc.rtt):  # seen, never associated: no_data
-        if b not in order:
-            order.append(b)
-    results = []
-    for b in order:
-        for mode in opts.modes:
-            tr = tracks.get((b, mode))
-            results.append(_result(b, mode, tr, frame, truth.get(b)))
-    return ReplayReport(results, rejected, assoc, len(sources), frame, truth)
-
-
-def _twm(history: list[Published], truth: tuple[float, float, float]) -> float | None:
-    """Time-weighted mean 2-D error over the stable estimates (all, if none is stable)."""
-    pts = [p for p in history if p.stable] or history
-    if not pts:
-        return None
-    errs = [math.hypot(p.enu_m[0] - truth[0], p.enu_m[1] - truth[1]) for p in pts]
-    span = pts[-1].t_s - pts[0].t_s
-    if len(pts) == 1 or span <= 0:
-        return sum(errs) / len(errs)
-    acc = 0.0
-    for k in range(len(pts) - 1):
-        acc += errs[k] * (pts[k + 1].t_s - pts[k].t_s)
-    return acc / span
+    for st in streams:
+        rejected.merge(st.counts)
+    results = [
+        _result(b, mode, est, scorer, truth.get(b))
+        for b in est.seen_bssids()
+        for mode in opts.modes
+    ]
+    return ReplayReport(results, rejected, est.association, len(streams), est.frame, truth)
 
 
 def _result(
     bssid: str,
     mode: str,
-    tr: Track | None,
-    frame: EnuFrame | None,
+    est: OnlineEstimator,
+    scorer: TruthScorer,
     truth: TruthRecord | None,
 ) -> TrackResult:
     empty = {k: 0 for k in ("n_meas", "n_bootstrap", "n_acc", "n_gate", "n_mad", "n_nis")}
+    tr = est.track(bssid, mode)
+    conc = truth.concealment if truth is not None else None
     if tr is None:
-        return TrackResult(bssid, mode, "no_data", empty, None,
-                           concealment=truth.concealment if truth else None)
+        return TrackResult(bssid, mode, "no_data", empty, None, concealment=conc)
     c = tr.counts
     counts = {
         "n_meas": c.n_meas,
@@ -318,30 +286,20 @@ def _result(
         "n_mad": c.n_mad,
         "n_nis": c.n_nis,
     }
-    est = tr.reported()
-    kappa = None
-    if tr.bootstrap_result is not None:
-        kappa = tr.bootstrap_result.kappa
-    elif tr.last_bootstrap is not None:
-        kappa = tr.last_bootstrap.kappa
+    e = track_estimate(tr, est.frame, est.now_s())
     res = TrackResult(
-        bssid, mode, tr.status, counts, est, kappa=kappa, history=tr.history,
-        bootstrap_t_s=tr.bootstrap_t_s,
+        bssid, mode, tr.status, counts, tr.reported(), kappa=e.kappa, history=tr.history,
+        bootstrap_t_s=tr.bootstrap_t_s, concealment=conc, estimated=e,
     )
-    if truth is not None:
-        res.concealment = truth.concealment
+    frame = est.frame
     if frame is not None and truth is not None:
         res.truth_enu_m = tuple(frame.to_enu(truth.lat_deg, truth.lon_deg, truth.alt_m))
-    if est is not None and frame is not None:
-        res.lat_deg, res.lon_deg, res.alt_m = frame.to_geodetic(*est.enu_m)
+    if e.has_position:
+        res.lat_deg, res.lon_deg, res.alt_m = e.lat_deg, e.lon_deg, e.alt_m
         if res.truth_enu_m is not None:
-            t = res.truth_enu_m
-            p = est.enu_m
-            res.err_h_m = math.hypot(p[0] - t[0], p[1] - t[1])
-            res.err_3d_m = math.sqrt(
-                (p[0] - t[0]) ** 2 + (p[1] - t[1]) ** 2 + (p[2] - t[2]) ** 2
-            )
-            res.twm_h_m = tr.twm.twm_h_m if tr.twm is not None else _twm(tr.history, t)
+            res.err_h_m, res.err_3d_m = errors_m(e.mean_enu_m, res.truth_enu_m)
+            twm = scorer.twm_h_m(tr)
+            res.twm_h_m = twm if twm is not None else twm_of_history(tr.history, res.truth_enu_m)
     return res
 
 

@@ -150,7 +150,7 @@ def test_parse_modes():
 
 
 def test_online_twm_equals_history_twm(flight, report):
-    from estimator.replay import _twm
+    from estimator.evaluation import twm_of_history as _twm
 
     lean = replay_logs([flight], ReplayOptions(modes=PAPER_MODES, keep_history=False))
     for t in report.tracks:
