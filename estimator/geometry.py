@@ -20,6 +20,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 KAPPA_LIMIT = 10.0  # sec. Discussion: "kappa < 10 would have rejected AP_AB, accepted AP_1F"
 
@@ -62,3 +63,58 @@ def bbox_diagonal_m(anchors_xy_m: Sequence[Sequence[float]] | np.ndarray) -> flo
         return 0.0
     span = a[:, :2].max(axis=0) - a[:, :2].min(axis=0)
     return float(math.hypot(span[0], span[1]))
+
+
+# ----------------------------------------------------------------------------- polygons
+# Search areas are polygons in a local ENU frame (convex or not); these small helpers
+# are shared by the simulator (random responders in the area), the planner (keep-in
+# checks) and the closed loop.
+
+
+def point_in_polygon(polygon_m: ArrayLike, points_m: ArrayLike) -> np.ndarray:
+    """Even-odd rule: which of the (M, 2) points lie inside the (N, 2) polygon."""
+    poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
+    p = np.asarray(points_m, dtype=float).reshape(-1, 2)
+    x, y = p[:, 0][:, None], p[:, 1][:, None]
+    x0, y0 = poly[:, 0][None, :], poly[:, 1][None, :]
+    x1, y1 = np.roll(poly[:, 0], -1)[None, :], np.roll(poly[:, 1], -1)[None, :]
+    crosses = (y0 > y) != (y1 > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+    return (np.count_nonzero(crosses & (x < x_at), axis=1) % 2) == 1
+
+
+def polygon_edge_distance_m(polygon_m: ArrayLike, points_m: ArrayLike) -> np.ndarray:
+    """Distance from each of the (M, 2) points to the polygon's boundary."""
+    poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
+    p = np.asarray(points_m, dtype=float).reshape(-1, 2)
+    a = poly[None, :, :]
+    b = np.roll(poly, -1, axis=0)[None, :, :]
+    ab = b - a
+    t = np.clip(((p[:, None, :] - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2),
+                                                                     1e-300), 0.0, 1.0)
+    closest = a + t[:, :, None] * ab
+    return np.linalg.norm(p[:, None, :] - closest, axis=2).min(axis=1)
+
+
+def signed_distance_to_polygon_m(polygon_m: ArrayLike, points_m: ArrayLike) -> np.ndarray:
+    """Distance to the boundary, negative inside and positive outside."""
+    d = polygon_edge_distance_m(polygon_m, points_m)
+    return np.where(point_in_polygon(polygon_m, points_m), -d, d)
+
+
+def polygon_area_m2(polygon_m: ArrayLike) -> float:
+    """Signed area (shoelace formula; positive for counter-clockwise vertices)."""
+    p = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def polygon_is_convex(polygon_m: ArrayLike) -> bool:
+    """True when every turn along the boundary has the same sense (collinear allowed)."""
+    p = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
+    d1 = np.roll(p, -1, axis=0) - p
+    d2 = np.roll(d1, -1, axis=0)
+    cross = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    scale = 1e-9 * float(np.max(np.abs(cross), initial=1.0))
+    return bool(np.all(cross >= -scale) or np.all(cross <= scale))

@@ -591,6 +591,13 @@ class LogWriter:
         for r in recs:
             self.write(r)
 
+    def flush(self) -> None:
+        """Push the lines written so far to the file (a live log others may read)."""
+        self._fh.flush()
+        self._bin.flush()
+        if self._bin is not self._raw:
+            self._raw.flush()
+
     def close(self) -> None:
         with contextlib.suppress(ValueError):
             self._fh.flush()

@@ -31,8 +31,8 @@ def main() -> None:
     scenario = sim.load_scenario("paper-ap1f")
     origin = scenario.world.origin
     ap1f = scenario.world.responders[0]
-    ground = scenario.world.terrain.height_m
-    truth = np.array([ap1f.e_m, ap1f.n_m, float(ground(ap1f.e_m, ap1f.n_m))])
+    terrain = scenario.world.terrain
+    truth = np.array([ap1f.e_m, ap1f.n_m, float(terrain.height_m(ap1f.e_m, ap1f.n_m))])
     prior = truth[:2] + np.array([15.0, -13.0])  # a coarse first detection, 20 m off
 
     flight = patterns.FlightConfig(speed_m_s=5.0, alt_m=45.0, height_ref="terrain",
@@ -46,7 +46,8 @@ def main() -> None:
         traj = patterns.concentric_circles(prior, (25.0, 50.0, 75.0), flight=flight)
     else:
         traj = patterns.close_pass((*prior, 0.0), 10.0, flight=flight)
-    score = scoring.score_trajectory(traj, truth, terrain=ground)
+    cfg = scoring.ScoringConfig(link=sim.FtmLink(scenario.ftm))  # the world's own link
+    score = scoring.score_trajectory(traj, truth, cfg, terrain=terrain)
     print(f"{a.pattern}: {traj.length_m:.0f} m in {traj.duration_s:.0f} s; kappa_H "
           f"{score.condition_number:.2f}, predicted CRLB {score.crlb_h_m:.2f} m horizontal, "
           f"{score.expected_measurements:.0f} expected ranges")

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -61,6 +61,7 @@ from planner.mission import (
     Mission,
     MissionItem,
 )
+from planner.models import TerrainModel
 from planner.patterns import Geofence, KeepOut
 
 DEFAULT_TOLERANCE_M = 1.0
@@ -140,7 +141,7 @@ def mission_frame_points(
     traj: Trajectory,
     *,
     home: Sequence[float] | None = None,
-    terrain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    terrain: TerrainModel | None = None,
 ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """(frame, lat_deg, lon_deg, alt_m) of every trajectory sample in the mission frame.
 
@@ -160,7 +161,7 @@ def mission_frame_points(
         )
     up = np.array(z, dtype=float)
     if traj.height_ref == "terrain":
-        up = up + np.asarray(terrain(e, n), dtype=float)  # type: ignore[misc]
+        up = up + np.asarray(terrain.height_m(e, n), dtype=float)  # type: ignore[union-attr]
     lat, lon, h = frame_enu.to_geodetic(e, n, up)
     alt = np.atleast_1d(h) - _home(traj, home)[2]
     return MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, np.atleast_1d(lat), np.atleast_1d(lon), alt
@@ -175,7 +176,7 @@ def trajectory_to_mission(
     fence: Geofence | None = None,
     keep_outs: Sequence[KeepOut] = (),
     rally_enu_m: Sequence[Sequence[float]] = (),
-    terrain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    terrain: TerrainModel | None = None,
     home: Sequence[float] | None = None,
     cruise_speed_m_s: float | None = None,
     name: str | None = None,

@@ -28,11 +28,12 @@ between waypoints):
 - acceleration |p_{i+1} - 2 p_i + p_{i-1}| <= a_max dt^2;
 - altitude band: agl_min <= z - terrain(x, y) <= agl_max at the waypoints i >= 1 and
   at the midpoints of the legs, with the terrain a smooth function CasADi can evaluate
-  (:class:`FlatTerrain`, :class:`GaussianHills`). A straight leg over a hill top sags
+  (:class:`planner.models.TerrainModel`: the simulator's own ``sim.HillsTerrain`` or
+  ``sim.GridTerrain``, or a flat ground). A straight leg over a hill top sags
   towards the ground between its ends (its height above terrain is convex where the
   terrain is concave), so over curved terrain both sets of points keep a sag margin
   m = kappa (v_max dt / 2)^2 / 8 inside the band (kappa the terrain's curvature bound,
-  :meth:`GaussianHills.sag_curvature`): every half-leg then stays inside the band
+  ``TerrainModel.sag_curvature``): every half-leg then stays inside the band
   (flat terrain: no midpoints, no margin). The first leg starts where the drone is, so
   its midpoint keeps the band widened to the start's own height above terrain;
 - keep-in geofence: a convex polygon as half-planes a_j . (x, y) <= b_j - margin,
@@ -67,6 +68,7 @@ import casadi as ca
 import numpy as np
 
 from estimator.records import Trajectory
+from planner.models import FlatTerrain, TerrainModel
 from planner.patterns import PAPER_SITE, Geofence, KeepOut, airspace_violations, densify
 from planner.scoring import ScoringConfig, prior_points
 
@@ -79,61 +81,11 @@ def _is_symbolic(x: object) -> bool:
     return isinstance(x, ca.SX | ca.MX | ca.DM)
 
 
-@dataclass(frozen=True)
-class FlatTerrain:
-    """Ground at a constant height above the frame origin."""
-
-    height_m: float = 0.0
-
-    def __call__(self, x, y):
-        return 0.0 * x + self.height_m
-
-    def sag_curvature(self) -> tuple[float, float]:
-        """Bounds on -T'' and +T'' along any horizontal line (1/m): none for flat ground."""
-        return 0.0, 0.0
-
-
-@dataclass(frozen=True)
-class GaussianHills:
-    """base + sum_j h_j exp(-((x - e_j)^2 + (y - n_j)^2) / (2 s_j^2)): smooth, and
-    evaluable on NumPy arrays and CasADi symbols alike. ``hills``: (east_m, north_m,
-    height_m, sigma_m) each."""
-
-    hills: tuple[tuple[float, float, float, float], ...] = ()
-    base_m: float = 0.0
-
-    def __call__(self, x, y):
-        exp = ca.exp if _is_symbolic(x) else np.exp
-        out = 0.0 * x + self.base_m
-        for e, n, h, s in self.hills:
-            out = out + h * exp(-((x - e) ** 2 + (y - n) ** 2) / (2.0 * s * s))
-        return out
-
-    def sag_curvature(self) -> tuple[float, float]:
-        """Bounds (concave, convex) on -T'' and +T'' along any horizontal line (1/m).
-
-        Along a line at offset a from a hill's centre, T = h exp(-(a^2 + s^2) / 2 sigma^2)
-        has T'' = h (s^2 / sigma^2 - 1) / sigma^2 exp(...): at most h / sigma^2 in
-        magnitude on the concave side (the top, s = a = 0) and 2 e^-1.5 h / sigma^2 =
-        0.446 h / sigma^2 on the convex side (the foot, s^2 = 3 sigma^2). The bounds of
-        the hills add (conservative where they do not overlap).
-        """
-        foot = 2.0 * math.exp(-1.5)
-        concave = convex = 0.0
-        for _e, _n, h, s in self.hills:
-            k = abs(h) / (s * s)
-            concave += k if h > 0 else foot * k
-            convex += foot * k if h > 0 else k
-        return concave, convex
-
-
-def sag_margins_m(terrain, leg_m: float) -> tuple[float, float]:
+def sag_margins_m(terrain: TerrainModel, leg_m: float) -> tuple[float, float]:
     """How far the height above ``terrain`` can dip below (first) or rise above (second)
     the straight interpolation of its values at the ends of a horizontal leg ``leg_m``
-    long: kappa leg^2 / 8, kappa the terrain's curvature bound along a line. Terrains
-    without ``sag_curvature`` count as flat (the dense check still catches a sag)."""
-    bound = getattr(terrain, "sag_curvature", None)
-    concave, convex = bound() if bound is not None else (0.0, 0.0)
+    long: kappa leg^2 / 8, kappa the terrain's curvature bound along a line."""
+    concave, convex = terrain.sag_curvature()
     return concave * leg_m * leg_m / 8.0, convex * leg_m * leg_m / 8.0
 
 
@@ -158,7 +110,7 @@ class OptimalConfig:
     fence_smoothing_m: float = 1.0  # log-sum-exp scale of the keep-in edges
     keep_out_smoothing: float = 0.05  # soft-min scale of (d / R)^2 - 1 over keep-outs
     keep_out_margin_m: float = 2.0
-    terrain: FlatTerrain | GaussianHills = field(default_factory=FlatTerrain)
+    terrain: TerrainModel = field(default_factory=FlatTerrain)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
     prior_information: tuple[float, float, float, float] = (1 / 25, 1 / 25, 1 / 100, 1 / 4)
     smoothing_db: float = 1.0  # smoothing scale of q = max(0, -RSSI - r_ref)
@@ -225,17 +177,11 @@ def _smooth_max(rows, tau):
 def _weights(d, cfg: OptimalConfig, dwell):
     """Expected measurements per unit variance rate dt P(d) / sigma^2(d) (smooth)."""
     sc = cfg.scoring
-    sym = _is_symbolic(d)
-    log10 = (lambda v: ca.log(v) / math.log(10.0)) if sym else np.log10
-    tanh = ca.tanh if sym else np.tanh
-    rs = sc.rssi
-    q = _smooth_relu(
-        -rs.rssi_1m_dbm + 10.0 * rs.path_loss_exponent * log10(d) - sc.noise.r_ref_db,
-        cfg.smoothing_db,
-    )
+    link = sc.link
+    q = _smooth_relu(-link.mean_rssi_dbm(d, sc.concealment) - sc.noise.r_ref_db, cfg.smoothing_db)
     n = sc.noise
     var = n.sigma0_m**2 + n.alpha * d * d + n.beta_m2_per_db2 * q * q
-    prob = 0.5 * (1.0 - tanh(0.5 * (d - sc.response.reach_m) / sc.response.width_m))
+    prob = link.response_probability(d, sc.concealment)
     return sc.ranging_rate_hz * dwell * prob / var
 
 
@@ -428,7 +374,7 @@ class OptimalPlanner:
         per_leg(ca.sum1(acc * acc) <= amax_dt2**2)
         first = X[:, 1] - X[:, 0] - p_vel * p_dt / S
         opti.subject_to(ca.sumsqr(first) <= amax_dt2**2)
-        agl = X[2, 1:] - cfg.terrain(P[0, 1:], P[1, 1:]) / S
+        agl = X[2, 1:] - cfg.terrain.height_m(P[0, 1:], P[1, 1:]) / S
         concave, convex = sag_margins_m(cfg.terrain, 1.0)  # kappa / 8 per m^2 of leg
         if concave > 0.0 or convex > 0.0:
             # sag margins of a half-leg, m = kappa (v_max dt / 2)^2 / 8, in scaled units
@@ -436,7 +382,8 @@ class OptimalPlanner:
             m_lo, m_hi = concave * half2 / S, convex * half2 / S
             per_leg(opti.bounded(p_band[0] / S + m_lo, agl, p_band[1] / S - m_hi))
             mid = 0.5 * (P[:, 1:] + P[:, :-1])
-            agl_mid = 0.5 * (X[2, 1:] + X[2, :-1]) - cfg.terrain(mid[0, :], mid[1, :]) / S
+            ground_mid = cfg.terrain.height_m(mid[0, :], mid[1, :])
+            agl_mid = 0.5 * (X[2, 1:] + X[2, :-1]) - ground_mid / S
             lo_mid = ca.horzcat(p_band[2], ca.repmat(p_band[0], 1, N - 2)) / S + m_lo
             hi_mid = ca.horzcat(p_band[3], ca.repmat(p_band[1], 1, N - 2)) / S - m_hi
             per_leg(opti.bounded(lo_mid, agl_mid, hi_mid))
@@ -562,7 +509,7 @@ class OptimalPlanner:
             ("", densify(W[1:], 1.0), (lo, hi)),
             ("first leg: ", densify(W[:2], 1.0)[1:], (lo1, hi1)),
         ):
-            agl = pts[:, 2] - np.asarray(cfg.terrain(pts[:, 0], pts[:, 1]), dtype=float)
+            agl = pts[:, 2] - np.asarray(cfg.terrain.height_m(pts[:, 0], pts[:, 1]), dtype=float)
             if agl.min() < b_lo - tol or agl.max() > b_hi + tol:
                 out.append(
                     f"{name}height above terrain {agl.min():.2f}..{agl.max():.2f} m"
@@ -578,7 +525,7 @@ class OptimalPlanner:
         less (more) the sag margin of half a leg, which is what the NLP can guarantee
         from a start it cannot move."""
         p = np.asarray(start_enu_m, dtype=float).reshape(3)
-        agl0 = float(p[2] - np.asarray(self.cfg.terrain(p[0], p[1]), dtype=float))
+        agl0 = float(p[2] - np.asarray(self.cfg.terrain.height_m(p[0], p[1]), dtype=float))
         m_lo, m_hi = sag_margins_m(self.cfg.terrain, v_max * dt_s / 2.0)
         return min(band[0], agl0 - m_lo), max(band[1], agl0 + m_hi)
 
@@ -640,7 +587,7 @@ class OptimalPlanner:
         fence_rows = self._fence_rows(fence)
         keep_rows = self._keep_rows(keep_outs, lim[0] * dt)
 
-        agl0 = float(start[2] - np.asarray(cfg.terrain(start[0], start[1]), dtype=float))
+        agl0 = float(start[2] - np.asarray(cfg.terrain.height_m(start[0], start[1]), dtype=float))
         band4 = (*band, min(band[0], agl0), max(band[1], agl0))
 
         S = cfg.position_scale_m
@@ -702,8 +649,9 @@ class OptimalPlanner:
     def _orbits(self, start, vel, mean, pts, dt, lim, band):
         """Guidance orbits about the prior mean at the start's height above terrain."""
         cfg = self.cfg
-        agl0 = start[2] - float(np.asarray(cfg.terrain(start[0], start[1])))
-        alt = float(np.asarray(cfg.terrain(mean[0], mean[1]))) + float(np.clip(agl0, *band))
+        agl0 = start[2] - float(np.asarray(cfg.terrain.height_m(start[0], start[1])))
+        ground = float(np.asarray(cfg.terrain.height_m(mean[0], mean[1])))
+        alt = ground + float(np.clip(agl0, *band))
         for r in cfg.fallback_radii_m:
             W = guidance_orbit(start, vel, mean, r, alt, cfg.n_waypoints, dt, *lim)
             yield r, W, planning_objective(W, pts, dt, cfg)

@@ -34,12 +34,13 @@ import numpy as np
 
 from estimator.geodesy import ExactENU
 from estimator.records import Trajectory
-from planner.scoring import ResponseModel
+from planner.models import LinkModel, LogisticLink, slant_at
 
 # University of Malaga campus (sec. Experimental Setup); h = 140 m is the ellipsoidal
 # height of the ground there, the same default origin as sim.world.Origin, so a default
 # pattern flown in the simulator is above ground, not 140 m under it
 PAPER_SITE = (36.715, -4.478, 140.0)
+DEFAULT_LINK = LogisticLink()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -176,10 +177,11 @@ def segments_to_trajectory(
 
 
 def detection_range_m(
-    alt_m: float, response: ResponseModel = ResponseModel(), p_detect: float = 0.5
+    alt_m: float, link: LinkModel = DEFAULT_LINK, p_detect: float = 0.5,
+    concealment: str = "open",
 ) -> float:
     """Horizontal distance at which P(response) = p_detect for an AP ``alt_m`` below."""
-    slant = response.slant_at(p_detect)
+    slant = slant_at(link, p_detect, concealment)
     if slant <= abs(alt_m):
         raise ValueError(
             f"no detection at {alt_m:g} m height (the {p_detect:.0%} response reach is"
@@ -234,7 +236,7 @@ def lawnmower(
     half_length_m: float | None = None,
     heading_deg: float = 0.0,
     overlap: float = 0.5,
-    response: ResponseModel = ResponseModel(),
+    link: LinkModel = DEFAULT_LINK,
     flight: FlightConfig = FlightConfig(),
     start_enu_m: Sequence[float] | None = None,
 ) -> Trajectory:
@@ -252,7 +254,7 @@ def lawnmower(
     hw = _positive("half_width_m", half_width_m)
     hl = hw if half_length_m is None else _positive("half_length_m", half_length_m)
     if spacing_m is None:
-        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, response), overlap)
+        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, link), overlap)
     sp = _positive("spacing_m", spacing_m)
     n_tracks = max(1, math.ceil(2.0 * hw / sp - 1e-9))
     along, right = _heading_axes(heading_deg)
@@ -277,7 +279,7 @@ def expanding_square(
     heading_deg: float = 0.0,
     clockwise: bool = True,
     overlap: float = 0.5,
-    response: ResponseModel = ResponseModel(),
+    link: LinkModel = DEFAULT_LINK,
     flight: FlightConfig = FlightConfig(),
     start_enu_m: Sequence[float] | None = None,
 ) -> Trajectory:
@@ -290,7 +292,7 @@ def expanding_square(
     cx, cy = _xy(center_enu_m)
     hw = _positive("half_width_m", half_width_m)
     if spacing_m is None:
-        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, response), overlap)
+        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, link), overlap)
     sp = _positive("spacing_m", spacing_m)
     along, right = _heading_axes(heading_deg)
     turn = right if clockwise else -right

@@ -5,9 +5,9 @@ n_i ~ N(0, sigma_i^2), with p the AP position, u_i the initiator (drone) positio
 b the residual FTM bias. Per sample of the path the scorer predicts:
 
 - the slant range d_i = |p - u_i|;
-- the response probability P(d_i): logistic in slant range (:class:`ResponseModel`,
-  by default the simulator's link: 50 % at 57.5 m slant);
-- the expected RSSI from the log-distance path loss of eq. (11) (:class:`RssiModel`);
+- the response probability P(d_i) and the mean RSSI from the link model
+  (:class:`planner.models.LinkModel`: the simulator's ``sim.FtmLink`` when ``osa``
+  plans for a known world, else the generic :class:`planner.models.LogisticLink`);
 - the range variance sigma_i^2 from Empirical-R, eq. (13), with that RSSI and the MAD
   gate's floor sigma_floor as sigma_gate (the outer max of eq. 13 then never binds);
 - the expected number of measurements n_i = rate x dwell_i x P(d_i).
@@ -42,94 +42,39 @@ CRLBs follow the paper's sigma_H / sigma_Z, eq. (19): crlb_h = sqrt([J^-1]_xx +
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from estimator.geometry import horizontal_condition_number
-from estimator.noise import EmpiricalRConfig, NlosConfig
+from estimator.noise import EmpiricalRConfig
 from estimator.records import Trajectory
-
-Terrain = Callable[[np.ndarray, np.ndarray], np.ndarray]
-
-_NLOS = NlosConfig()
-
-
-# The simulator's default FTM link, restated from sim/ftm.py (FtmConfig) because the
-# planner does not import sim: mean RSSI(d) = -38 dBm - 25 log10(d) (rssi_1m_dbm,
-# path_loss_exponent 2.5), and an ``ok`` result with probability logistic in RSSI, 50 %
-# at -82 dBm (response_rssi50_dbm) with a 3.5 dB scale (response_slope_db), times
-# response_max = 0.95. Keep these in step with sim/ftm.py (tests/planner/test_scoring.py
-# checks them against it).
-SIM_RSSI_1M_DBM = -38.0
-SIM_PATH_LOSS_EXPONENT = 2.5
-SIM_RESPONSE_RSSI50_DBM = -82.0
-SIM_RESPONSE_SLOPE_DB = 3.5
-# In slant range: P = 1 / (1 + (d / d50)^k), 50 % at
-#   d50 = 10^((RSSI_1m - RSSI50) / (10 eta)) = 10^(44 / 25) = 57.5 m,
-# with k = 10 eta / (slope ln 10) = 3.10; the logistic in d with the same slope at d50
-# has the width d50 / k = d50 slope ln 10 / (10 eta) = 18.5 m.
-DEFAULT_REACH_M = 10.0 ** (
-    (SIM_RSSI_1M_DBM - SIM_RESPONSE_RSSI50_DBM) / (10.0 * SIM_PATH_LOSS_EXPONENT)
-)
-DEFAULT_WIDTH_M = (
-    DEFAULT_REACH_M * SIM_RESPONSE_SLOPE_DB * math.log(10.0) / (10.0 * SIM_PATH_LOSS_EXPONENT)
-)
-
-
-@dataclass(frozen=True, kw_only=True)
-class ResponseModel:
-    """Probability that one ranging attempt at slant range d answers: logistic in d.
-
-    P(d) = 1 / (1 + exp((d - reach_m) / width_m)). The defaults are the simulator's
-    default link (sim/ftm.py, restated above): 50 % at 57.5 m slant, width 18.5 m
-    (P = 90 % at 16.8 m, 10 % at 98.3 m). Against the simulator's mean response (its
-    0.95 cap, 2 dB shadowing and 2 dB fading included) this is within 0.04 out to 65 m
-    slant; further out the simulator's response falls more slowly (a logistic in RSSI
-    is a power law in distance): 0.22 against 0.15 at 90 m, 0.14 against 0.06 at 110 m,
-    so the expected counts of far samples are low (conservative). The paper's figures
-    (an outdoor reach of more than 100 m, sec. Introduction; AP_1F's median range 74 m,
-    sec. Results) are of ranges that answered, not of the 50 % point.
-    """
-
-    reach_m: float = DEFAULT_REACH_M
-    width_m: float = DEFAULT_WIDTH_M
-
-    def probability(self, slant_m: np.ndarray | float) -> np.ndarray:
-        z = (np.asarray(slant_m, dtype=float) - self.reach_m) / self.width_m
-        return 0.5 * (1.0 - np.tanh(0.5 * z))  # = 1 / (1 + exp(z)), overflow-free
-
-    def slant_at(self, probability: float) -> float:
-        """Slant range where P(d) = probability (0 < probability < 1)."""
-        if not 0.0 < probability < 1.0:
-            raise ValueError("probability must be in (0, 1)")
-        return self.reach_m + self.width_m * math.log((1.0 - probability) / probability)
-
-
-@dataclass(frozen=True, kw_only=True)
-class RssiModel:
-    """Log-distance path loss, eq. (11): RSSI(d) = RSSI_1m - 10 eta log10(max(d, d_min))."""
-
-    rssi_1m_dbm: float = _NLOS.rssi_1m_dbm  # -35 dBm, eq. (11)
-    path_loss_exponent: float = _NLOS.path_loss_exponent  # eta = 3, eq. (11)
-    min_distance_m: float = _NLOS.min_distance_m  # 1 m guard on log10
-
-    def rssi_dbm(self, slant_m: np.ndarray | float) -> np.ndarray:
-        d = np.maximum(np.asarray(slant_m, dtype=float), self.min_distance_m)
-        return self.rssi_1m_dbm - 10.0 * self.path_loss_exponent * np.log10(d)
+from planner.models import LinkModel, LogisticLink, TerrainModel
 
 
 @dataclass(frozen=True, kw_only=True)
 class ScoringConfig:
-    """What the scorer assumes about the ranging link."""
+    """What the scorer assumes about the ranging link (:class:`planner.models.LinkModel`).
 
-    ranging_rate_hz: float = 4.0  # "3-5 Hz during active ranging" (sec. Range Model)
-    response: ResponseModel = field(default_factory=ResponseModel)
-    rssi: RssiModel = field(default_factory=RssiModel)
+    ``link`` gives the response probability and the mean RSSI against slant range;
+    ``osa`` passes the simulator's calibrated link (``sim.FtmLink``), the default is the
+    generic :class:`planner.models.LogisticLink`. ``noise`` is the estimator's R
+    (Empirical-R, eq. 13), the variance the filter will assign.
+    """
+
+    link: LinkModel = field(default_factory=LogisticLink)
+    concealment: str = "open"  # the class the responder is assumed to be in
     noise: EmpiricalRConfig = field(default_factory=EmpiricalRConfig)  # eq. (13)
     sigma_gate_m: float = 0.12  # sigma_floor of eq. (4): the smallest MAD-gate scale
     rcond: float = 1e-10  # eigenvalues below rcond x the largest count as zero
+
+    @property
+    def ranging_rate_hz(self) -> float:
+        return float(self.link.ranging_rate_hz)
+
+    def response_probability(self, slant_m) -> np.ndarray:
+        return self.link.response_probability(slant_m, self.concealment)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -169,7 +114,7 @@ def range_variance_m2(
     """
     d = np.asarray(slant_m, dtype=float)
     n = cfg.noise
-    q = np.maximum(0.0, -cfg.rssi.rssi_dbm(d) - n.r_ref_db)
+    q = np.maximum(0.0, -np.asarray(cfg.link.mean_rssi_dbm(d, cfg.concealment)) - n.r_ref_db)
     model = n.sigma0_m**2 + n.alpha * d * d + n.beta_m2_per_db2 * q * q
     return np.maximum(cfg.sigma_gate_m**2, model)
 
@@ -197,7 +142,7 @@ def fisher_information(
     p = np.asarray(ap_enu_m, dtype=float).reshape(3)
     diff = p[None, :] - u
     d = np.linalg.norm(diff, axis=1)
-    counts = cfg.ranging_rate_hz * np.asarray(dwell_s, dtype=float) * cfg.response.probability(d)
+    counts = cfg.ranging_rate_hz * np.asarray(dwell_s, dtype=float) * cfg.response_probability(d)
     g = diff / np.maximum(d, 1e-9)[:, None]
     h = np.hstack([g, np.ones((len(u), 1))])
     w = counts / range_variance_m2(d, cfg)
@@ -283,13 +228,13 @@ def score_anchors(
     )
 
 
-def absolute_enu_m(traj: Trajectory, terrain: Terrain | None = None) -> np.ndarray:
+def absolute_enu_m(traj: Trajectory, terrain: TerrainModel | None = None) -> np.ndarray:
     """Positions with z above the frame origin (resolves ``height_ref="terrain"``)."""
     p = traj.enu_m.copy()
     if traj.height_ref == "terrain":
         if terrain is None:
             raise ValueError("a terrain-referenced trajectory needs a terrain model to score")
-        p[:, 2] += np.asarray(terrain(p[:, 0], p[:, 1]), dtype=float)
+        p[:, 2] += np.asarray(terrain.height_m(p[:, 0], p[:, 1]), dtype=float)
     return p
 
 
@@ -297,7 +242,7 @@ def score_trajectory(
     traj: Trajectory,
     ap_enu_m: Sequence[float] | np.ndarray,
     cfg: ScoringConfig = ScoringConfig(),
-    terrain: Terrain | None = None,
+    terrain: TerrainModel | None = None,
 ) -> GeometryScore:
     """Score a trajectory against one AP position (ENU of the trajectory's origin)."""
     return score_anchors(
@@ -343,7 +288,7 @@ def score_over_prior(
     rng: np.random.Generator,
     n_draws: int = 32,
     cfg: ScoringConfig = ScoringConfig(),
-    terrain: Terrain | None = None,
+    terrain: TerrainModel | None = None,
 ) -> GeometryScore:
     """Mean of :func:`score_trajectory` over ``n_draws`` AP positions drawn from the prior."""
     if n_draws < 1:

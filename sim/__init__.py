@@ -6,6 +6,8 @@ Public API::
     sim.load_scenario(name_or_path) -> Scenario
     sim.simulate(scenario, seed, path=None) -> SimResult   # writes the log when path is given
     sim.write_log(result, path) -> Path
+    sim.realise(scenario, seed) -> Realisation    # the world of one seed (common random numbers)
+    sim.Stepper(realisation)                      # advance agents step by step, get records
 
 See docs/simulator.md for the sensor models and the presets.
 """
@@ -19,51 +21,80 @@ from sim.flights import (
     TrajectoryFlight,
     WaypointsFlight,
 )
-from sim.ftm import ConcealmentModel, FtmConfig, FtmTrack
+from sim.ftm import ConcealmentModel, FtmConfig, FtmLink, FtmTrack, RangeNoiseConfig
 from sim.gnss import GNSS_PRESETS, GnssConfig, GnssTrack
+from sim.realisation import Realisation, realise
 from sim.scenario import (
+    AgentSpec,
     LogSettings,
     Scenario,
     ScenarioError,
+    SearchSpec,
     list_scenarios,
     load_scenario,
     scenario_from_table,
 )
 from sim.simulate import SimResult, run_scenario, simulate, write_log
+from sim.stepper import Emitted, LogSink, Stepper
 from sim.terrain import GridTerrain, Hill, HillsTerrain
-from sim.vehicle import VehicleConfig, VehicleTrack, fly
+from sim.vehicle import (
+    WALKER,
+    FlightError,
+    HoldGuidance,
+    PathGuidance,
+    VehicleConfig,
+    VehicleState,
+    VehicleTrack,
+    fly,
+    path_guidance,
+)
 from sim.world import Origin, Responder, World
 
 __all__ = [
     "GNSS_PRESETS",
+    "WALKER",
+    "AgentSpec",
     "Circle",
     "ClockConfig",
     "ClosePass",
     "ConcealmentModel",
+    "Emitted",
+    "FlightError",
     "FtmConfig",
+    "FtmLink",
     "FtmTrack",
     "GnssConfig",
     "GnssTrack",
     "GridTerrain",
     "Hill",
     "HillsTerrain",
+    "HoldGuidance",
     "LogSettings",
+    "LogSink",
     "Origin",
     "PassFlight",
+    "PathGuidance",
     "PhoneClock",
+    "RangeNoiseConfig",
+    "Realisation",
     "Responder",
     "Scenario",
     "ScenarioError",
+    "SearchSpec",
     "SimResult",
+    "Stepper",
     "SweepsFlight",
     "TrajectoryFlight",
     "VehicleConfig",
+    "VehicleState",
     "VehicleTrack",
     "WaypointsFlight",
     "World",
     "fly",
     "list_scenarios",
     "load_scenario",
+    "path_guidance",
+    "realise",
     "run_scenario",
     "scenario_from_table",
     "simulate",

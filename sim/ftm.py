@@ -30,9 +30,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from estimator.noise import EmpiricalRConfig
 from sim._config import check_finite, check_positive, check_probability
-from sim._random import GaussianField2D
+from sim._random import RandomFourierField, as_seed_sequence, child_rng
 from sim.clock import ClockConfig, exponential_delays
 from sim.vehicle import VehicleTrack
 from sim.world import World
@@ -84,6 +83,26 @@ VEGETATION_DEBRIS = ConcealmentModel(
 
 
 @dataclass(frozen=True, kw_only=True)
+class RangeNoiseConfig:
+    """The simulator's true range noise: sigma^2 = sigma0^2 + alpha d^2 + beta q^2,
+    q = max(0, -RSSI - r_ref) (the form of eq. 13), times ``FtmConfig.noise_scale``.
+
+    The simulator's own model of the world, not the estimator's filter tuning
+    (``estimator.noise.EmpiricalRConfig``): the defaults are eq. (13)'s coefficients,
+    and retuning the estimator's R leaves the truth where it is.
+    """
+
+    sigma0_m: float = 0.3
+    alpha: float = 4e-4
+    beta_m2_per_db2: float = 3e-3
+    r_ref_db: float = 40.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            check_positive(f"noise.{f.name}", getattr(self, f.name), allow_zero=True)
+
+
+@dataclass(frozen=True, kw_only=True)
 class FtmConfig:
     """FTM link, ranging schedule and error model."""
 
@@ -105,7 +124,7 @@ class FtmConfig:
     response_max: float = 0.95
     frame_margin_db: float = 6.0  # per-frame success: logistic at rssi50 - margin
     no_response_fraction: float = 0.7  # failures reported as no_response (else fail)
-    noise: EmpiricalRConfig = field(default_factory=EmpiricalRConfig)  # eq. (13) coefficients
+    noise: RangeNoiseConfig = field(default_factory=RangeNoiseConfig)  # eq. (13) form
     # Eq. (13) is a deliberately inflated filter R ("inflated R_k", sec. Results): as the
     # true noise it is ~3x too large (the Baseline then gates 40-90 % and diverges). Scaled
     # by 0.3 the Baseline replay of paper-ap1f gates ~25 % of its post-bootstrap ranges,
@@ -154,8 +173,6 @@ class FtmConfig:
             raise ValueError("attempted must be in [1, 31] frames per burst")
         if self.offset_max_m < self.offset_min_m:
             raise ValueError("offset_max_m must be >= offset_min_m")
-        for f in fields(self.noise):
-            check_positive(f"noise.{f.name}", getattr(self.noise, f.name), allow_zero=True)
 
     def concealment(self, name: str) -> ConcealmentModel:
         if name not in ("open", "vegetation", "vegetation_debris"):
@@ -239,143 +256,401 @@ def _empty(k: int, attempted: int) -> FtmTrack:
     )  # fmt: skip
 
 
+# ----------------------------------------------------------------------------- link model
+
+
+@dataclass(frozen=True)
+class FtmLink:
+    """The simulator's link as the planner sees it (:class:`planner.models.LinkModel`).
+
+    ``response_probability(d, concealment)`` is the mean probability that one ranging
+    attempt at slant range d answers ``ok``: the responder must be in reach (mean RSSI
+    with shadowing >= ``reach_rssi_dbm``: Phi((RSSI(d) - reach) / shadowing)) and then
+    answer, the logistic in RSSI of :meth:`FtmConfig.response_probability` averaged over
+    the shadowing and fading (Gaussian in dB, sigma^2 = shadowing^2 + fading^2) with
+    the probit approximation E[logistic(x + s z)] ~ logistic(x / sqrt(1 + pi s^2 / 8)).
+    Evaluates NumPy arrays and CasADi symbols alike.
+    """
+
+    cfg: FtmConfig = field(default_factory=FtmConfig)
+
+    @property
+    def ranging_rate_hz(self) -> float:
+        c = self.cfg
+        return 2.0 / (1.0 / c.request_rate_min_hz + 1.0 / c.request_rate_max_hz)
+
+    def mean_rssi_dbm(self, slant_m, concealment: str = "open"):
+        c = self.cfg
+        att = c.concealment(concealment).attenuation_db
+        if _is_symbolic(slant_m):
+            import casadi as ca
+
+            d = ca.fmax(slant_m, 1.0)
+            return c.rssi_1m_dbm - 10.0 * c.path_loss_exponent * ca.log(d) / math.log(10.0) - att
+        return c.mean_rssi_dbm(slant_m, att)
+
+    def response_probability(self, slant_m, concealment: str = "open"):
+        c = self.cfg
+        model = c.concealment(concealment)
+        spread = math.hypot(model.shadowing_sigma_db, c.fading_sigma_db) / c.response_slope_db
+        x = (self.mean_rssi_dbm(slant_m, concealment) - c.response_rssi50_dbm) / c.response_slope_db
+        x = x / math.sqrt(1.0 + math.pi * spread * spread / 8.0)
+        mean = self.mean_rssi_dbm(slant_m, concealment)
+        reach = (mean - c.reach_rssi_dbm) / max(model.shadowing_sigma_db, 1e-3) / math.sqrt(2.0)
+        if _is_symbolic(slant_m):
+            import casadi as ca
+
+            tanh, erf = ca.tanh, ca.erf
+        else:
+            from scipy.special import erf
+
+            tanh = np.tanh
+        p_reach = 0.5 * (1.0 + erf(reach))
+        return c.response_max * model.response_scale * 0.5 * (1.0 + tanh(0.5 * x)) * p_reach
+
+
+def _is_symbolic(x: object) -> bool:
+    import casadi as ca
+
+    return isinstance(x, ca.SX | ca.MX | ca.DM)
+
+
+# ----------------------------------------------------------------------------- the radio
+
+
+@dataclass
+class FtmBatch:
+    """The ranging results computed in one step (arrays, one row per result)."""
+
+    t_s: np.ndarray
+    t_delivery_s: np.ndarray
+    request: np.ndarray  # request index (global per radio)
+    responder: np.ndarray
+    status: np.ndarray
+    range_m: np.ndarray
+    range_std_m: np.ndarray
+    rssi_dbm: np.ndarray
+    successful: np.ndarray
+    true_range_m: np.ndarray
+    antenna_enu_m: np.ndarray
+    rssi_mean_dbm: np.ndarray
+    p_ok: np.ndarray
+    sigma_m: np.ndarray
+    noise_m: np.ndarray
+    nlos_excess_m: np.ndarray
+    outlier: np.ndarray
+    outlier_excess_m: np.ndarray
+    request_t_s: np.ndarray  # per active request of the step
+    request_peers: np.ndarray
+
+
+class FtmRadio:
+    """One phone's RTT ranging as the flight advances.
+
+    Requests follow a renewal process with U(1/5, 1/3) s gaps in a time warped by the
+    longer requests that rank more peers (``per_peer_s`` each); the warp is integrated
+    on an absolute 0.1 s grid of who is in reach (mean RSSI with shadowing >=
+    ``reach_rssi_dbm``), so request k is at the same time however the flight is
+    stepped. A request ranges the in-reach responders, strongest first, at most
+    ``max_peers``; its results come back in one callback. The random draws of request
+    k and responder j come from a block named by k's block: the same request meets the
+    same noise whatever else is in reach.
+    """
+
+    GRID_S = 0.1
+    BLOCK = 256
+
+    def __init__(
+        self,
+        cfg: FtmConfig,
+        clock: ClockConfig,
+        responders_enu_m: np.ndarray,
+        models: tuple[ConcealmentModel, ...],
+        offsets_m: np.ndarray,
+        shadowing: tuple,
+        seq: np.random.SeedSequence,
+    ) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.resp = np.asarray(responders_enu_m, dtype=float).reshape(-1, 3)
+        self.k_n = len(self.resp)
+        self.models = models
+        self.offsets_m = np.asarray(offsets_m, dtype=float)
+        self.shadowing = shadowing
+        self.seq = seq
+        self.att = np.array([m.attenuation_db for m in models])
+        self.scale = np.array([m.response_scale for m in models])
+        self.nlos_min = np.array([m.nlos_excess_min_m for m in models])
+        self.nlos_mean = np.array([m.nlos_excess_mean_m for m in models])
+        self.p_outlier = np.array([m.outlier_prob for m in models])
+        lo, hi = 1.0 / cfg.request_rate_max_hz, 1.0 / cfg.request_rate_min_hz
+        self.lo, self.hi = lo, hi
+        self.mean_gap = 0.5 * (lo + hi)
+        self.burst_max_s = cfg.burst_base_s + max(1, min(self.k_n, cfg.max_peers)) * cfg.per_peer_s
+        self.tau_next = float(child_rng(seq, 0).uniform(0.0, hi))  # first request, warped time
+        self.k_req = 0  # index of the next request
+        # warp on the absolute grid: w_grid[g] = warped time at t = g GRID_S
+        self.g_done = 0  # grid points evaluated: 0..g_done-1
+        self.w_grid: list[float] = [0.0]
+        self.peers_grid: list[int] = []
+        self.rssi_grid: list[np.ndarray] = []
+        self._blocks: dict[int, dict[str, np.ndarray]] = {}
+        # no request still to be processed can deliver a result before this time
+        self.horizon_s = 0.0
+
+    # -------------------------------------------------------------- link at positions
+    def mean_rssi(self, p_enu: np.ndarray) -> np.ndarray:
+        """(K, M) mean RSSI with shadowing of every responder at drone positions (M, 3)."""
+        d = np.linalg.norm(p_enu[None, :, :] - self.resp[:, None, :], axis=2)
+        rssi = self.cfg.mean_rssi_dbm(d, self.att[:, None])
+        for k, f in enumerate(self.shadowing):
+            rssi[k] += f(p_enu[:, 0], p_enu[:, 1])
+        return rssi
+
+    def _extend_grid(self, t_end_s: float, position_at) -> None:
+        """Evaluate reach and the time warp on grid points up to ``t_end_s``."""
+        g_last = math.floor(t_end_s / self.GRID_S + 1e-9)
+        if g_last < self.g_done or self.k_n == 0:
+            return
+        g = np.arange(self.g_done, g_last + 1)
+        p = position_at(g * self.GRID_S)
+        rssi = self.mean_rssi(p)
+        reach = rssi >= self.cfg.reach_rssi_dbm
+        peers = np.minimum(reach.sum(axis=0), self.cfg.max_peers)
+        slow = 1.0 + self.cfg.per_peer_s * np.maximum(peers - 1, 0) / self.mean_gap
+        w = self.w_grid[-1]
+        for sl in slow.tolist():  # the warp over each grid step uses its start's peers
+            w += self.GRID_S / sl
+            self.w_grid.append(w)
+        self.peers_grid.extend(peers.tolist())
+        self.rssi_grid.extend(np.where(reach, rssi, -np.inf).T)
+        self.g_done = g_last + 1
+
+    def _block(self, b: int) -> dict[str, np.ndarray]:
+        blk = self._blocks.get(b)
+        if blk is None:
+            rng = child_rng(self.seq, 1, b)
+            n, k, a = self.BLOCK, max(self.k_n, 1), self.cfg.attempted - 1
+            c = self.cfg
+            blk = {
+                "gap": rng.uniform(self.lo, self.hi, n),
+                "jitter": exponential_delays(rng, self.clock.rtt_jitter_s, n),
+                "fading": rng.standard_normal((n, k)),
+                "u_status": rng.random((n, k)),
+                "u_fail": rng.random((n, k)),
+                "gauss": rng.standard_normal((n, k)),
+                "u_nlos": rng.standard_exponential((n, k)),
+                "u_outlier": rng.random((n, k)),
+                "outlier": c.outlier_median_m * np.exp(
+                    c.outlier_log_sigma * rng.standard_normal((n, k))),
+                "u_frames": rng.random((n, k, a)),
+                "chi": rng.standard_normal((n, k, a)) ** 2,
+            }
+            self._blocks = {bb: v for bb, v in self._blocks.items() if bb >= b - 1}
+            self._blocks[b] = blk
+        return blk
+
+    # -------------------------------------------------------------- stepping
+    def range_until(self, t_end_s: float, position_at, antenna_at) -> FtmBatch:
+        """Every request whose bursts end by ``t_end_s`` and that is not done yet."""
+        cfg = self.cfg
+        if self.k_n == 0:
+            self.horizon_s = math.inf
+            return _empty_batch(cfg.attempted)
+        self._extend_grid(t_end_s, position_at)
+        w_last = self.w_grid[-1]  # the warped time at t = g_done GRID_S >= t_end
+        reqs: list[tuple[int, float, int]] = []  # (request index, t_req, grid index)
+        first_result = cfg.burst_base_s + cfg.per_peer_s  # earliest callback after a request
+        self.horizon_s = self.g_done * self.GRID_S + first_result
+        while True:
+            tau = self.tau_next
+            if tau > w_last:
+                break
+            # t = inverse warp: w_grid[g] <= tau < w_grid[g + 1]
+            g = self._grid_index(tau)
+            w0, w1 = self.w_grid[g], self.w_grid[g + 1]
+            t_req = (g + (tau - w0) / (w1 - w0)) * self.GRID_S
+            if t_req + self.burst_max_s > t_end_s:
+                self.horizon_s = t_req + first_result
+                break
+            k = self.k_req
+            blk = self._block(k // self.BLOCK)
+            if self.peers_grid[g] >= 1:
+                reqs.append((k, t_req, g))
+            self.tau_next = tau + float(blk["gap"][k % self.BLOCK])
+            self.k_req = k + 1
+        return self._results(reqs, antenna_at)
+
+    def _grid_index(self, tau: float) -> int:
+        w = self.w_grid
+        lo, hi = 0, len(w) - 2
+        while lo < hi:  # bisection: last g with w[g] <= tau
+            mid = (lo + hi + 1) >> 1
+            if w[mid] <= tau:
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
+
+    def _results(self, reqs: list[tuple[int, float, int]], antenna_at) -> FtmBatch:
+        cfg = self.cfg
+        if not reqs:
+            return _empty_batch(cfg.attempted)
+        rows_req, rows_resp, rows_slot, t_req_l, n_peers_l = [], [], [], [], []
+        for i, (_k, t_req, g) in enumerate(reqs):
+            score = self.rssi_grid[g]
+            order = np.argsort(-score, kind="stable")
+            chosen = [j for j in order.tolist() if np.isfinite(score[j])][: cfg.max_peers]
+            for slot, j in enumerate(chosen):
+                rows_req.append(i)
+                rows_resp.append(j)
+                rows_slot.append(slot)
+            t_req_l.append(t_req)
+            n_peers_l.append(len(chosen))
+        ri = np.array(rows_req, dtype=np.intp)
+        rj = np.array(rows_resp, dtype=np.intp)
+        slot = np.array(rows_slot)
+        t_req = np.array(t_req_l)
+        n_peers = np.array(n_peers_l)
+        kidx = np.array([r[0] for r in reqs], dtype=np.int64)
+        # the draws of (request k, responder j)
+        draws: dict[str, list] = {}
+        for key in ("fading", "u_status", "u_fail", "gauss", "u_nlos", "u_outlier", "outlier",
+                    "u_frames", "chi"):
+            draws[key] = []
+        jit = []
+        for k in kidx.tolist():
+            blk = self._block(k // self.BLOCK)
+            jit.append(blk["jitter"][k % self.BLOCK])
+        for i, j in zip(ri.tolist(), rj.tolist(), strict=True):
+            k = int(kidx[i])
+            blk = self._block(k // self.BLOCK)
+            row = k % self.BLOCK
+            for key in draws:
+                draws[key].append(blk[key][row, j])
+        d = {key: np.array(v) for key, v in draws.items()}
+        cb_jitter = np.array(jit)
+        t_meas = t_req[ri] + cfg.burst_base_s + (slot + 0.5) * cfg.per_peer_s
+        t_cb = t_req + cfg.burst_base_s + n_peers * cfg.per_peer_s + cb_jitter
+        ant = antenna_at(t_meas)
+        d_true = np.linalg.norm(ant - self.resp[rj], axis=1)
+        sh = np.zeros(len(rj))
+        for k in range(self.k_n):
+            sel = rj == k
+            if sel.any():
+                sh[sel] = self.shadowing[k](ant[sel, 0], ant[sel, 1])
+        rssi_mean = cfg.mean_rssi_dbm(d_true, self.att[rj]) + sh
+        rssi = np.clip(np.rint(rssi_mean + cfg.fading_sigma_db * d["fading"]), -127, -1).astype(
+            np.int64
+        )
+        p_ok = cfg.response_probability(rssi, self.scale[rj])
+        ok = d["u_status"] < p_ok
+        status = np.where(
+            ok, STATUS_OK,
+            np.where(d["u_fail"] < cfg.no_response_fraction, STATUS_NO_RESPONSE, STATUS_FAIL),
+        )
+        sigma = cfg.range_sigma_m(d_true, rssi)
+        noise = sigma * d["gauss"]
+        nlos = self.nlos_min[rj] + self.nlos_mean[rj] * d["u_nlos"]
+        is_outlier = d["u_outlier"] < self.p_outlier[rj]
+        excess = np.where(is_outlier, d["outlier"], 0.0)
+        rng_m = d_true + self.offsets_m[rj] + nlos + noise + excess
+        x = (rssi - cfg.response_rssi50_dbm + cfg.frame_margin_db) / cfg.response_slope_db
+        p_frame = 1.0 / (1.0 + np.exp(-x))
+        extra = d["u_frames"] < p_frame[:, None]
+        successful = np.where(ok, 1 + extra.sum(axis=1), 0)
+        dof = np.maximum(successful - 1, 1)
+        col = np.arange(cfg.attempted - 1)[None, :]
+        chi_mean = np.where(col < dof[:, None], d["chi"], 0.0).sum(axis=1) / dof
+        spread = np.where(successful >= 2, sigma * np.sqrt(chi_mean), 0.0)
+        return FtmBatch(
+            t_s=t_meas,
+            t_delivery_s=t_cb[ri],
+            request=kidx[ri],
+            responder=rj.astype(np.int64),
+            status=status.astype(np.int64),
+            range_m=np.where(ok, rng_m, np.nan),
+            range_std_m=np.where(ok, spread, np.nan),
+            rssi_dbm=rssi,
+            successful=successful.astype(np.int64),
+            true_range_m=d_true,
+            antenna_enu_m=ant,
+            rssi_mean_dbm=rssi_mean,
+            p_ok=p_ok,
+            sigma_m=sigma,
+            noise_m=noise,
+            nlos_excess_m=nlos,
+            outlier=is_outlier,
+            outlier_excess_m=excess,
+            request_t_s=t_req,
+            request_peers=n_peers.astype(np.int64),
+        )
+
+
+_BATCH_FIELDS = (
+    "t_s", "t_delivery_s", "request", "responder", "status", "range_m", "range_std_m",
+    "rssi_dbm", "successful", "true_range_m", "antenna_enu_m", "rssi_mean_dbm", "p_ok",
+    "sigma_m", "noise_m", "nlos_excess_m", "outlier", "outlier_excess_m", "request_t_s",
+    "request_peers",
+)  # fmt: skip
+_INT_FIELDS = {"request", "responder", "status", "rssi_dbm", "successful", "request_peers"}
+
+
+def _empty_batch(attempted: int) -> FtmBatch:
+    kw = {}
+    for name in _BATCH_FIELDS:
+        if name == "antenna_enu_m":
+            kw[name] = np.zeros((0, 3))
+        elif name == "outlier":
+            kw[name] = np.zeros(0, dtype=bool)
+        elif name in _INT_FIELDS:
+            kw[name] = np.zeros(0, dtype=np.int64)
+        else:
+            kw[name] = np.zeros(0)
+    return FtmBatch(**kw)
+
+
+def ftm_track(batches: list[FtmBatch], offsets_m: np.ndarray, attempted: int) -> FtmTrack:
+    """Concatenate a radio's batches into an :class:`FtmTrack`."""
+    if not batches:
+        return _empty(len(offsets_m), attempted)
+    cat = {name: np.concatenate([getattr(b, name) for b in batches]) for name in _BATCH_FIELDS}
+    cat.pop("request")
+    return FtmTrack(attempted=attempted, offsets_m=np.asarray(offsets_m), **cat)
+
+
+def draw_offsets(world: World, cfg: FtmConfig, rng: np.random.Generator) -> np.ndarray:
+    """Per-responder hardware range offsets: fixed ones from the world, others drawn."""
+    offsets = rng.uniform(cfg.offset_min_m, cfg.offset_max_m, len(world.responders))
+    for i, r in enumerate(world.responders):
+        if r.range_offset_m is not None:
+            offsets[i] = r.range_offset_m
+    return offsets
+
+
+def draw_shadowing(world: World, cfg: FtmConfig, rng: np.random.Generator) -> tuple:
+    """One shadowing field per responder over the whole plane (see RandomFourierField)."""
+    return tuple(
+        RandomFourierField.draw(rng, cfg.concealment(r.concealment).shadowing_sigma_db,
+                                cfg.shadowing_corr_m)
+        for r in world.responders
+    )
+
+
 def simulate_ftm(
     track: VehicleTrack,
     world: World,
     cfg: FtmConfig,
     clock: ClockConfig,
-    rng: np.random.Generator,
+    rng: np.random.Generator | int,
 ) -> FtmTrack:
-    """Simulate every ranging request and result over the whole flight."""
-    resp = world.responder_enu_m()
-    k_n = len(resp)
-    models = [cfg.concealment(r.concealment) for r in world.responders]
-    offsets = rng.uniform(cfg.offset_min_m, cfg.offset_max_m, k_n)
-    for i, r in enumerate(world.responders):
-        if r.range_offset_m is not None:
-            offsets[i] = r.range_offset_m
-    if k_n == 0:
-        return _empty(0, cfg.attempted)
-    att = np.array([m.attenuation_db for m in models])
-    scale = np.array([m.response_scale for m in models])
-
-    # shadowing: one random field per responder over the drone's horizontal position
-    p = track.enu_m
-    bounds = (p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max())
-    shadow = [
-        GaussianField2D.draw(rng, bounds, cfg.shadowing_corr_m, m.shadowing_sigma_db)
-        for m in models
-    ]
-
-    # who is in reach along the flight (on the vehicle's time grid)
-    step = max(1, round(0.1 / (track.t_s[1] - track.t_s[0]))) if len(track.t_s) > 1 else 1
-    tg = track.t_s[::step]
-    pg = p[::step]
-    dist = np.linalg.norm(pg[None, :, :] - resp[:, None, :], axis=2)
-    rssi_g = cfg.mean_rssi_dbm(dist, att[:, None])
-    rssi_g += np.stack([f(pg[:, 0], pg[:, 1]) for f in shadow])
-    reach = rssi_g >= cfg.reach_rssi_dbm
-    peers_g = np.minimum(reach.sum(axis=0), cfg.max_peers)
-
-    # request times: a renewal process with U(1/5, 1/3) s gaps, in a time warped by the
-    # longer requests that rank more peers
-    lo, hi = 1.0 / cfg.request_rate_max_hz, 1.0 / cfg.request_rate_min_hz
-    mean_gap = 0.5 * (lo + hi)
-    slow = 1.0 + cfg.per_peer_s * np.maximum(peers_g - 1, 0) / mean_gap
-    warped = np.concatenate([[0.0], np.cumsum(np.diff(tg) / slow[:-1])])
-    n_max = math.ceil(warped[-1] / lo) + 2
-    gaps = rng.uniform(lo, hi, n_max)
-    tau = rng.uniform(0.0, hi) + np.concatenate([[0.0], np.cumsum(gaps[:-1])])
-    tau = tau[tau <= warped[-1]]
-    t_req = np.interp(tau, warped, tg)
-    gi = np.clip(np.rint(np.interp(t_req, tg, np.arange(len(tg)))).astype(np.intp), 0, len(tg) - 1)
-    active = peers_g[gi] >= 1
-    t_req, gi = t_req[active], gi[active]
-    n_req = len(t_req)
-    if n_req == 0:
-        return _empty(k_n, cfg.attempted)
-
-    # peers per request: in-reach responders, strongest first, at most max_peers
-    score = np.where(reach[:, gi], rssi_g[:, gi], -np.inf)
-    order = np.argsort(-score, axis=0, kind="stable")
-    rank = np.empty_like(order)
-    np.put_along_axis(rank, order, np.arange(k_n)[:, None].repeat(n_req, axis=1), axis=0)
-    chosen = reach[:, gi] & (rank < cfg.max_peers)
-    req_idx, resp_idx = np.nonzero(chosen.T)  # request-major, responder order within
-    slot = rank[resp_idx, req_idx]
-    by_slot = np.lexsort((slot, req_idx))
-    req_idx, resp_idx, slot = req_idx[by_slot], resp_idx[by_slot], slot[by_slot]
-    n_peers = chosen.sum(axis=0)
-    e_n = len(req_idx)
-
-    # all random draws for the E results, in a fixed order
-    cb_jitter = exponential_delays(rng, clock.rtt_jitter_s, n_req)
-    fading = rng.standard_normal(e_n)
-    u_status = rng.random(e_n)
-    u_fail = rng.random(e_n)
-    gauss = rng.standard_normal(e_n)
-    u_nlos = rng.standard_exponential(e_n)
-    u_outlier = rng.random(e_n)
-    outlier_excess = cfg.outlier_median_m * np.exp(cfg.outlier_log_sigma * rng.standard_normal(e_n))
-    u_frames = rng.random((e_n, cfg.attempted - 1))
-    chi = rng.standard_normal((e_n, cfg.attempted - 1)) ** 2
-
-    t_meas = t_req[req_idx] + cfg.burst_base_s + (slot + 0.5) * cfg.per_peer_s
-    t_cb = t_req + cfg.burst_base_s + n_peers * cfg.per_peer_s + cb_jitter
-    ant = track.antenna_at(t_meas)
-    d_true = np.linalg.norm(ant - resp[resp_idx], axis=1)
-    sh = np.zeros(e_n)
-    for k in range(k_n):
-        sel = resp_idx == k
-        if sel.any():
-            sh[sel] = shadow[k](ant[sel, 0], ant[sel, 1])
-    rssi_mean = cfg.mean_rssi_dbm(d_true, att[resp_idx]) + sh
-    rssi = np.clip(np.rint(rssi_mean + cfg.fading_sigma_db * fading), -127, -1).astype(np.int64)
-    p_ok = cfg.response_probability(rssi, scale[resp_idx])
-    ok = u_status < p_ok
-    status = np.where(
-        ok, STATUS_OK, np.where(u_fail < cfg.no_response_fraction, STATUS_NO_RESPONSE, STATUS_FAIL)
-    )
-
-    sigma = cfg.range_sigma_m(d_true, rssi)
-    noise = sigma * gauss
-    nlos_min = np.array([m.nlos_excess_min_m for m in models])[resp_idx]
-    nlos_mean = np.array([m.nlos_excess_mean_m for m in models])[resp_idx]
-    nlos = nlos_min + nlos_mean * u_nlos
-    is_outlier = u_outlier < np.array([m.outlier_prob for m in models])[resp_idx]
-    excess = np.where(is_outlier, outlier_excess, 0.0)
-    rng_m = d_true + offsets[resp_idx] + nlos + noise + excess
-
-    # frames: the first always succeeds for an ok result; the rest by link margin
-    x = (rssi - cfg.response_rssi50_dbm + cfg.frame_margin_db) / cfg.response_slope_db
-    p_frame = 1.0 / (1.0 + np.exp(-x))
-    extra = u_frames < p_frame[:, None]
-    successful = np.where(ok, 1 + extra.sum(axis=1), 0)
-    dof = np.maximum(successful - 1, 1)
-    col = np.arange(cfg.attempted - 1)[None, :]
-    chi_mean = np.where(col < dof[:, None], chi, 0.0).sum(axis=1) / dof
-    spread = np.where(successful >= 2, sigma * np.sqrt(chi_mean), 0.0)
-
-    return FtmTrack(
-        t_s=t_meas,
-        t_delivery_s=t_cb[req_idx],
-        responder=resp_idx.astype(np.int64),
-        status=status.astype(np.int64),
-        range_m=np.where(ok, rng_m, np.nan),
-        range_std_m=np.where(ok, spread, np.nan),
-        rssi_dbm=rssi,
-        successful=successful.astype(np.int64),
-        attempted=cfg.attempted,
-        true_range_m=d_true,
-        antenna_enu_m=ant,
-        rssi_mean_dbm=rssi_mean,
-        p_ok=p_ok,
-        sigma_m=sigma,
-        noise_m=noise,
-        nlos_excess_m=nlos,
-        outlier=is_outlier,
-        outlier_excess_m=excess,
-        offsets_m=offsets,
-        request_t_s=t_req,
-        request_peers=n_peers.astype(np.int64),
-    )
+    """Every ranging request and result over a whole flown track."""
+    seq = as_seed_sequence(rng)
+    offsets = draw_offsets(world, cfg, child_rng(seq, 0))
+    shadow = draw_shadowing(world, cfg, child_rng(seq, 1))
+    models = tuple(cfg.concealment(r.concealment) for r in world.responders)
+    radio = FtmRadio(cfg, clock, world.responder_enu_m(), models, offsets, shadow,
+                     np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 2)))
+    end = float(track.t_s[-1])
+    batch = radio.range_until(end, track.position_at, track.antenna_at)
+    return ftm_track([batch], offsets, cfg.attempted)

@@ -17,10 +17,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estimator.records import GNSS_FIX_TYPES
 from sim._config import check_finite, check_positive, check_probability
-from sim._random import gauss_markov
+from sim._random import BlockedGaussMarkov, as_seed_sequence, child_rng, child_seed
 from sim.clock import ClockConfig, exponential_delays
 from sim.vehicle import VehicleTrack
 
@@ -143,58 +144,167 @@ def _in_windows(t: np.ndarray, windows: tuple[tuple[float, float], ...]) -> np.n
     return inside
 
 
-def simulate_gnss(
-    track: VehicleTrack, cfg: GnssConfig, clock: ClockConfig, rng: np.random.Generator
-) -> GnssTrack:
-    """Simulate the receiver over the whole flight."""
-    dt = 1.0 / cfg.rate_hz
-    phase = rng.uniform(0.0, dt)  # receiver epochs are on GNSS time, not the flight's
-    n = math.floor((track.duration_s - phase) / dt) + 1
-    k = np.arange(max(n, 0))
-    t_all = phase + k * dt
-    sig_b = np.array([cfg.bias_sigma_h_m, cfg.bias_sigma_h_m, cfg.bias_sigma_v_m])
-    sig_w = np.array([cfg.white_sigma_h_m, cfg.white_sigma_h_m, cfg.white_sigma_v_m])
-    bias = gauss_markov(rng, len(k), dt, sig_b, cfg.bias_tau_s)
-    white = rng.standard_normal((len(k), 3)) * sig_w
-    sats_gm = gauss_markov(rng, len(k), dt, cfg.sats_sigma, cfg.sats_tau_s)
-    acc_noise = rng.standard_normal(len(k))
-    vacc_noise = rng.standard_normal(len(k))
-    dropped = rng.random(len(k)) < cfg.drop_prob
-    jitter = exponential_delays(rng, clock.gnss_jitter_s, len(k))
+class GnssErrorProcess:
+    """One receiver's epochs and errors as functions of time (common random numbers).
 
-    step = max(1, round(cfg.rate_hz / cfg.fallback_rate_hz))
-    keep = ~dropped & ~_in_windows(t_all, cfg.outage_windows_s)
-    keep &= ~(_in_windows(t_all, cfg.fallback_windows_s) & (k % step != 0))
+    Epoch k is at t_k = phase + k / rate_hz on the receiver's own time (the phase is
+    drawn once). Its correlated bias, white noise, satellite count, accuracy noise,
+    drop flag and callback jitter are drawn in blocks from streams named by the block
+    index, so they do not depend on what is flown, nor on how the flight is stepped.
+    """
 
-    t = t_all[keep]
-    truth = track.position_at(t)
-    bias = bias[keep]
-    meas = truth + bias + white[keep]
-    sats = np.clip(np.rint(cfg.sats_ref + sats_gm[keep]), cfg.sats_min, cfg.sats_max)
-    hdop_scale = np.sqrt(cfg.sats_ref / sats)
-    acc = np.maximum(
-        np.round(cfg.acc_ref_m * hdop_scale * (1.0 + cfg.acc_noise_rel * acc_noise[keep]), 3),
-        0.001,
-    )
-    vacc = None
-    if cfg.report_vacc:
-        vacc = np.maximum(
-            np.round(acc * cfg.vacc_ratio * (1.0 + cfg.acc_noise_rel * vacc_noise[keep]), 3),
+    BLOCK = 1024
+
+    def __init__(self, cfg: GnssConfig, clock: ClockConfig, seq: np.random.SeedSequence) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.seq = seq
+        self.dt_s = 1.0 / cfg.rate_hz
+        self.phase_s = float(child_rng(seq, 0).uniform(0.0, self.dt_s))
+        sig_b = np.array([cfg.bias_sigma_h_m, cfg.bias_sigma_h_m, cfg.bias_sigma_v_m])
+        self.bias = BlockedGaussMarkov(child_seed(seq, 1), self.dt_s, sig_b, cfg.bias_tau_s,
+                                       block=self.BLOCK)
+        self.sats = BlockedGaussMarkov(child_seed(seq, 2), self.dt_s, [cfg.sats_sigma],
+                                       cfg.sats_tau_s, block=self.BLOCK)
+        self._noise: list[dict[str, np.ndarray]] = []
+
+    def epoch_time_s(self, k: np.ndarray | int) -> np.ndarray | float:
+        return self.phase_s + np.asarray(k) * self.dt_s
+
+    def last_epoch_at_or_before(self, t_s: float) -> int:
+        """Index of the last epoch at or before ``t_s`` (-1 if none)."""
+        return math.floor((t_s - self.phase_s) / self.dt_s + 1e-9)
+
+    def _noise_block(self, b: int) -> dict[str, np.ndarray]:
+        while len(self._noise) <= b:
+            rng = child_rng(self.seq, 3, len(self._noise))
+            n = self.BLOCK
+            self._noise.append({
+                "white": rng.standard_normal((n, 3)),
+                "acc": rng.standard_normal(n),
+                "vacc": rng.standard_normal(n),
+                "drop": rng.random(n),
+                "jitter": exponential_delays(rng, self.clock.gnss_jitter_s, n),
+            })
+        return self._noise[b]
+
+    def noise(self, k0: int, k1: int) -> dict[str, np.ndarray]:
+        """The iid draws of epochs k0 <= k < k1."""
+        if k1 <= k0:
+            return {"white": np.zeros((0, 3)), "acc": np.zeros(0), "vacc": np.zeros(0),
+                    "drop": np.zeros(0), "jitter": np.zeros(0)}
+        b0, b1 = k0 // self.BLOCK, (k1 - 1) // self.BLOCK
+        blocks = [self._noise_block(b) for b in range(b0, b1 + 1)]
+        off = b0 * self.BLOCK
+        return {key: np.concatenate([blk[key] for blk in blocks])[k0 - off : k1 - off]
+                for key in blocks[0]}
+
+    def bias_at(self, t_s: ArrayLike) -> np.ndarray:
+        """The correlated error (M, 3) at times ``t_s`` (interpolated between epochs)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float)) - self.phase_s
+        return self.bias.at(np.maximum(t, 0.0))
+
+
+@dataclass
+class GnssBatch:
+    """Fixes measured in one step, with their truth (arrays, one row per fix)."""
+
+    t_s: np.ndarray
+    t_delivery_s: np.ndarray
+    enu_m: np.ndarray
+    true_enu_m: np.ndarray
+    bias_enu_m: np.ndarray
+    acc_m: np.ndarray
+    vacc_m: np.ndarray | None
+    sats: np.ndarray
+    n_epochs: int
+
+
+class GnssReceiver:
+    """Measures the fixes of epochs as the flight advances (see :class:`GnssErrorProcess`).
+
+    ``measure_until(t_end, truth_at)`` returns the fixes of the epochs in (last, t_end]:
+    reported = truth + bias + white noise; outage windows deliver nothing, fallback
+    windows only every ``rate / fallback_rate``-th epoch, single fixes go missing with
+    ``drop_prob``. Delivery is the measurement time plus latency and jitter, kept in
+    order at least 1 ms apart (USB delivers in order).
+    """
+
+    def __init__(self, cfg: GnssConfig, clock: ClockConfig, seq: np.random.SeedSequence) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.process = GnssErrorProcess(cfg, clock, seq)
+        self._k_next = 0
+        self._last_delivery_s = -math.inf
+
+    def measure_until(self, t_end_s: float, truth_at) -> GnssBatch:
+        cfg = self.cfg
+        proc = self.process
+        k0 = self._k_next
+        k1 = max(k0, proc.last_epoch_at_or_before(t_end_s) + 1)
+        self._k_next = k1
+        k = np.arange(k0, k1)
+        t_all = proc.epoch_time_s(k)
+        nz = proc.noise(k0, k1)
+        step = max(1, round(cfg.rate_hz / cfg.fallback_rate_hz))
+        keep = ~(nz["drop"] < cfg.drop_prob) & ~_in_windows(t_all, cfg.outage_windows_s)
+        keep &= ~(_in_windows(t_all, cfg.fallback_windows_s) & (k % step != 0))
+        t = t_all[keep]
+        truth = truth_at(t) if len(t) else np.zeros((0, 3))
+        bias = proc.bias.values(k0, k1)[keep]
+        meas = truth + bias + nz["white"][keep] * np.array(
+            [cfg.white_sigma_h_m, cfg.white_sigma_h_m, cfg.white_sigma_v_m]
+        )
+        sats = np.clip(np.rint(cfg.sats_ref + proc.sats.values(k0, k1)[keep, 0]),
+                       cfg.sats_min, cfg.sats_max)
+        hdop_scale = np.sqrt(cfg.sats_ref / sats)
+        acc = np.maximum(
+            np.round(cfg.acc_ref_m * hdop_scale * (1.0 + cfg.acc_noise_rel * nz["acc"][keep]), 3),
             0.001,
         )
-    # USB delivers in order: callbacks are monotone, at least 1 ms apart
-    deliver = t + clock.gnss_latency_s + jitter[keep]
-    spacing = 1e-3 * np.arange(len(deliver))
-    deliver = np.maximum.accumulate(deliver - spacing) + spacing
+        vacc = None
+        if cfg.report_vacc:
+            vacc = np.maximum(
+                np.round(acc * cfg.vacc_ratio * (1.0 + cfg.acc_noise_rel * nz["vacc"][keep]), 3),
+                0.001,
+            )
+        raw = t + self.clock.gnss_latency_s + nz["jitter"][keep]
+        deliver = np.empty_like(raw)
+        last = self._last_delivery_s
+        for i, v in enumerate(raw.tolist()):  # in order, at least 1 ms apart
+            last = v if v > last + 1e-3 else last + 1e-3
+            deliver[i] = last
+        self._last_delivery_s = last
+        return GnssBatch(t, deliver, meas, truth, bias, acc, vacc, sats.astype(np.int64),
+                         len(k))
+
+
+def gnss_track(batches: list[GnssBatch], fix: str) -> GnssTrack:
+    """Concatenate a receiver's batches into a :class:`GnssTrack`."""
+    def cat(name: str, width: int | None = None) -> np.ndarray:
+        parts = [getattr(b, name) for b in batches]
+        if not parts:
+            return np.zeros((0, width)) if width else np.zeros(0)
+        return np.concatenate(parts)
+
+    vacc = None if not batches or batches[0].vacc_m is None else cat("vacc_m")
     return GnssTrack(
-        t_s=t,
-        t_delivery_s=deliver,
-        enu_m=meas,
-        true_enu_m=truth,
-        bias_enu_m=bias,
-        acc_m=acc,
+        t_s=cat("t_s"),
+        t_delivery_s=cat("t_delivery_s"),
+        enu_m=cat("enu_m", 3),
+        true_enu_m=cat("true_enu_m", 3),
+        bias_enu_m=cat("bias_enu_m", 3),
+        acc_m=cat("acc_m"),
         vacc_m=vacc,
-        sats=sats.astype(np.int64),
-        fix=cfg.fix,
-        n_epochs=len(k),
+        sats=cat("sats").astype(np.int64),
+        fix=fix,
+        n_epochs=sum(b.n_epochs for b in batches),
     )
+
+
+def simulate_gnss(
+    track: VehicleTrack, cfg: GnssConfig, clock: ClockConfig, rng: np.random.Generator | int
+) -> GnssTrack:
+    """The receiver over a whole flown track (its epochs up to the track's end)."""
+    rx = GnssReceiver(cfg, clock, as_seed_sequence(rng))
+    return gnss_track([rx.measure_until(track.t_s[-1], track.position_at)], cfg.fix)

@@ -11,6 +11,11 @@ A scenario file has these tables (all but ``world.responders`` and ``flight`` op
                      e0_m, n0_m, spacing_m)
     [[world.responders]]  name, bssid, e_m + n_m or lat_deg + lon_deg, concealment, ...
     [flight]   kind = "sweeps" | "pass" | "waypoints", then that flight's fields
+    [search]   a search instead of a fixed flight (then [flight] may be absent):
+               area_enu_m, start_e_m, start_n_m, budget_s, height_m, speed_mps,
+               random_responders, random_concealment (docs/scenarios.md)
+    [[agents]] optional: several agents in one world: name, kind = "uav" | "ground",
+               start_e_m, start_n_m, [agents.vehicle], [agents.gnss] (preset + fields)
     [vehicle]  VehicleConfig fields
     [gnss]     preset = "standalone" | "rtk", then GnssConfig fields overriding it
     [ftm]      FtmConfig fields, sub-tables [ftm.noise], [ftm.open], [ftm.vegetation], ...
@@ -31,6 +36,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from estimator.geometry import polygon_area_m2, signed_distance_to_polygon_m
 from estimator.records import Trajectory
 from sim._config import ConfigError, check_finite, from_table, merge_tables
 from sim.clock import ClockConfig
@@ -38,8 +44,8 @@ from sim.flights import FLIGHT_KINDS, Flight, TrajectoryFlight
 from sim.ftm import FtmConfig
 from sim.gnss import GNSS_PRESETS, GnssConfig
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
-from sim.vehicle import VehicleConfig
-from sim.world import Origin, Responder, World
+from sim.vehicle import WALKER, VehicleConfig
+from sim.world import MAX_EXTENT_M, Origin, Responder, World
 
 
 class ScenarioError(ValueError):
@@ -67,14 +73,102 @@ class LogSettings:
         check_finite("range_offset_m", self.range_offset_m)
 
 
+CONCEALMENTS = ("open", "vegetation", "vegetation_debris")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SearchSpec:
+    """The ``[search]`` table: a search instead of a fixed flight (ENU metres about the
+    world origin). The area is a keep-in polygon, convex or not."""
+
+    area_enu_m: tuple[tuple[float, float], ...]
+    start_e_m: float
+    start_n_m: float
+    budget_s: float = 1200.0
+    height_m: float = 45.0  # above the terrain
+    speed_mps: float = 8.0
+    random_responders: int = 0
+    random_concealment: tuple[str, ...] = ("open",)
+
+    def __post_init__(self) -> None:
+        poly = self.area_enu_m
+        if len(poly) < 3:
+            raise ValueError("area_enu_m needs at least 3 vertices")
+        for i, (e, n) in enumerate(poly):
+            check_finite(f"area_enu_m[{i}]", e)
+            check_finite(f"area_enu_m[{i}]", n)
+            if math.hypot(e, n) > MAX_EXTENT_M:
+                raise ValueError(f"area_enu_m[{i}] lies beyond {MAX_EXTENT_M:.0f} m of the origin")
+        if abs(polygon_area_m2(poly)) < 1.0:
+            raise ValueError("area_enu_m encloses no area")
+        check_finite("start_e_m", self.start_e_m)
+        check_finite("start_n_m", self.start_n_m)
+        if not self.contains(self.start_e_m, self.start_n_m):
+            raise ValueError(
+                f"the start ({self.start_e_m:g}, {self.start_n_m:g}) is outside area_enu_m"
+            )
+        check_finite("budget_s", self.budget_s)
+        if not 0.0 < self.budget_s <= 6 * 3600.0:
+            raise ValueError(f"budget_s {self.budget_s:g} is not in (0, 6 h]")
+        check_finite("height_m", self.height_m)
+        if not 2.0 <= self.height_m <= 500.0:
+            raise ValueError(f"height_m {self.height_m:g} is not in [2, 500] m")
+        check_finite("speed_mps", self.speed_mps)
+        if not 0.0 < self.speed_mps <= 30.0:
+            raise ValueError(f"speed_mps {self.speed_mps:g} is not in (0, 30] m/s")
+        if not 0 <= self.random_responders <= 100:
+            raise ValueError("random_responders must be in [0, 100]")
+        if not self.random_concealment:
+            raise ValueError("random_concealment must not be empty")
+        for c in self.random_concealment:
+            if c not in CONCEALMENTS:
+                known = ", ".join(CONCEALMENTS)
+                raise ValueError(f"random_concealment: {c!r} is not one of {known}")
+
+    def contains(self, e_m: float, n_m: float, margin_m: float = 0.0) -> bool:
+        """Is (e, n) inside the area (and at least ``margin_m`` from its edges)?"""
+        d = signed_distance_to_polygon_m(self.area_enu_m, [(e_m, n_m)])[0]
+        return bool(d <= -margin_m) if margin_m > 0 else bool(d <= 1e-9)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AgentSpec:
+    """One agent of a scenario: a vehicle (UAV or walking ground agent), its own GNSS
+    receiver and phone, and its own log (header ``agent`` = ``name``)."""
+
+    name: str
+    kind: str = "uav"  # "uav" | "ground"
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
+    start_e_m: float | None = None  # None: the scenario's start
+    start_n_m: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            raise ValueError("agent name must not be empty")
+        if self.kind not in ("uav", "ground"):
+            raise ValueError(f"agent kind {self.kind!r} is not 'uav' or 'ground'")
+        if self.kind == "ground" and self.vehicle.ground_height_m is None:
+            raise ValueError("a ground agent needs vehicle.ground_height_m")
+        for v in (self.start_e_m, self.start_n_m):
+            if v is not None:
+                check_finite("agent start", v)
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Scenario:
-    """Everything one simulated flight needs; ``simulate(scenario, seed)`` adds the noise."""
+    """Everything one simulated flight needs; ``simulate(scenario, seed)`` adds the noise.
+
+    A scenario has a fixed ``flight``, or a ``search`` (then ``osa search`` flies it in
+    closed loop and ``flight`` may be None), or both.
+    """
 
     name: str
     description: str = ""
     world: World
-    flight: Flight
+    flight: Flight | None = None
+    search: SearchSpec | None = None
+    agents_: tuple[AgentSpec, ...] = ()
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     gnss: GnssConfig = field(default_factory=GnssConfig)
     ftm: FtmConfig = field(default_factory=FtmConfig)
@@ -84,12 +178,38 @@ class Scenario:
 
     def trajectory(self) -> Trajectory:
         """The reference path the vehicle flies."""
+        if self.flight is None:
+            raise ValueError(f"scenario {self.name} has no [flight] (it is a search)")
         return self.flight.build(self.world)
+
+    @property
+    def agents(self) -> tuple[AgentSpec, ...]:
+        """The agents: ``[[agents]]``, else one UAV named by ``[log] agent``."""
+        if self.agents_:
+            return self.agents_
+        return (AgentSpec(name=self.log.agent, vehicle=self.vehicle, gnss=self.gnss),)
+
+    def start_enu_m(self, agent: int = 0) -> tuple[float, float]:
+        """Where an agent takes off: its own start, else the search's, else the flight's."""
+        a = self.agents[agent]
+        if a.start_e_m is not None and a.start_n_m is not None:
+            return a.start_e_m, a.start_n_m
+        if self.search is not None:
+            return self.search.start_e_m, self.search.start_n_m
+        if self.flight is not None:
+            p = self.trajectory().enu_m[0]
+            return float(p[0]), float(p[1])
+        return 0.0, 0.0
 
     @property
     def header_agl_m(self) -> float:
         """H_AGL written to the log header."""
-        return self.log.agl_m if self.log.agl_m is not None else self.flight.nominal_height_m
+        if self.log.agl_m is not None:
+            return self.log.agl_m
+        if self.flight is not None:
+            return self.flight.nominal_height_m
+        assert self.search is not None
+        return self.search.height_m
 
     def with_trajectory(self, trajectory: Trajectory, name: str | None = None) -> Scenario:
         """The same world and sensors flying ``trajectory`` instead."""
@@ -230,7 +350,54 @@ def _gnss(table: dict) -> GnssConfig:
     return from_table(GnssConfig, t, "gnss", base=GNSS_PRESETS[preset])
 
 
-_TOP_KEYS = {"name", "description", "log", "world", "flight", "vehicle", "gnss", "ftm", "clock"}
+_TOP_KEYS = {
+    "name", "description", "log", "world", "flight", "search", "agents", "vehicle", "gnss",
+    "ftm", "clock",
+}  # fmt: skip
+
+
+def _gnss_over(table: dict, base: GnssConfig, where: str) -> GnssConfig:
+    t = dict(table)
+    preset = t.pop("preset", None)
+    if preset is not None:
+        if preset not in GNSS_PRESETS:
+            raise ConfigError(f"{where}.preset: {preset!r} is not one of {', '.join(GNSS_PRESETS)}")
+        base = GNSS_PRESETS[preset]
+    return from_table(GnssConfig, t, where, base=base)
+
+
+def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[AgentSpec, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list) or not all(isinstance(a, dict) for a in raw):
+        raise ConfigError("agents: expected an array of tables ([[agents]])")
+    out = []
+    names: set[str] = set()
+    for i, a in enumerate(raw):
+        where = f"agents[{i}]"
+        t = dict(a)
+        kind = t.pop("kind", "uav")
+        if kind not in ("uav", "ground"):
+            raise ConfigError(f"{where}.kind: {kind!r} is not 'uav' or 'ground'")
+        v_base = vehicle if kind == "uav" else WALKER
+        veh = from_table(VehicleConfig, t.pop("vehicle", {}), f"{where}.vehicle", base=v_base)
+        gn = _gnss_over(t.pop("gnss", {}), gnss, f"{where}.gnss")
+        name = t.pop("name", None)
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{where}.name: expected a non-empty string")
+        if name in names:
+            raise ConfigError(f"{where}.name: {name!r} is used twice")
+        names.add(name)
+        rest = from_table(_AgentStart, t, where)
+        out.append(AgentSpec(name=name, kind=kind, vehicle=veh, gnss=gn,
+                             start_e_m=rest.start_e_m, start_n_m=rest.start_n_m))
+    return tuple(out)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _AgentStart:
+    start_e_m: float | None = None
+    start_n_m: float | None = None
 
 
 def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | None = None):
@@ -264,27 +431,37 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
             world = World(origin, terrain, responders)
         except ValueError as exc:
             raise ConfigError(f"world: {exc}") from exc
-        if not isinstance(table.get("flight"), dict):
-            raise ConfigError("missing [flight] table")
-        flight = _flight(table["flight"])
+        search = None
+        if "search" in table:
+            search = from_table(SearchSpec, table["search"], "search")
+        if search is None and not isinstance(table.get("flight"), dict):
+            raise ConfigError("missing [flight] table (or a [search] table)")
+        flight = _flight(table["flight"]) if isinstance(table.get("flight"), dict) else None
+        if "flight" in table and flight is None:
+            raise ConfigError("flight: expected a table")
+        vehicle = from_table(VehicleConfig, table.get("vehicle", {}), "vehicle")
+        gnss = _gnss(table.get("gnss", {}))
         scenario = Scenario(
             name=name,
             description=description,
             world=world,
             flight=flight,
-            vehicle=from_table(VehicleConfig, table.get("vehicle", {}), "vehicle"),
-            gnss=_gnss(table.get("gnss", {})),
+            search=search,
+            agents_=_agents(table.get("agents"), vehicle, gnss),
+            vehicle=vehicle,
+            gnss=gnss,
             ftm=from_table(FtmConfig, table.get("ftm", {}), "ftm"),
             clock=from_table(ClockConfig, table.get("clock", {}), "clock"),
             log=from_table(LogSettings, table.get("log", {}), "log"),
             source=source,
         )
-        try:
-            traj = scenario.trajectory()
-        except (KeyError, ValueError) as exc:
-            raise ConfigError(f"flight: {exc.args[0] if exc.args else exc}") from exc
-        if traj.duration_s > 6 * 3600:
-            raise ConfigError(f"flight: {traj.duration_s / 3600:.1f} h is beyond any battery")
+        if flight is not None:
+            try:
+                traj = scenario.trajectory()
+            except (KeyError, ValueError) as exc:
+                raise ConfigError(f"flight: {exc.args[0] if exc.args else exc}") from exc
+            if traj.duration_s > 6 * 3600:
+                raise ConfigError(f"flight: {traj.duration_s / 3600:.1f} h is beyond any battery")
     except ConfigError as exc:
         raise ScenarioError(f"{source}: {exc}") from exc
     return scenario

@@ -1,9 +1,11 @@
-"""Run a scenario: fly it, sense it, and write the flight log (log-format.md).
+"""Run a scenario's fixed flight: fly it, sense it, and write the flight log.
 
-``simulate(scenario, seed, path)`` draws every random number from generators spawned
-from ``numpy.random.SeedSequence(seed)`` (one per component, so the vehicle, clock,
-GNSS and FTM streams are independent), hence the same scenario and seed give the same
-arrays and a byte-identical log, ``.jsonl`` or ``.jsonl.gz``.
+``run_scenario(scenario, seed)`` realises the world (:func:`sim.realisation.realise`)
+and flies the scenario's ``[flight]`` with the stepper (:class:`sim.stepper.Stepper`):
+the first agent takes off from rest at the path's first point and flies it to its end.
+Every random number comes from streams named under ``SeedSequence(seed)``, hence the
+same scenario and seed give the same arrays and a byte-identical log, ``.jsonl`` or
+``.jsonl.gz``.
 """
 
 from __future__ import annotations
@@ -17,11 +19,13 @@ import numpy as np
 
 from estimator.logio import LogWriter
 from estimator.records import GnssFix, LogHeader, RangeSample, TruthRecord
-from sim.clock import PhoneClock, exponential_delays
-from sim.ftm import STATUS_NAMES, FtmTrack, simulate_ftm
-from sim.gnss import GnssTrack, simulate_gnss
+from sim.clock import PhoneClock
+from sim.ftm import FtmTrack
+from sim.gnss import GnssTrack
+from sim.realisation import Realisation, realise
 from sim.scenario import Scenario, load_scenario
-from sim.vehicle import VehicleTrack, fly
+from sim.stepper import Stepper
+from sim.vehicle import FlightError, VehicleState, VehicleTrack, path_guidance
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,6 +49,8 @@ class SimResult:
     truth: tuple[TruthRecord, ...]
     responder_enu_m: np.ndarray
     write_order: np.ndarray
+    file_records: tuple = ()
+    realisation: Realisation | None = None
     path: Path | None = None
 
     @property
@@ -86,48 +92,7 @@ class SimResult:
 
     def records(self) -> list[GnssFix | RangeSample]:
         """The gnss and rtt records in file order (values rounded as written)."""
-        g = self.gnss
-        lat = np.round(self.gnss_lla[:, 0], 9).tolist()
-        lon = np.round(self.gnss_lla[:, 1], 9).tolist()
-        alt = np.round(self.gnss_lla[:, 2], 3).tolist()
-        acc = g.acc_m.tolist()
-        vacc = g.vacc_m.tolist() if g.vacc_m is not None else [None] * len(acc)
-        sats = g.sats.tolist()
-        fix = g.fix
-        recs: list[GnssFix | RangeSample] = [
-            GnssFix(t_ns=t, lat_deg=a, lon_deg=b, alt_m=c, acc_m=d, vacc_m=e, fix=fix, sats=s)
-            for t, a, b, c, d, e, s in zip(
-                self.gnss_t_ns().tolist(), lat, lon, alt, acc, vacc, sats, strict=True
-            )
-        ]
-        f = self.ftm
-        bssid = np.array(self.bssids, dtype=object)[f.responder].tolist() if len(f.t_s) else []
-        status = np.array(STATUS_NAMES, dtype=object)[f.status].tolist()
-        ok = f.ok.tolist()
-        rng_m = np.round(f.range_m, 3).tolist()
-        std = np.round(f.range_std_m, 3).tolist()
-        rssi = f.rssi_dbm.tolist()
-        succ = f.successful.tolist()
-        att = f.attempted
-        for t, b, st, o, r, sd, rs, sc in zip(
-            self.rtt_t_ns().tolist(), bssid, status, ok, rng_m, std, rssi, succ, strict=True
-        ):
-            if o:
-                recs.append(
-                    RangeSample(
-                        t_ns=t,
-                        bssid=b,
-                        status=st,
-                        range_m=r,
-                        range_std_m=sd,
-                        rssi_dbm=rs,
-                        attempted=att,
-                        successful=sc,
-                    )
-                )
-            else:
-                recs.append(RangeSample(t_ns=t, bssid=b, status=st, attempted=att, successful=sc))
-        return [recs[i] for i in self.write_order.tolist()]
+        return list(self.file_records)
 
 
 def _check_seed(seed: int) -> int:
@@ -139,28 +104,41 @@ def _check_seed(seed: int) -> int:
 
 
 def run_scenario(scenario: Scenario, seed: int) -> SimResult:
-    """Simulate ``scenario`` with ``seed`` without writing anything."""
+    """Simulate ``scenario``'s fixed flight with ``seed`` without writing anything."""
     seed = _check_seed(seed)
-    streams = np.random.SeedSequence(seed).spawn(5)
-    rng_vehicle, rng_clock, rng_gnss, rng_ftm, rng_write = (
-        np.random.default_rng(s) for s in streams
-    )
-    world = scenario.world
-    vehicle = fly(scenario.trajectory(), world, scenario.vehicle, rng_vehicle)
-    clock = PhoneClock.draw(scenario.clock, rng_clock)
-    gnss = simulate_gnss(vehicle, scenario.gnss, scenario.clock, rng_gnss)
-    ftm = simulate_ftm(vehicle, world, scenario.ftm, scenario.clock, rng_ftm)
+    real = realise(scenario, seed)
+    world = real.world
+    traj = scenario.trajectory()
+    vcfg = scenario.agents[0].vehicle
+    g = path_guidance(traj, world, vcfg)
+    start = VehicleState(0.0, g.start_m, (0.0, 0.0, 0.0))
+    stepper = Stepper(real, agents=scenario.agents[:1], starts=[start],
+                      navigate_on_gnss=False)
+    stepper.command(0, g)
+    agent = stepper.agents[0]
+    t_max = 3.0 * traj.duration_s + 600.0
+    try:
+        while not g.done and agent.t_s < t_max:
+            agent.vehicle.advance(min(agent.t_s + 60.0, t_max), until_done=True)
+            stepper.step_to(agent.t_s)
+    except FlightError as exc:
+        h0 = traj.origin[2]
+        raise FlightError(
+            f"trajectory {traj.name or ''!s}: {exc.args[0]} ({traj.height_ref}; origin height "
+            f"{h0:g} m, the world's {world.origin.h_m:g} m)"
+        ) from None
+    stepper.finish()
+    vehicle = stepper.vehicle_track(0)
+    gnss = stepper.gnss_track(0)
+    ftm = stepper.ftm_track(0)
     lat, lon, alt = world.frame.to_geodetic(gnss.enu_m[:, 0], gnss.enu_m[:, 1], gnss.enu_m[:, 2])
     lla = np.column_stack([np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(alt)])
-    # lines reach the file after a small writer delay: delivery order, not t_ns order
-    delivered = np.concatenate([gnss.t_delivery_s, ftm.t_delivery_s])
-    written = delivered + exponential_delays(
-        rng_write, scenario.clock.write_delay_s, len(delivered)
-    )
-    order = np.argsort(written, kind="stable")
-    header = LogHeader(
-        agent=scenario.log.agent,
-        start_utc=scenario.log.start_utc,
+    emitted = sorted(agent.emitted, key=lambda e: (e.write_s, e.t_ns))
+    n_fix = len(gnss.t_s)
+    order = np.array([e.index if e.source == 0 else n_fix + e.index for e in emitted],
+                     dtype=np.int64)
+    header = dataclasses.replace(
+        agent.header,
         # configured H_AGL if the scenario sets one, else the median height flown above
         # the ground (what a pilot would have configured for this flight)
         agl_m=round(
@@ -169,7 +147,6 @@ def run_scenario(scenario: Scenario, seed: int) -> SimResult:
             else float(np.median(vehicle.agl_m)),
             3,
         ),
-        range_offset_m=scenario.log.range_offset_m,
     )
     return SimResult(
         scenario=scenario,
@@ -178,11 +155,13 @@ def run_scenario(scenario: Scenario, seed: int) -> SimResult:
         gnss=gnss,
         gnss_lla=lla,
         ftm=ftm,
-        clock=clock,
+        clock=agent.clock,
         header=header,
-        truth=world.truth_records(),
-        responder_enu_m=world.responder_enu_m(),
+        truth=real.truth_records(),
+        responder_enu_m=real.responder_enu_m(),
         write_order=order,
+        file_records=tuple(e.record for e in emitted),
+        realisation=real,
     )
 
 

@@ -1,7 +1,11 @@
 """Terrain height fields in the world's ENU frame.
 
 A terrain maps horizontal ENU coordinates (metres) to the ground's height ``u`` in the
-same frame (metres above the frame origin's tangent plane). Two kinds:
+same frame (metres above the frame origin's tangent plane). Every terrain implements
+the planner's terrain protocol (:class:`planner.models.TerrainModel`): ``height_m``
+evaluates NumPy arrays and CasADi symbols alike (so the CasADi planner plans over the
+simulator's own hills), and ``sag_curvature`` bounds the curvature along any
+horizontal line (how far a straight leg can sag towards the ground). Two kinds:
 
 - :class:`HillsTerrain`: an analytic, smooth hilly default (a sum of Gaussian hills and
   a gentle sinusoidal ripple), standing in for the paper's "unstructured, mountainous
@@ -25,6 +29,14 @@ from sim._config import check_finite, check_positive
 
 class Terrain(Protocol):
     def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray: ...
+
+    def sag_curvature(self) -> tuple[float, float]: ...
+
+
+def _is_symbolic(x: object) -> bool:
+    import casadi as ca
+
+    return isinstance(x, ca.SX | ca.MX | ca.DM)
 
 
 def bilinear(
@@ -102,18 +114,45 @@ class HillsTerrain:
         if abs(self.slope_e) > 1.0 or abs(self.slope_n) > 1.0:
             raise ValueError("terrain slopes steeper than 45 degrees are not flyable terrain")
 
-    def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray:
-        e = np.asarray(e_m, dtype=float)
-        n = np.asarray(n_m, dtype=float)
+    def height_m(self, e_m, n_m):
+        """Ground height at (e, n): NumPy arrays in, array out; CasADi symbols in, symbol out."""
+        if _is_symbolic(e_m) or _is_symbolic(n_m):
+            import casadi as ca
+
+            exp, sin = ca.exp, ca.sin
+            e, n = e_m, n_m
+        else:
+            exp, sin = np.exp, np.sin
+            e = np.asarray(e_m, dtype=float)
+            n = np.asarray(n_m, dtype=float)
         h = self.base_m + self.slope_e * e + self.slope_n * n
         for hill in self.hills:
             r2 = (e - hill.e_m) ** 2 + (n - hill.n_m) ** 2
-            h = h + hill.height_m * np.exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
+            h = h + hill.height_m * exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
         if self.ripple_amplitude_m > 0:
             a = math.radians(self.ripple_direction_deg)
             k = 2.0 * math.pi / self.ripple_wavelength_m
-            h = h + self.ripple_amplitude_m * np.sin(k * (math.cos(a) * e + math.sin(a) * n))
+            h = h + self.ripple_amplitude_m * sin(k * (math.cos(a) * e + math.sin(a) * n))
         return h
+
+    def sag_curvature(self) -> tuple[float, float]:
+        """Bounds (concave, convex) on -T'' and +T'' along any horizontal line (1/m).
+
+        Along a line at offset a from a hill's centre, h exp(-(a^2 + s^2) / 2 sigma^2)
+        has a second derivative of at most |h| / sigma^2 on the side of the hill's top
+        and 2 e^-1.5 |h| / sigma^2 on the side of its foot; the ripple adds A k^2 either
+        way; the plane adds nothing. The bounds add (conservative where the hills do
+        not overlap).
+        """
+        foot = 2.0 * math.exp(-1.5)
+        k = 2.0 * math.pi / self.ripple_wavelength_m
+        ripple = self.ripple_amplitude_m * k * k
+        concave = convex = ripple
+        for hill in self.hills:
+            c = abs(hill.height_m) / (hill.sigma_m * hill.sigma_m)
+            concave += c if hill.height_m > 0 else foot * c
+            convex += foot * c if hill.height_m > 0 else c
+        return concave, convex
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,6 +195,53 @@ class GridTerrain:
             raise ValueError(f"terrain grid {p} is not a numeric table: {exc}") from exc
         return cls(np.asarray(heights, dtype=float), e0_m, n0_m, spacing_m)
 
-    def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray:
+    def height_m(self, e_m, n_m):
+        """Bilinear on NumPy arrays; a cubic B-spline through the same grid for CasADi
+        symbols (a smooth function Ipopt can differentiate; the planner re-checks its
+        paths against this bilinear surface)."""
+        if _is_symbolic(e_m) or _is_symbolic(n_m):
+            return self._casadi_interpolant()(e_m, n_m)
         s = self.spacing_m
         return bilinear(self.heights_m, self.e0_m, self.n0_m, s, s, e_m, n_m)
+
+    def _casadi_interpolant(self):
+        f = self.__dict__.get("_ca_interp")
+        if f is None:
+            import casadi as ca
+
+            h = self.heights_m
+            ny, nx = h.shape
+            ge = (self.e0_m + self.spacing_m * np.arange(nx)).tolist()
+            gn = (self.n0_m + self.spacing_m * np.arange(ny)).tolist()
+            lut = ca.interpolant("terrain", "bspline", [ge, gn], h.T.ravel(order="F").tolist())
+            e, n = ca.MX.sym("e"), ca.MX.sym("n")
+            f = ca.Function("terrain_height", [e, n], [lut(ca.vertcat(e, n))])
+            object.__setattr__(self, "_ca_interp", f)
+        return lambda e, n: _map2(f, e, n)
+
+    def sag_curvature(self) -> tuple[float, float]:
+        """Curvature bounds along a line from the grid's second differences (1/m): the
+        largest of the row, column and both diagonal second differences, x 1.5 for the
+        B-spline's overshoot between nodes."""
+        h = self.heights_m
+        s = self.spacing_m
+        d2 = [np.diff(h, 2, axis=1) / s**2, np.diff(h, 2, axis=0) / s**2]
+        if min(h.shape) >= 3:
+            diag = (h[2:, 2:] - 2 * h[1:-1, 1:-1] + h[:-2, :-2]) / (2 * s * s)
+            anti = (h[2:, :-2] - 2 * h[1:-1, 1:-1] + h[:-2, 2:]) / (2 * s * s)
+            d2 += [diag, anti]
+        concave = max(float(np.max(-d, initial=0.0)) for d in d2)
+        convex = max(float(np.max(d, initial=0.0)) for d in d2)
+        return 1.5 * concave, 1.5 * convex
+
+
+def _map2(f, e, n):
+    """Evaluate a scalar CasADi function elementwise over matching row/column vectors."""
+    import casadi as ca
+
+    if isinstance(e, ca.SX | ca.MX | ca.DM) and e.numel() > 1:
+        shape = e.shape
+        m = f.map(e.numel())
+        out = m(ca.reshape(e, 1, e.numel()), ca.reshape(n, 1, n.numel()))
+        return ca.reshape(out, shape[0], shape[1])
+    return f(e, n)

@@ -235,6 +235,7 @@ def _pattern(args: argparse.Namespace, pat: Any, radius: float, center, prior, s
             overlap=args.overlap,
             flight=flight,
             start_enu_m=start,
+            link=_scoring().link,
         )
     if name == "helix":
         if args.alt + args.climb <= 0:
@@ -354,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as exc:
             return _fail(f"{args.geojson}: cannot write GeoJSON: {exc}")
 
-    score = score_trajectory(traj, plan.prior_enu_m)
+    score = score_trajectory(traj, plan.prior_enu_m, _scoring())
     n_wp = sum(1 for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT)
     dt = float(np.median(np.diff(traj.t_s))) if len(traj.t_s) > 1 else 0.0
     print(f"osa plan {args.pattern} -> {out}")
@@ -383,6 +384,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _scoring():
+    """The scorer with the simulator's calibrated link (sim.FtmLink): the planner's
+    predictions use the same response model the simulated world has."""
+    from planner.scoring import ScoringConfig
+    from sim.ftm import FtmLink
+
+    return ScoringConfig(link=FtmLink())
+
+
 def _optimal(args, radius, center, prior, start, keep_outs, home):
     """Solve the CasADi plan; returns (trajectory, note, fence); raises PlanError."""
     import numpy as np
@@ -390,7 +400,7 @@ def _optimal(args, radius, center, prior, start, keep_outs, home):
     from planner.optimal import OptimalConfig, OptimalPlanner
     from planner.patterns import Geofence
 
-    cfg = OptimalConfig()
+    cfg = OptimalConfig(scoring=_scoring())
     fence = Geofence.square(center, radius)
     if fence.signed_distance_m(np.array([start[:2]]))[0] > -cfg.fence_margin_m:
         raise PlanError(f"home is outside the {radius:g} m keep-in square around --center")

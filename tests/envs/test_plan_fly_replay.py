@@ -36,8 +36,8 @@ def test_helix_flown_and_replayed(world, tmp_path):
                                    origin=origin)
     traj = patterns.helix((ap.e_m + 8.0, ap.n_m - 5.0), 45.0, alt_start_m=40.0,
                           alt_end_m=60.0, turns=3.0, flight=flight)
-    ground = sc.world.terrain.height_m
-    ap_enu = np.array([ap.e_m, ap.n_m, float(ground(ap.e_m, ap.n_m))])
+    ground = sc.world.terrain
+    ap_enu = np.array([ap.e_m, ap.n_m, float(ground.height_m(ap.e_m, ap.n_m))])
     score = scoring.score_trajectory(traj, ap_enu, terrain=ground)
     assert score.condition_number < 2.0
     tracks = fly_and_replay(sc, traj, tmp_path)
@@ -54,8 +54,8 @@ def test_straight_pass_refused_like_its_score(world, tmp_path):
                                    origin=origin)
     # a 30 m pass 20 m beside the responder: a line of anchors
     traj = patterns.close_pass((ap.e_m, ap.n_m, 0.0), 20.0, leg_length_m=30.0, flight=flight)
-    ground = sc.world.terrain.height_m
-    ap_enu = np.array([ap.e_m, ap.n_m, float(ground(ap.e_m, ap.n_m))])
+    ground = sc.world.terrain
+    ap_enu = np.array([ap.e_m, ap.n_m, float(ground.height_m(ap.e_m, ap.n_m))])
     score = scoring.score_trajectory(traj, ap_enu, terrain=ground)
     assert score.condition_number > 10.0
     for t in fly_and_replay(sc, traj, tmp_path):

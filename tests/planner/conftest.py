@@ -21,6 +21,18 @@ from planner.mission import (
 )
 from planner.vehicle_peer import MavsdkVehiclePeer, ScriptedMavlinkVehicle, VehicleScript
 
+
+def gaussian_hills(*hills: tuple[float, float, float, float]):
+    """The simulator's terrain with only Gaussian hills (east, north, height, sigma):
+    the planner plans over ``sim``'s own terrain type (the planner's TerrainModel)."""
+    from sim.terrain import Hill, HillsTerrain
+
+    return HillsTerrain(
+        slope_e=0.0, slope_n=0.0, ripple_amplitude_m=0.0,
+        hills=tuple(Hill(e_m=e, n_m=n, height_m=h, sigma_m=s) for e, n, h, s in hills),
+    )
+
+
 # fast but safe on loopback: a dead transfer is detected in (3 + 1) * 0.1 s
 FAST = TransferConfig(connect_timeout_s=3.0, message_timeout_s=0.1, retries=3)
 

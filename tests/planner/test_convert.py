@@ -20,11 +20,11 @@ from planner.mission import (
     MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
     MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
 )
-from planner.optimal import GaussianHills
 from planner.patterns import FlightConfig, Line, densify, orbit, segments_to_trajectory
+from tests.planner.conftest import gaussian_hills
 
 ORIGIN = (36.715, -4.478, 95.0)
-HILL = GaussianHills(hills=((0.0, 0.0, 30.0, 40.0),))  # 30 m high, sigma 40 m
+HILL = gaussian_hills((0.0, 0.0, 30.0, 40.0))  # 30 m high, sigma 40 m
 
 
 def _agl_pass(origin=ORIGIN):
@@ -43,14 +43,14 @@ def test_terrain_pass_exported_relative_to_home_follows_the_hill() -> None:
     assert 8 <= len(wps) <= 16  # 11 with these numbers (was 2)
     alts = np.array([it.alt_m for it in wps])
     assert alts.max() == pytest.approx(75.0, abs=1.0)  # 45 m above the 30 m top
-    assert alts[0] == pytest.approx(45.0 + float(HILL(-150.0, 0.0)), abs=0.01)
+    assert alts[0] == pytest.approx(45.0 + float(HILL.height_m(-150.0, 0.0)), abs=0.01)
     # the intended absolute path against the legs flown between the waypoints (degE7)
     back = mission_waypoints_enu_m(m)
     intended = traj.enu_m.copy()
-    intended[:, 2] += HILL(intended[:, 0], intended[:, 1])
+    intended[:, 2] += HILL.height_m(intended[:, 0], intended[:, 1])
     assert polyline_distance_m(intended, back).max() <= 1.0 + 0.02  # was 30.0
     legs = densify(back, 0.5)
-    agl = legs[:, 2] - HILL(legs[:, 0], legs[:, 1])
+    agl = legs[:, 2] - HILL.height_m(legs[:, 0], legs[:, 1])
     assert agl.min() >= 45.0 - 1.0 - 0.02  # was 15.0
     # and in the mission frame itself: every sample within tolerance of the kept vertices
     _, _, _, alt_all = mission_frame_points(traj, terrain=HILL)

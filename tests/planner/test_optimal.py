@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from planner.optimal import (
-    GaussianHills,
     OptimalConfig,
     OptimalPlanner,
     _info_entries,
@@ -19,6 +18,7 @@ from planner.optimal import (
 )
 from planner.patterns import FlightConfig, Geofence, KeepOut, densify, orbit
 from planner.scoring import prior_points, score_trajectory
+from tests.planner.conftest import gaussian_hills
 
 COV = np.diag([100.0, 100.0, 4.0])
 FENCE = Geofence(vertices_m=((-200.0, -200.0), (200.0, -200.0), (220.0, 150.0), (-200.0, 200.0)))
@@ -49,7 +49,7 @@ def assert_feasible(W, start, vel, dt, cfg, fence, keep_outs, band=(30.0, 80.0),
     assert np.all(
         np.linalg.norm(np.diff(vel_seq, axis=0), axis=1) <= cfg.max_accel_m_s2 * dt + tol / dt
     )
-    ground = 0.0 if terrain is None else terrain(W[1:, 0], W[1:, 1])
+    ground = 0.0 if terrain is None else terrain.height_m(W[1:, 0], W[1:, 1])
     agl = W[1:, 2] - ground
     assert agl.min() >= band[0] - tol and agl.max() <= band[1] + tol
     dense = densify(W, 0.5)
@@ -174,7 +174,7 @@ def test_symbolic_and_numpy_objective_agree() -> None:
 
 
 def test_terrain_band_is_kept_over_a_hill() -> None:
-    hill = GaussianHills(hills=((0.0, 0.0, 25.0, 40.0),))  # the AP on a 25 m hill top
+    hill = gaussian_hills((0.0, 0.0, 25.0, 40.0))  # the AP on a 25 m hill top
     cfg = OptimalConfig(terrain=hill, n_prior_points=4, max_keep_outs=1, max_fence_edges=4)
     p = OptimalPlanner(cfg)
     r = p.plan((0.0, 0.0, 25.0), COV, (-150.0, -100.0, 45.0), fence=Geofence.square((0, 0), 200))
@@ -201,20 +201,20 @@ def test_bad_requests_are_refused(planner: OptimalPlanner) -> None:
         )
 
 
-TWO_HILLS = GaussianHills(hills=((0.0, 0.0, 25.0, 25.0), (-50.0, -30.0, 20.0, 20.0)))
+TWO_HILLS = gaussian_hills((0.0, 0.0, 25.0, 25.0), (-50.0, -30.0, 20.0, 20.0))
 
 
 def _dense_agl(W, terrain, step=0.25):
     d = densify(np.asarray(W)[1:], step)
-    return d[:, 2] - terrain(d[:, 0], d[:, 1])
+    return d[:, 2] - terrain.height_m(d[:, 0], d[:, 1])
 
 
 def test_check_sees_a_leg_sagging_over_a_hill_top(planner: OptimalPlanner) -> None:
     """Both ends 30 m above the ground 10 m either side of a 25 m (sigma 25 m) top: the
     straight leg passes the top 28.08 m above it."""
     p = OptimalPlanner.__new__(OptimalPlanner)  # the check needs only the config
-    p.cfg = OptimalConfig(terrain=GaussianHills(hills=((0.0, 0.0, 25.0, 25.0),)))
-    ground = float(p.cfg.terrain(10.0, 0.0))
+    p.cfg = OptimalConfig(terrain=gaussian_hills((0.0, 0.0, 25.0, 25.0)))
+    ground = float(p.cfg.terrain.height_m(10.0, 0.0))
     assert ground == pytest.approx(25.0 * math.exp(-0.08))
     W = np.array([[-20.0, 0.0, 30.0 + ground], [-10.0, 0.0, 30.0 + ground],
                   [10.0, 0.0, 30.0 + ground], [20.0, 0.0, 30.0 + ground]])  # fmt: skip
@@ -225,7 +225,7 @@ def test_check_sees_a_leg_sagging_over_a_hill_top(planner: OptimalPlanner) -> No
 
 
 def test_hill_curvature_bounds_hold_along_lines() -> None:
-    hills = GaussianHills(hills=((0.0, 0.0, 25.0, 25.0), (300.0, 0.0, -10.0, 10.0)))
+    hills = gaussian_hills((0.0, 0.0, 25.0, 25.0), (300.0, 0.0, -10.0, 10.0))
     concave, convex = hills.sag_curvature()
     foot = 2.0 * math.exp(-1.5)
     assert concave == pytest.approx(25.0 / 625.0 + foot * 10.0 / 100.0)
@@ -234,7 +234,7 @@ def test_hill_curvature_bounds_hold_along_lines() -> None:
     h = s[1] - s[0]
 
     def d2(cx: float, a: float) -> np.ndarray:  # T'' along the east-west line n = a
-        t = hills(cx + s, np.full_like(s, a))
+        t = hills.height_m(cx + s, np.full_like(s, a))
         return (t[2:] - 2 * t[1:-1] + t[:-2]) / h**2
 
     lines = [d2(0.0, 0.0), d2(0.0, 10.0), d2(300.0, 0.0), d2(300.0, 5.0)]
@@ -257,7 +257,7 @@ def test_plan_keeps_the_band_between_waypoints_over_convex_terrain() -> None:
     assert r.feasible and r.fallback is None, r.violations
     assert _dense_agl(r.waypoints_enu_m, TWO_HILLS).min() >= 30.0 - 0.01
     t = r.trajectory.enu_m[1:]
-    assert (t[:, 2] - TWO_HILLS(t[:, 0], t[:, 1])).min() >= 30.0 - 0.01
+    assert (t[:, 2] - TWO_HILLS.height_m(t[:, 0], t[:, 1])).min() >= 30.0 - 0.01
     assert_feasible(r.waypoints_enu_m, start, np.zeros(3), r.dt_s, cfg, fence, [],
                     terrain=TWO_HILLS)  # fmt: skip
     # the margin is what one half-leg can sag: kappa (v_max dt / 2)^2 / 8 = 1.70 m here
@@ -274,7 +274,7 @@ def test_first_leg_band_starts_from_where_the_drone_is() -> None:
     p = OptimalPlanner.__new__(OptimalPlanner)
     p.cfg = OptimalConfig(terrain=TWO_HILLS)
     assert p.first_leg_band((-150.0, -100.0, 45.0), (30.0, 80.0), 8.0, 3.0) == (30.0, 80.0)
-    agl0 = 45.0 - float(TWO_HILLS(0.0, 0.0))  # 19.72 m above the hill top
+    agl0 = 45.0 - float(TWO_HILLS.height_m(0.0, 0.0))  # 19.72 m above the hill top
     lo, hi = p.first_leg_band((0.0, 0.0, 45.0), (30.0, 80.0), 8.0, 3.0)
     assert hi == 80.0 and lo == pytest.approx(agl0 - 0.09 * 12**2 / 8)  # half leg 12 m
     flat = OptimalPlanner.__new__(OptimalPlanner)

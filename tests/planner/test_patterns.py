@@ -10,6 +10,7 @@ import pytest
 
 from estimator.geodesy import ExactENU
 from planner.convert import douglas_peucker
+from planner.models import LogisticLink, slant_at
 from planner.patterns import (
     FlightConfig,
     Geofence,
@@ -25,7 +26,6 @@ from planner.patterns import (
     orbit,
     to_geodetic,
 )
-from planner.scoring import ResponseModel
 
 FLIGHT = FlightConfig(speed_m_s=5.0, alt_m=40.0, dt_s=0.5)
 
@@ -71,15 +71,15 @@ def test_lawnmower_heading_rotates_the_tracks() -> None:
 
 
 def test_lawnmower_default_spacing_comes_from_the_detection_range() -> None:
-    resp = ResponseModel()
+    resp = LogisticLink()
     r_det = math.sqrt(resp.reach_m**2 - 40.0**2)  # P = 0.5 at the logistic midpoint
     assert detection_range_m(40.0, resp) == pytest.approx(r_det)
     assert lawnmower_spacing_m(r_det, 0.5) == pytest.approx(r_det)
     assert lawnmower_spacing_m(100.0, 0.25) == pytest.approx(150.0)
     t = lawnmower((0.0, 0.0), 300.0, overlap=0.5, flight=FLIGHT)
     assert np.allclose(np.diff(_track_offsets(t, axis=0)), r_det)
-    p90 = resp.slant_at(0.9)
-    assert resp.probability(p90) == pytest.approx(0.9)
+    p90 = slant_at(resp, 0.9)
+    assert resp.response_probability(p90) == pytest.approx(0.9)
     with pytest.raises(ValueError):
         detection_range_m(500.0, resp)
 

@@ -116,7 +116,9 @@ def test_terrain_referenced_paths() -> None:
     traj = orbit((0.0, 0.0), 30.0, flight=f)
     m = trajectory_to_mission(traj)
     assert all(it.frame == MAV_FRAME_GLOBAL_TERRAIN_ALT_INT for it in m.items[:-1])
-    hill = lambda x, y: 0.1 * np.asarray(x)  # noqa: E731 - ground rising east
+    from sim.terrain import HillsTerrain
+
+    hill = HillsTerrain(slope_e=0.1, slope_n=0.0, hills=(), ripple_amplitude_m=0.0)  # rising east
     m2 = trajectory_to_mission(traj, terrain=hill)
     wps = [it for it in m2.items if it.command == MAV_CMD_NAV_WAYPOINT]
     back = mission_waypoints_enu_m(m2)

@@ -10,10 +10,9 @@ import pytest
 from estimator.geometry import horizontal_condition_number
 from estimator.noise import EmpiricalRConfig, empirical_r_m2
 from estimator.records import Trajectory
+from planner.models import LogisticLink
 from planner.patterns import FlightConfig, close_pass, helix, orbit
 from planner.scoring import (
-    ResponseModel,
-    RssiModel,
     ScoringConfig,
     fisher_information,
     prior_points,
@@ -33,7 +32,7 @@ def _ring(n: int, radius: float, height: float, phase: float = 0.3) -> np.ndarra
 
 def test_range_variance_is_empirical_r_at_the_path_loss_rssi() -> None:
     d = np.array([0.5, 1.0, 1.5, 10.0, 74.0, 130.0, 300.0])
-    rssi = RssiModel().rssi_dbm(d)
+    rssi = CFG.link.mean_rssi_dbm(d)
     assert rssi[1] == pytest.approx(-35.0) and rssi[4] == pytest.approx(-35 - 30 * math.log10(74))
     expect = [
         empirical_r_m2(float(x), float(r), 0.12, EmpiricalRConfig())
@@ -43,10 +42,10 @@ def test_range_variance_is_empirical_r_at_the_path_loss_rssi() -> None:
 
 
 def test_response_probability_is_logistic_in_slant_range() -> None:
-    m = ResponseModel(reach_m=130.0, width_m=10.0)
-    assert m.probability(130.0) == pytest.approx(0.5)
-    assert m.probability(100.0) == pytest.approx(1 / (1 + math.exp(-3.0)))
-    assert m.probability(1e6) == 0.0 and m.probability(-1e6) == 1.0
+    m = LogisticLink(reach_m=130.0, width_m=10.0)
+    assert m.response_probability(130.0) == pytest.approx(0.5)
+    assert m.response_probability(100.0) == pytest.approx(1 / (1 + math.exp(-3.0)))
+    assert m.response_probability(1e6) == 0.0 and m.response_probability(-1e6) == 1.0
 
 
 def test_symmetric_ring_matches_the_closed_form_crlb() -> None:
@@ -58,7 +57,7 @@ def test_symmetric_ring_matches_the_closed_form_crlb() -> None:
     anchors = _ring(n_anchors, radius, height)
     dwell = np.full(n_anchors, 2.0)
     d = math.hypot(radius, height)
-    n_per = CFG.ranging_rate_hz * 2.0 * CFG.response.probability(d)
+    n_per = CFG.ranging_rate_hz * 2.0 * CFG.response_probability(d)
     sigma = math.sqrt(range_variance_m2(d, CFG))
     cos_el, sin_el = radius / d, height / d
     s = score_anchors(anchors, dwell, (0.0, 0.0, 0.0), CFG)
@@ -96,7 +95,7 @@ def test_two_altitudes_make_the_height_observable_with_the_bias() -> None:
     sines = []
     for _, h in rings:
         d = math.hypot(radius, h)
-        w += [8 * CFG.ranging_rate_hz * CFG.response.probability(d) / range_variance_m2(d, CFG)]
+        w += [8 * CFG.ranging_rate_hz * CFG.response_probability(d) / range_variance_m2(d, CFG)]
         sines += [h / d]
     w, sines = np.array(w), np.array(sines)
     var_z = w.sum() / (w.sum() * (w * sines**2).sum() - (w * sines).sum() ** 2)
@@ -114,7 +113,7 @@ def test_fim_is_the_sum_of_rank_one_terms() -> None:
     for u, t in zip(anchors, dwell, strict=True):
         d = np.linalg.norm(ap - u)
         h = np.append((ap - u) / d, 1.0)
-        n = CFG.ranging_rate_hz * t * CFG.response.probability(d)
+        n = CFG.ranging_rate_hz * t * CFG.response_probability(d)
         expect += n / float(range_variance_m2(d, CFG)) * np.outer(h, h)
     assert np.allclose(fim, expect, rtol=1e-12)
     s = score_anchors(anchors, dwell, ap, CFG)
@@ -132,7 +131,7 @@ def test_trajectory_scores_use_the_sample_period_as_dwell() -> None:
     s = score_trajectory(t, (0.0, 0.0, 0.0))
     d = math.hypot(60.0, 45.0)
     assert s.expected_measurements == pytest.approx(
-        len(t.t_s) * 0.5 * 4.0 * CFG.response.probability(d), rel=1e-2
+        len(t.t_s) * 0.5 * 4.0 * CFG.response_probability(d), rel=1e-2
     )
     # a helix beats the flat orbit vertically; a straight pass leaves the cross-track
     # direction unobservable
@@ -175,36 +174,6 @@ def test_score_over_prior_is_the_mean_over_draws() -> None:
     assert a.crlb_h_m == b.crlb_h_m
     assert a.crlb_h_m == pytest.approx(np.mean([score_trajectory(t, p).crlb_h_m for p in draws]))
 
-
-def test_default_response_is_the_simulators_link() -> None:
-    """sim/ftm.py: RSSI = -38 - 25 log10(d), P(ok) logistic in RSSI, 50 % at -82 dBm,
-    3.5 dB: 50 % at 57.5 m slant, logistic width 18.5 m in distance."""
-    from sim.ftm import FtmConfig
-
-    sim = FtmConfig()
-    eta = sim.path_loss_exponent
-    d50 = 10.0 ** ((sim.rssi_1m_dbm - sim.response_rssi50_dbm) / (10.0 * eta))
-    width = d50 * sim.response_slope_db * math.log(10.0) / (10.0 * eta)
-    m = ResponseModel()
-    assert (m.reach_m, m.width_m) == pytest.approx((d50, width), rel=1e-12)
-    assert (m.reach_m, m.width_m) == pytest.approx((57.54, 18.55), abs=0.01)
-    # same 50 % point and slope as the simulator's logistic in RSSI
-    logistic = lambda d: sim.response_probability(sim.mean_rssi_dbm(d)) / sim.response_max  # noqa: E731
-    assert logistic(d50) == pytest.approx(0.5) and m.probability(d50) == pytest.approx(0.5)
-    h = 1e-3
-    slope_sim = (logistic(d50 + h) - logistic(d50 - h)) / (2 * h)
-    assert (m.probability(d50 + h) - m.probability(d50 - h)) / (2 * h) == pytest.approx(
-        slope_sim, rel=1e-6
-    )
-    # the simulator's mean response (0.95 cap, 2 dB shadowing + 2 dB fading) out to 65 m
-    x, w = np.polynomial.hermite_e.hermegauss(40)
-    rssi_sigma = math.hypot(sim.open.shadowing_sigma_db, sim.fading_sigma_db)
-    d = np.linspace(5.0, 65.0, 61)
-    mean_rssi = sim.mean_rssi_dbm(d)[:, None] + rssi_sigma * x[None, :]
-    p_sim = (sim.response_probability(mean_rssi) * w).sum(axis=1) / w.sum()
-    assert np.abs(m.probability(d) - p_sim).max() <= 0.04
-    # further out the model is low (conservative): 0.15 against ~0.22 at 90 m
-    assert m.probability(90.0) == pytest.approx(0.148, abs=0.001)
 
 
 def test_one_altitude_orbit_height_is_unobservable_only_when_centred() -> None:

@@ -1,0 +1,353 @@
+"""The simulator stepper: advance every agent of a world until time t, get what its phone logs.
+
+:class:`Stepper` holds a :class:`sim.realisation.Realisation` and one
+:class:`AgentSim` per agent (vehicle, GNSS receiver, FTM radio, phone clock).
+``command(agent, guidance)`` sets what an agent flies from where it is (position and
+velocity: a new command never restarts from rest); ``step_to(t)`` advances every
+agent to ``t`` and returns the records their phones delivered in the meantime, in
+delivery order. Everything runs on absolute time grids and streams named by index, so
+stepping to t in several pieces gives exactly the records of one step to t with the
+same commands.
+
+Records are :class:`estimator.records.GnssFix` and :class:`RangeSample` stamped with
+the phone's monotonic clock (``t_ns`` = delivery time). Each carries the time its line
+reaches the log file (delivery plus a small writer delay), so a log written from them
+(:class:`LogSink`) is slightly out of ``t_ns`` order, as real logs are; a reader
+sorting by ``t_ns`` (stable) sees them in (``t_ns``, write time) order, which is the
+order :meth:`Emitted.replay_key` gives.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from estimator.logio import LogWriter
+from estimator.records import GnssFix, LogHeader, RangeSample, Trajectory
+from sim._random import BlockedGaussMarkov
+from sim.clock import PhoneClock
+from sim.ftm import STATUS_NAMES, FtmBatch, FtmRadio, FtmTrack, ftm_track
+from sim.gnss import GnssBatch, GnssReceiver, GnssTrack, gnss_track
+from sim.realisation import (
+    AGENT_CLOCK,
+    AGENT_GNSS,
+    AGENT_RADIO,
+    AGENT_WANDER,
+    AGENT_WRITER,
+    Realisation,
+)
+from sim.scenario import AgentSpec
+from sim.vehicle import (
+    Guidance,
+    HoldGuidance,
+    Multirotor,
+    PathGuidance,
+    VehicleState,
+    VehicleTrack,
+    path_guidance,
+)
+
+GNSS_SOURCE, RTT_SOURCE = 0, 1
+
+
+class Emitted(NamedTuple):
+    """One log record as the phone delivered it."""
+
+    t_ns: int
+    write_s: float  # when the line reaches the file (simulated seconds)
+    source: int  # GNSS_SOURCE | RTT_SOURCE
+    index: int  # row in the agent's fix or result arrays
+    record: GnssFix | RangeSample
+
+    def replay_key(self) -> tuple[int, float]:
+        """The order a log reader gives: by t_ns, ties in file (write) order."""
+        return self.t_ns, self.write_s
+
+
+@dataclass
+class AgentSim:
+    """One agent: its vehicle, GNSS receiver, FTM radio, phone clock and what it logged."""
+
+    index: int
+    spec: AgentSpec
+    vehicle: Multirotor
+    gnss: GnssReceiver
+    radio: FtmRadio
+    clock: PhoneClock
+    header: LogHeader
+    writer_seed: np.random.SeedSequence
+    gnss_batches: list[GnssBatch] = field(default_factory=list)
+    ftm_batches: list[FtmBatch] = field(default_factory=list)
+    emitted: list[Emitted] = field(default_factory=list)
+    _pending: list[tuple[float, int, int, int, GnssFix | RangeSample]] = field(
+        default_factory=list
+    )
+    _n_fix: int = 0
+    _n_rtt: int = 0
+    _delays: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+
+    WRITE_BLOCK = 1024
+
+    def write_delay_s(self, source: int, index: int, mean_s: float) -> float:
+        """The writer's delay of record (source, index): drawn by the record's identity,
+        so it does not depend on how the flight was stepped."""
+        if mean_s <= 0.0:
+            return 0.0
+        b = index // self.WRITE_BLOCK
+        blk = self._delays.get((source, b))
+        if blk is None:
+            rng = np.random.default_rng(
+                np.random.SeedSequence(self.writer_seed.entropy,
+                                       spawn_key=(*self.writer_seed.spawn_key, source, b))
+            )
+            blk = self._delays[(source, b)] = rng.exponential(mean_s, self.WRITE_BLOCK)
+            for key in [k for k in self._delays if k[0] == source and k[1] < b - 1]:
+                del self._delays[key]
+        return float(blk[index % self.WRITE_BLOCK])
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def t_s(self) -> float:
+        return self.vehicle.t_s
+
+
+class Stepper:
+    """All agents of one realised world, advanced together (see the module docstring)."""
+
+    def __init__(
+        self,
+        realisation: Realisation,
+        *,
+        agents: Sequence[AgentSpec] | None = None,
+        starts: Sequence[VehicleState] | None = None,
+        header_agl_m: float | None = None,
+        navigate_on_gnss: bool = True,
+    ) -> None:
+        self.realisation = realisation
+        sc = realisation.scenario
+        self.world = realisation.world
+        specs = tuple(agents) if agents is not None else sc.agents
+        if not specs:
+            raise ValueError("a stepper needs at least one agent")
+        resp = realisation.responder_enu_m()
+        models = tuple(sc.ftm.concealment(r.concealment) for r in self.world.responders)
+        self.bssids = realisation.bssids
+        self.agents: list[AgentSim] = []
+        for i, spec in enumerate(specs):
+            if starts is not None:
+                start = starts[i]
+            else:
+                e, n = sc.start_enu_m(i)
+                start = VehicleState(0.0, (e, n, float(self.world.ground_m(e, n))), (0, 0, 0))
+            cfg = spec.vehicle
+            rx = GnssReceiver(spec.gnss, sc.clock, realisation.agent_seed(i, AGENT_GNSS))
+            wander = BlockedGaussMarkov(
+                realisation.agent_seed(i, AGENT_WANDER), cfg.sample_dt_s,
+                np.full(3, cfg.tracking_sigma_m), cfg.tracking_tau_s, order=2,
+            ) if cfg.tracking_sigma_m > 0 else None
+            veh = Multirotor(
+                cfg, self.world, start, wander=wander, name=spec.name,
+                nav_error=rx.process.bias_at if navigate_on_gnss else None,
+            )
+            radio = FtmRadio(sc.ftm, sc.clock, resp, models, realisation.offsets_m,
+                             realisation.shadowing, realisation.agent_seed(i, AGENT_RADIO))
+            clock = PhoneClock.draw(
+                sc.clock, np.random.default_rng(realisation.agent_seed(i, AGENT_CLOCK))
+            )
+            agl = header_agl_m if header_agl_m is not None else sc.header_agl_m
+            header = LogHeader(
+                agent=spec.name,
+                start_utc=sc.log.start_utc,
+                agl_m=round(float(agl), 3),
+                range_offset_m=sc.log.range_offset_m,
+            )
+            self.agents.append(AgentSim(
+                i, spec, veh, rx, radio, clock, header,
+                realisation.agent_seed(i, AGENT_WRITER),
+            ))
+
+    # ------------------------------------------------------------------ commands
+    @property
+    def t_s(self) -> float:
+        return min(a.t_s for a in self.agents)
+
+    def agent(self, key: int | str) -> AgentSim:
+        if isinstance(key, str):
+            for a in self.agents:
+                if a.name == key:
+                    return a
+            raise KeyError(f"no agent named {key!r}")
+        return self.agents[key]
+
+    def state(self, agent: int | str = 0) -> VehicleState:
+        """The agent's true controller state (evaluation and the vehicle model only)."""
+        return self.agent(agent).vehicle.state
+
+    def command(self, agent: int | str, guidance: Guidance) -> None:
+        """Fly ``guidance`` from now on (from the current position and velocity)."""
+        self.agent(agent).vehicle.set_guidance(guidance)
+
+    def follow(self, agent: int | str, traj: Trajectory) -> PathGuidance:
+        """Fly ``traj`` from where the agent is (a leg to its start is added if needed)."""
+        a = self.agent(agent)
+        st = a.vehicle.state
+        nav = self.navigation_position_m(agent)
+        # the path is flown on the autopilot's estimate: start the leg where it believes
+        speed = math.hypot(st.velocity_mps[0], st.velocity_mps[1])
+        g = path_guidance(traj, self.world, a.spec.vehicle, start_speed_mps=speed, from_m=nav)
+        a.vehicle.set_guidance(g)
+        return g
+
+    def hold(self, agent: int | str) -> HoldGuidance:
+        """Brake and hold where the autopilot believes the vehicle is."""
+        a = self.agent(agent)
+        g = HoldGuidance(self.navigation_position_m(agent), a.spec.vehicle)
+        a.vehicle.set_guidance(g)
+        return g
+
+    def navigation_position_m(self, agent: int | str = 0) -> tuple[float, float, float]:
+        """Where the autopilot believes the vehicle is (truth + its navigation error)."""
+        v = self.agent(agent).vehicle
+        p = v.state.position_m
+        if v.nav_error is None:
+            return p
+        b = v.nav_error(np.array([v.t_s]))[0]
+        return (p[0] + float(b[0]), p[1] + float(b[1]), p[2] + float(b[2]))
+
+    # ------------------------------------------------------------------ stepping
+    def step_to(self, t_s: float) -> list[list[Emitted]]:
+        """Advance every agent to ``t_s``; per agent, the records delivered meanwhile."""
+        return [self._advance(a, t_s) for a in self.agents]
+
+    def _advance(self, a: AgentSim, t_s: float, *, flush: bool = False) -> list[Emitted]:
+        a.vehicle.advance(t_s)
+        t_end = a.vehicle.t_s
+        v = a.vehicle
+        g = a.gnss.measure_until(t_end, v.position_at)
+        a.gnss_batches.append(g)
+        f = a.radio.range_until(t_end, v.position_at, v.antenna_at)
+        a.ftm_batches.append(f)
+        self._queue(a, g, f)
+        # emit what was delivered by now, but not past the earliest callback of a
+        # request still to be processed: every agent's records leave in delivery order
+        limit = math.inf if flush else min(t_end, a.radio.horizon_s)
+        ready = [p for p in a._pending if p[0] <= limit]
+        a._pending = [p for p in a._pending if p[0] > limit]
+        ready.sort(key=lambda p: (p[1], p[2], p[3]))
+        mean = self.realisation.scenario.clock.write_delay_s
+        out = [
+            Emitted(t_ns, t_del + a.write_delay_s(source, idx, mean), source, idx, rec)
+            for t_del, t_ns, source, idx, rec in ready
+        ]
+        a.emitted.extend(out)
+        return out
+
+    def finish(self) -> list[list[Emitted]]:
+        """End of the flight: deliver what is still on its way (measured, not delivered)."""
+        return [self._advance(a, a.vehicle.t_s, flush=True) for a in self.agents]
+
+    def _queue(self, a: AgentSim, g: GnssBatch, f: FtmBatch) -> None:
+        frame = self.world.frame
+        if len(g.t_s):
+            lat, lon, alt = frame.to_geodetic(g.enu_m[:, 0], g.enu_m[:, 1], g.enu_m[:, 2])
+            t_ns = a.clock.to_ns(g.t_delivery_s).tolist()
+            lat = np.round(np.atleast_1d(lat), 9).tolist()
+            lon = np.round(np.atleast_1d(lon), 9).tolist()
+            alt = np.round(np.atleast_1d(alt), 3).tolist()
+            acc = g.acc_m.tolist()
+            vacc = g.vacc_m.tolist() if g.vacc_m is not None else [None] * len(acc)
+            sats = g.sats.tolist()
+            fix = a.spec.gnss.fix
+            for j, td in enumerate(g.t_delivery_s.tolist()):
+                rec = GnssFix(t_ns=t_ns[j], lat_deg=lat[j], lon_deg=lon[j], alt_m=alt[j],
+                              acc_m=acc[j], vacc_m=vacc[j], fix=fix, sats=sats[j])
+                a._pending.append((td, t_ns[j], GNSS_SOURCE, a._n_fix + j, rec))
+            a._n_fix += len(g.t_s)
+        if len(f.t_s):
+            t_ns = a.clock.to_ns(f.t_delivery_s).tolist()
+            bssid = [self.bssids[j] for j in f.responder.tolist()]
+            status = [STATUS_NAMES[s] for s in f.status.tolist()]
+            rng_m = np.round(f.range_m, 3).tolist()
+            std = np.round(f.range_std_m, 3).tolist()
+            rssi = f.rssi_dbm.tolist()
+            succ = f.successful.tolist()
+            att = a.radio.cfg.attempted
+            for j, td in enumerate(f.t_delivery_s.tolist()):
+                if status[j] == "ok":
+                    rec = RangeSample(t_ns=t_ns[j], bssid=bssid[j], status="ok", range_m=rng_m[j],
+                                      range_std_m=std[j], rssi_dbm=rssi[j], attempted=att,
+                                      successful=succ[j])
+                else:
+                    rec = RangeSample(t_ns=t_ns[j], bssid=bssid[j], status=status[j],
+                                      attempted=att, successful=succ[j])
+                a._pending.append((td, t_ns[j], RTT_SOURCE, a._n_rtt + j, rec))
+            a._n_rtt += len(f.t_s)
+
+    # ------------------------------------------------------------------ traces
+    def vehicle_track(self, agent: int | str = 0) -> VehicleTrack:
+        return self.agent(agent).vehicle.track()
+
+    def gnss_track(self, agent: int | str = 0) -> GnssTrack:
+        a = self.agent(agent)
+        return gnss_track(a.gnss_batches, a.spec.gnss.fix)
+
+    def ftm_track(self, agent: int | str = 0) -> FtmTrack:
+        a = self.agent(agent)
+        return ftm_track(a.ftm_batches, self.realisation.offsets_m, a.radio.cfg.attempted)
+
+    def file_records(self, agent: int | str = 0) -> list[GnssFix | RangeSample]:
+        """Everything the agent logged, in file (write) order."""
+        a = self.agent(agent)
+        return [e.record for e in sorted(a.emitted, key=lambda e: (e.write_s, e.t_ns))]
+
+
+class LogSink:
+    """Writes one agent's log as it flies: header and truth first, then each line when
+    it reaches the file (write time), flushed line by line."""
+
+    def __init__(self, path: str | os.PathLike, header: LogHeader, truth: Iterable = (),
+                 *, flush_lines: bool = False) -> None:
+        self.path = Path(path)
+        self._w = LogWriter(self.path, header)
+        self._w.write_all(truth)
+        self._buf: list[tuple[float, int, int, GnssFix | RangeSample]] = []
+        self._n = 0
+        self.flush_lines = flush_lines
+
+    def add(self, emitted: Iterable[Emitted], now_s: float) -> None:
+        """Take newly delivered records and write those whose write time has come."""
+        for e in emitted:
+            self._buf.append((e.write_s, e.t_ns, self._n, e.record))
+            self._n += 1
+        self._write(now_s)
+
+    def _write(self, until_s: float) -> None:
+        if not self._buf:
+            return
+        self._buf.sort(key=lambda x: (x[0], x[1], x[2]))
+        k = 0
+        while k < len(self._buf) and self._buf[k][0] <= until_s:
+            self._w.write(self._buf[k][3])
+            k += 1
+        del self._buf[:k]
+        if k and self.flush_lines:
+            self._w.flush()
+
+    def close(self) -> None:
+        self._write(math.inf)
+        self._w.close()
+
+    def __enter__(self) -> LogSink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
