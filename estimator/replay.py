@@ -58,14 +58,18 @@ class ReplayOptions:
 
 
 def parse_modes(text: str) -> tuple[str, ...]:
-    """``all`` (the paper's six), one name, or a comma-separated list."""
-    if text == "all":
-        return PAPER_MODES
-    modes = tuple(m.strip() for m in text.split(",") if m.strip())
+    """``all`` (the paper's six), one name, or a list joined by ``,`` or ``+``
+    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped."""
+    names = [m.strip() for m in text.replace("+", ",").split(",") if m.strip()]
+    modes: list[str] = []
+    for m in names:
+        for name in PAPER_MODES if m == "all" else (m,):
+            if name not in modes:
+                modes.append(name)
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
         raise ValueError(f"unknown mode {text!r}; choose from {', '.join(MODES)} or all")
-    return modes
+    return tuple(modes)
 
 
 @dataclass
