@@ -82,3 +82,57 @@ def test_upload_over_serial_without_pyserial(mission_file, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "serial", None)  # import serial -> ModuleNotFoundError
     assert status_of(["upload", str(mission_file), "--connection", "/dev/null"]) == 2
     assert "need pyserial (pip install pyserial)" in one_line(capsys)
+
+
+# ------------------------------------------------------------------ osa run
+
+
+def test_run_negative_seed_leaves_no_folder(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert status_of(["run", "paper-apaa", "--seed", "-1", "-o", str(out)]) == 2
+    assert "--seed" in one_line(capsys) and not out.exists()
+
+
+def test_run_checks_the_rerun_path_before_the_job(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert status_of(["run", "paper-apaa", "-o", str(out), "--rerun",
+                      "/nonexistent/dir/x.rrd"]) == 2
+    err = one_line(capsys)
+    assert err == "osa run: cannot write /nonexistent/dir/x.rrd: no such directory /nonexistent/dir"
+    assert not out.exists()  # nothing simulated, no empty folder
+    assert status_of(["run", "paper-apaa", "-o", str(out), "--rerun", str(tmp_path)]) == 2
+    assert "is a directory" in one_line(capsys) and not out.exists()
+
+
+def _closed_pipe_run(argv: list[str]) -> subprocess.CompletedProcess:
+    """``osa argv`` writing into a pipe whose reader is already gone (``| head``)."""
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        return subprocess.run([sys.executable, "-m", "envs.cli", *argv], stdout=w,
+                              stderr=subprocess.PIPE, text=True, timeout=120, cwd=ROOT,
+                              check=False)
+    finally:
+        os.close(w)
+
+
+def test_simulate_list_into_a_closed_pipe():
+    proc = _closed_pipe_run(["simulate", "--list"])
+    assert proc.stderr == ""
+    assert proc.returncode == EXIT_BROKEN_PIPE
+
+
+def test_run_into_a_closed_pipe(tmp_path):
+    proc = _closed_pipe_run(["run", "paper-apaa", "--mode", "baseline", "--no-progress",
+                             "-o", str(tmp_path / "out")])
+    assert proc.stderr == ""
+    assert proc.returncode == EXIT_BROKEN_PIPE
+    assert (tmp_path / "out" / "report.json").exists()  # the job itself ran
+
+
+def test_head_reads_the_first_line_quietly(tmp_path):
+    proc = subprocess.run(f"{sys.executable} -m envs.cli simulate --list | head -1",
+                          shell=True, capture_output=True, text=True, timeout=120, cwd=ROOT,
+                          check=False)
+    assert proc.stderr == "" and proc.returncode == 0
+    assert proc.stdout.startswith("paper-ap1f ") and proc.stdout.count("\n") == 1
