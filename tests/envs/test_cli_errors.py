@@ -136,3 +136,58 @@ def test_head_reads_the_first_line_quietly(tmp_path):
                           check=False)
     assert proc.stderr == "" and proc.returncode == 0
     assert proc.stdout.startswith("paper-ap1f ") and proc.stdout.count("\n") == 1
+
+
+# ------------------------------------------------------------------ osa replay: not a log
+
+
+@pytest.mark.parametrize(
+    ("content", "detail"),
+    [
+        (b"", "empty"),
+        (bytes(range(256)) * 8, "not_utf8"),
+        (json.dumps({"type": "FeatureCollection", "features": []}).encode(),
+         "1 line: 1 of unknown type 'FeatureCollection'"),
+        (b"{not json\n\n[1, 2]\n", "2 lines: 1 not_json, 1 not_object"),
+    ],
+    ids=["empty", "random-bytes", "geojson", "garbage-json"],
+)
+def test_replay_of_a_file_that_is_not_a_log(content, detail, tmp_path, capsys):
+    path = tmp_path / "f.jsonl"
+    path.write_bytes(content)
+    assert status_of(["replay", str(path), "--json"]) == 2
+    err = one_line(capsys)
+    assert err.startswith(f"osa replay: {path}: not a flight log (no valid record; ")
+    assert detail in err
+
+
+def test_replay_header_errors_name_the_file(tmp_path, capsys):
+    v3 = tmp_path / "v3.jsonl"
+    v3.write_text('{"type":"header","format":"osa-log","version":3}\n')
+    assert status_of(["replay", str(v3)]) == 2
+    assert one_line(capsys) == (f"osa replay: {v3}: log format version 3 is newer than this "
+                                "reader (version 1)")
+    other = tmp_path / "other.jsonl"
+    other.write_text('{"type":"header","format":"ulog"}\n')
+    assert status_of(["replay", str(other)]) == 2
+    assert one_line(capsys) == f"osa replay: {other}: not an osa-log file (header format 'ulog')"
+
+
+def test_replay_of_the_same_log_twice_is_refused(tmp_path, capsys):
+    log = write_flight(tmp_path / "f.jsonl", seed=3, duration_s=30.0)
+    alias = tmp_path / "sub" / ".." / "f.jsonl"
+    (tmp_path / "sub").mkdir()
+    assert status_of(["replay", str(log), str(alias), "--json"]) == 2
+    assert one_line(capsys) == (f"osa replay: {alias}: given twice (a log fused with itself "
+                                "counts every range twice)")
+
+
+def test_replay_of_two_logs_of_one_agent_warns(tmp_path, capsys):
+    a = write_flight(tmp_path / "a.jsonl", seed=3, duration_s=30.0)
+    b = tmp_path / "b.jsonl"
+    b.write_bytes(a.read_bytes())  # a copy: same header, same agent
+    assert status_of(["replay", str(a), str(b), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["logs"] == 2
+    assert err == (f"osa replay: warning: {b} and {a} name the same agent 'uav-1': fused as "
+                   "two logs (if one is a copy of the other, every range counts twice)\n")
