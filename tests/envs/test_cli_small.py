@@ -113,3 +113,18 @@ def test_one_mode_parser_for_run_and_replay(tmp_path, log, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "unknown mode 'all+kalman'" in err
     assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------------------------ UKF has no bias
+
+
+def test_ukf_rows_have_no_bias(log, capsys):
+    assert main(["replay", str(log), "--mode", "baseline,ukf", "--json"]) == 0
+    est = {e["mode"]: e for e in json.loads(capsys.readouterr().out)["estimates"]}
+    assert "bias_m" in est["baseline"] and "bias_m" not in est["ukf"]
+    assert est["ukf"]["sigma_h_m"] > 0  # the rest of the estimate is there
+    assert main(["replay", str(log), "--mode", "baseline,ukf"]) == 0
+    rows = {ln.split()[0]: ln.split() for ln in capsys.readouterr().out.splitlines()
+            if ln.strip().startswith(("baseline", "ukf"))}
+    assert rows["ukf"][-1] == "-"
+    assert re.fullmatch(r"-?\d+\.\d\d", rows["baseline"][-1])
