@@ -138,6 +138,50 @@ def test_head_reads_the_first_line_quietly(tmp_path):
     assert proc.stdout.startswith("paper-ap1f ") and proc.stdout.count("\n") == 1
 
 
+# ------------------------------------------------------------------ osa plan: mission size
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(("radius", "hours"), [(1000, "6.5 h"), (10000, "622.7 h"),
+                                               (100000, "61993.5 h")])
+def test_plan_refuses_a_mission_beyond_one_flight(radius, hours, tmp_path, capsys):
+    out = tmp_path / "big.plan"
+    status = status_of(["plan", "lawnmower", "--center", CENTER, "--radius", str(radius),
+                        "-o", str(out)])
+    err = one_line(capsys)
+    assert status == 2 and not out.exists()
+    assert err.startswith(f"osa plan: lawnmower --radius {radius} is {hours} of flight (")
+    assert "beyond the 2 h limit" in err and "km at 5 m/s" in err and "items" in err
+
+
+def test_plan_warns_above_the_flight_time_and_writes(tmp_path, capsys):
+    out = tmp_path / "lm.plan"
+    argv = ["plan", "lawnmower", "--center", CENTER, "--radius", "300", "-o", str(out)]
+    assert status_of(argv) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("osa plan: warning: lawnmower --radius 300 is 39 min of flight")
+    assert "longer than --warn-flight-time 30 min" in err
+    assert len(read_mission(out).items) > 10
+    assert status_of([*argv, "--warn-flight-time", "45"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_plan_refuses_more_items_than_a_vehicle_holds(tmp_path, capsys):
+    argv = ["plan", "helix", "--center", CENTER, "--turns", "40", "-o", str(tmp_path / "h.plan")]
+    assert status_of(argv) == 2
+    err = one_line(capsys)
+    assert "at least 631 items" in err and "more than the 500 items a vehicle holds" in err
+    assert status_of([*argv, "--max-items", "2000"]) == 0  # an ArduPilot with an SD card
+
+
+def test_plan_refuses_a_long_optimal_horizon(tmp_path, capsys):
+    argv = ["plan", "optimal", "--center", CENTER, "--time-budget", "9000",
+            "-o", str(tmp_path / "o.plan")]
+    assert status_of(argv) == 2
+    assert "reduce --time-budget" in one_line(capsys)
+
+
 # ------------------------------------------------------------------ osa replay: not a log
 
 
