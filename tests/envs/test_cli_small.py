@@ -128,3 +128,48 @@ def test_ukf_rows_have_no_bias(log, capsys):
             if ln.strip().startswith(("baseline", "ukf"))}
     assert rows["ukf"][-1] == "-"
     assert re.fullmatch(r"-?\d+\.\d\d", rows["baseline"][-1])
+
+
+# ------------------------------------------------------------------ osa plan
+
+
+def test_plan_takes_southern_and_western_coordinates(tmp_path, capsys):
+    out = tmp_path / "syd.plan"
+    rc = main(["plan", "orbit", "--center", "-33.86,151.21", "--home", "-33.8605,151.2095,3",
+               "--keep-out", "-33.8598,151.2104,5", "--heading", "-30", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    m = read_mission(out)
+    assert m.home == pytest.approx((-33.8605, 151.2095, 3.0))
+    assert m.circles[0].lat_deg == pytest.approx(-33.8598)
+    wps = [it for it in m.items if it.command == MAV_CMD_NAV_WAYPOINT]
+    assert all(abs(it.lat_deg + 33.86) < 0.001 for it in wps)
+    west = tmp_path / "w.plan"
+    assert main(["plan", "helix", "--center=-12.5,-45.25", "-o", str(west)]) == 0
+    assert read_mission(west).home[:2] == pytest.approx((-12.5, -45.25))
+
+
+def test_plan_help_describes_radius_per_pattern(capsys):
+    with pytest.raises(SystemExit):
+        main(["plan", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "module doc" not in text
+    for words in ("half-width of the search square (lawnmower, expanding-square",
+                  "orbit radius (helix, orbit", "outer ring radius (circles",
+                  "half the pass length (close-pass", "keep-in square (optimal",
+                  "--warn-flight-time", "--max-items"):
+        assert words in text, words
+
+
+def test_mission_files_carry_no_float_noise(tmp_path, capsys):
+    for name in ("o.plan", "o.waypoints"):
+        out = tmp_path / name
+        assert main(["plan", "orbit", "--center", "36.7149,-4.4781", "-o", str(out),
+                     "--keep-out", "36.7152,-4.4772,10"]) == 0
+        text = out.read_text()
+        assert not re.search(r"\d\.\d{8,}", text), re.search(r"\d\.\d{8,}", text)
+        m = read_mission(out)
+        for it in m.items:
+            assert round(it.lat_deg * 1e7) == pytest.approx(it.lat_deg * 1e7, abs=1e-6)
+            assert round(it.alt_m, 3) == it.alt_m
+    assert "44.99999" not in text and "\t45.0\t" in text
+    capsys.readouterr()
