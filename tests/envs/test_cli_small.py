@@ -173,3 +173,28 @@ def test_mission_files_carry_no_float_noise(tmp_path, capsys):
             assert round(it.alt_m, 3) == it.alt_m
     assert "44.99999" not in text and "\t45.0\t" in text
     capsys.readouterr()
+
+
+# ------------------------------------------------------------------ examples, .gitignore
+
+
+def test_make_example_log_help_writes_nothing(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "make_example_log.py"),
+                           "--help"], capture_output=True, text=True, timeout=60,
+                          cwd=tmp_path, check=False)
+    assert proc.returncode == 0 and proc.stdout.startswith("usage: make_example_log.py")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_make_example_log_is_reproducible(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "make_example_log.py"),
+                           str(tmp_path / "ex.jsonl")], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT, check=False)
+    assert proc.returncode == 0, proc.stderr
+    shipped = ROOT / "examples" / "example_flight.jsonl"
+    assert (tmp_path / "ex.jsonl").read_bytes() == shipped.read_bytes()
+
+
+def test_output_folders_are_ignored():
+    lines = (ROOT / ".gitignore").read_text().splitlines()
+    assert "osa-run/" in lines and "osa-search/" in lines
