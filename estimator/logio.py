@@ -337,7 +337,9 @@ def _open_binary(path: str | os.PathLike) -> IO[bytes]:
         raise LogError(f"{p}: cannot open ({exc.strerror})") from exc
     head = fh.peek(2)[:2] if hasattr(fh, "peek") else b""
     if head == _GZIP_MAGIC:
-        return gzip.GzipFile(fileobj=fh, mode="rb")  # type: ignore[return-value]
+        # gzip.open owns its file (a GzipFile given a fileobj leaves it open on close)
+        fh.close()
+        return gzip.open(p, "rb")  # type: ignore[return-value]
     return fh
 
 

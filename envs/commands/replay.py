@@ -100,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         seen: set[str] = set()
         for k, w in enumerate(caught):
+            if issubclass(w.category, ResourceWarning):
+                continue  # the interpreter's housekeeping, not the user's
             text = str(w.message)
             if text in seen and k >= probed:
                 continue
