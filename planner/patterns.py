@@ -248,34 +248,36 @@ def lawnmower(
     within half a spacing of a track). ``spacing_m`` defaults to
     :func:`lawnmower_spacing_m` of the detection range at ``flight.alt_m``.
     """
-    segs = lawnmower_segments(center_enu_m, half_width_m, spacing_m=spacing_m,
-                              half_length_m=half_length_m, heading_deg=heading_deg,
-                              overlap=overlap, response=response, flight=flight)
+    cx, cy = _xy(center_enu_m)
+    hw = _positive("half_width_m", half_width_m)
+    hl = hw if half_length_m is None else _positive("half_length_m", half_length_m)
+    if spacing_m is None:
+        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, response), overlap)
+
+    segs = lawnmower_segments((cx, cy), hw, spacing_m, half_length_m=hl,
+                              heading_deg=heading_deg, alt_m=flight.alt_m)
     return segments_to_trajectory(segs, flight, "lawnmower", start_enu_m)
 
 
 def lawnmower_segments(
     center_enu_m: Sequence[float],
     half_width_m: float,
+    spacing_m: float,
     *,
-    spacing_m: float | None = None,
     half_length_m: float | None = None,
     heading_deg: float = 0.0,
-    overlap: float = 0.5,
-    response: ResponseModel = ResponseModel(),
-    flight: FlightConfig = FlightConfig(),
+    alt_m: float = 45.0,
 ) -> list[Segment]:
-    """The segments of :func:`lawnmower` (cheap: two per track, nothing sampled)."""
+    """The lines of :func:`lawnmower` for a given track spacing (two per track, nothing
+    sampled: cheap for any size)."""
     cx, cy = _xy(center_enu_m)
     hw = _positive("half_width_m", half_width_m)
     hl = hw if half_length_m is None else _positive("half_length_m", half_length_m)
-    if spacing_m is None:
-        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, response), overlap)
     sp = _positive("spacing_m", spacing_m)
     n_tracks = max(1, math.ceil(2.0 * hw / sp - 1e-9))
     along, right = _heading_axes(heading_deg)
     c = np.array([cx, cy])
-    z = flight.alt_m
+    z = float(alt_m)
     pts: list[tuple[float, float, float]] = []
     for i in range(n_tracks):
         off = (i - (n_tracks - 1) / 2.0) * sp
@@ -304,28 +306,28 @@ def expanding_square(
     along ``heading_deg``; parallel neighbouring legs are S apart. It stops after the
     first pair of legs at least 2 x ``half_width_m`` long plus one closing leg.
     """
-    segs = expanding_square_segments(center_enu_m, half_width_m, spacing_m=spacing_m,
-                                     heading_deg=heading_deg, clockwise=clockwise,
-                                     overlap=overlap, response=response, flight=flight)
+    cx, cy = _xy(center_enu_m)
+    hw = _positive("half_width_m", half_width_m)
+    if spacing_m is None:
+        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, response), overlap)
+
+    segs = expanding_square_segments((cx, cy), hw, spacing_m, heading_deg=heading_deg,
+                                     clockwise=clockwise, alt_m=flight.alt_m)
     return segments_to_trajectory(segs, flight, "expanding-square", start_enu_m)
 
 
 def expanding_square_segments(
     center_enu_m: Sequence[float],
     half_width_m: float,
+    spacing_m: float,
     *,
-    spacing_m: float | None = None,
     heading_deg: float = 0.0,
     clockwise: bool = True,
-    overlap: float = 0.5,
-    response: ResponseModel = ResponseModel(),
-    flight: FlightConfig = FlightConfig(),
+    alt_m: float = 45.0,
 ) -> list[Segment]:
-    """The segments of :func:`expanding_square` (one per leg, nothing sampled)."""
+    """The legs of :func:`expanding_square` for a given spacing (nothing sampled)."""
     cx, cy = _xy(center_enu_m)
     hw = _positive("half_width_m", half_width_m)
-    if spacing_m is None:
-        spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, response), overlap)
     sp = _positive("spacing_m", spacing_m)
     along, right = _heading_axes(heading_deg)
     turn = right if clockwise else -right
@@ -333,7 +335,7 @@ def expanding_square_segments(
     m_max = max(1, math.ceil(2.0 * hw / sp - 1e-9))
     lengths = [sp * (k // 2 + 1) for k in range(2 * m_max)] + [sp * m_max]
     p = np.array([cx, cy])
-    z = flight.alt_m
+    z = float(alt_m)
     pts = [(cx, cy, z)]
     for k, L in enumerate(lengths):
         p = p + L * dirs[k % 4]

@@ -262,9 +262,14 @@ def _pattern_segments(args: argparse.Namespace, pat: Any, radius: float, center,
     """The pattern's exact segments (cheap: nothing sampled yet)."""
     name = args.pattern
     if name in ("lawnmower", "expanding-square"):
-        area = pat.lawnmower_segments if name == "lawnmower" else pat.expanding_square_segments
-        return area(center, radius, spacing_m=args.spacing, heading_deg=args.heading,
-                    overlap=args.overlap, flight=flight)
+        spacing = args.spacing
+        if spacing is None:  # the patterns' default: from the detection range at --alt
+            spacing = pat.lawnmower_spacing_m(pat.detection_range_m(args.alt), args.overlap)
+        if name == "lawnmower":
+            return pat.lawnmower_segments(center, radius, spacing, heading_deg=args.heading,
+                                          alt_m=args.alt)
+        return pat.expanding_square_segments(center, radius, spacing,
+                                             heading_deg=args.heading, alt_m=args.alt)
     if name == "helix":
         if args.alt + args.climb <= 0:
             raise PlanError(f"--alt {args.alt:g} with --climb {args.climb:g} goes below home")
