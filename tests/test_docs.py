@@ -90,6 +90,10 @@ def _scenario_classes() -> dict[str, type]:
     classes = [VehicleConfig, GnssConfig, FtmConfig, ConcealmentModel, EmpiricalRConfig,
                ClockConfig, LogSettings, Origin, HillsTerrain, Hill, Responder, Circle,
                ClosePass, *FLIGHT_KINDS.values()]
+    # the tables of the closed loop, once the loader reads them ([search], [[agents]])
+    import sim.scenario
+
+    classes += [c for n in ("SearchSpec", "AgentSpec") if (c := getattr(sim.scenario, n, None))]
     return {c.__name__: c for c in classes}
 
 
