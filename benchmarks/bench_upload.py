@@ -5,7 +5,7 @@ pymavlink and the MAVSDK path, against MAVSDK's autopilot-side MissionRawServer 
 127.0.0.1. The connection (heartbeat discovery, up to 1 s) is made once and not
 timed. Every run's read-back is compared with what was sent.
 
-    /work/venv/bin/python benchmarks/bench_upload.py [--items 100] [--runs 30]
+    python benchmarks/bench_upload.py [--items 100] [--runs 30]
 
 Exit status 1 if a median misses the target.
 """

@@ -45,7 +45,7 @@ from estimator.noise import (
 from estimator.records import AssociatedRange
 from estimator.smoothing import EmaSmoother, EmaSmootherConfig, MedianSmoother, MedianSmootherConfig
 
-DEFAULT_AGL_M = 45.0  # shared/spec/cli.md: header config.agl_m, else 45 m
+DEFAULT_AGL_M = 45.0  # docs/cli.md: header config.agl_m, else 45 m
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -1,4 +1,4 @@
-"""Record types of the flight log (shared/spec/log-format.md) and of the estimator.
+"""Record types of the flight log (docs/log-format.md) and of the estimator.
 
 Records are small frozen dataclasses with SI units in their names. They never hold
 models or callbacks. Log times are integer nanoseconds of the logging device's

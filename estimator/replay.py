@@ -55,14 +55,18 @@ class ReplayOptions:
 
 
 def parse_modes(text: str) -> tuple[str, ...]:
-    """``all`` (the paper's six), one name, or a comma-separated list."""
-    if text == "all":
-        return PAPER_MODES
-    modes = tuple(m.strip() for m in text.split(",") if m.strip())
+    """``all`` (the paper's six), one name, or a list joined by ``,`` or ``+``
+    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped."""
+    names = [m.strip() for m in text.replace("+", ",").split(",") if m.strip()]
+    modes: list[str] = []
+    for m in names:
+        for name in PAPER_MODES if m == "all" else (m,):
+            if name not in modes:
+                modes.append(name)
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
         raise ValueError(f"unknown mode {text!r}; choose from {', '.join(MODES)} or all")
-    return modes
+    return tuple(modes)
 
 
 @dataclass
@@ -91,6 +95,11 @@ class TrackResult:
     def converged(self) -> bool:
         return self.status == "converged"
 
+    @property
+    def has_bias(self) -> bool:
+        """Whether the mode's filter estimates a range bias (the UKF's state has none)."""
+        return MODES[self.mode].filter != "ukf"
+
     def to_json(self) -> dict:
         d: dict = {"bssid": self.bssid, "mode": self.mode, "status": self.status,
                    "converged": self.converged}
@@ -102,8 +111,9 @@ class TrackResult:
                 alt_m=round(self.alt_m, 3),
                 sigma_h_m=round(e.sigma_h_m, 4),
                 sigma_z_m=round(e.sigma_z_m, 4),
-                bias_m=round(e.bias_m, 4),
             )
+            if self.has_bias:  # the UKF has no bias state: no bias_m at all
+                d["bias_m"] = round(e.bias_m, 4)
         d.update({k: self.counts[k] for k in ("n_meas", "n_bootstrap", "n_acc", "n_gate")})
         d.update(n_mad=self.counts["n_mad"], n_nis=self.counts["n_nis"])
         if e is not None and self.err_h_m is not None:
@@ -328,7 +338,7 @@ def format_table(report: ReplayReport) -> str:
                 f"  {t.mode:<12}{t.status:<14}{t.counts['n_gate']:>7}{t.counts['n_acc']:>7}"
                 f"{f(e.sigma_h_m if e else None):>9}{f(e.sigma_z_m if e else None):>9}"
                 f"{f(t.err_h_m):>8}{f(t.twm_h_m):>7}{f(t.err_3d_m):>8}"
-                f"{f(e.bias_m if e else None, 2):>7}"
+                f"{f(e.bias_m if e and t.has_bias else None, 2):>7}"
             )
         lines.append("")
     rj = report.rejected.rejected

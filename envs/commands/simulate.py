@@ -1,4 +1,4 @@
-"""``osa simulate SCENARIO -o LOG [--seed N]`` and ``osa simulate --list`` (shared/spec/cli.md)."""
+"""``osa simulate SCENARIO -o LOG [--seed N]`` and ``osa simulate --list`` (docs/cli.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Flight-log reader/writer against shared/spec/log-format.md (version 1)."""
+"""Flight-log reader/writer against docs/log-format.md (version 1)."""
 
 from __future__ import annotations
 
@@ -798,3 +798,22 @@ def _mutated_lines(draw) -> bytes:
 @given(line=_json_ish_lines() | _mutated_lines())
 def test_record_shaped_garbage_never_raises(line: str | bytes) -> None:
     _check_one_outcome(line)
+
+
+def test_a_gzip_log_closes_its_file_when_abandoned(tmp_path: Path) -> None:
+    """Reading part of a .gz log and stopping leaves no file open (no ResourceWarning)."""
+    import gc
+
+    from estimator.logio import probe_log
+
+    path, _ = _big_gz_log(tmp_path, n=50)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stream = probe_log(path)
+        it = iter_log(path)
+        next(it)
+        it.close()
+        del it
+        gc.collect()
+    assert stream.n_records == 2  # the header and the first fix
+    assert [w for w in caught if issubclass(w.category, ResourceWarning)] == []
