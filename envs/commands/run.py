@@ -114,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         scenario = sim.load_scenario(args.scenario)
     except (KeyError, ValueError, OSError) as exc:
         return _fail(exc.args[0] if exc.args else exc)
+    if scenario.flight is None:
+        return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
     if args.rerun and (problem := writable_file_problem(args.rerun)):
         return _fail(problem)
     out = Path(args.out)

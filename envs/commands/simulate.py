@@ -47,6 +47,8 @@ def run(args: argparse.Namespace) -> int:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
         return _fail(str(exc))
+    if scenario.flight is None:
+        return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
 
     from sim.simulate import run_scenario, write_log
 
