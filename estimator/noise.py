@@ -150,6 +150,30 @@ def empirical_r_m2(
     return max(sigma_gate_m * sigma_gate_m, model)
 
 
+def empirical_model_m2(range_m: float, rssi_dbm: float | None, cfg: EmpiricalRConfig) -> float:
+    """The model part of eq. (23), sigma_0^2 + alpha d^2 + beta q^2 (no MAD floor)."""
+    q = 0.0 if rssi_dbm is None else max(0.0, -rssi_dbm - cfg.r_ref_db)
+    return cfg.sigma0_m**2 + cfg.alpha * range_m * range_m + cfg.beta_m2_per_db2 * q * q
+
+
+class CalibratedR:
+    """Mode ``refined``: R = s_a^2 (sigma_0^2 + alpha d^2 + beta q^2) (ours).
+
+    The Empirical-R shape of eq. (23) without its MAD floor (at 3-5 Hz sigma_gate is
+    dominated by the drone's own range rate), scaled by the measuring agent's noise
+    scale ``scales[agent]`` as the batch refinement calibrates it (1 until then).
+    """
+
+    def __init__(self, cfg: EmpiricalRConfig, scales: dict[str, float]) -> None:
+        self.cfg = cfg
+        self.scales = scales
+
+    def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
+        meas = m.meas
+        s = self.scales.get(meas.agent, 1.0)
+        return s * s * empirical_model_m2(meas.range_m, meas.rssi_dbm, self.cfg)
+
+
 class EmpiricalR:
     """Empirical-R mode, eq. (13): distance- and RSSI-dependent variance."""
 
