@@ -24,10 +24,12 @@ from estimator.geodesy import EnuFrame
 from estimator.logio import LogStream, RejectCounts, iter_log_sorted
 from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
 from estimator.pipeline import (
+    MODE_ALIASES,
     MODES,
     PAPER_MODES,
     PipelineConfig,
     Published,
+    resolve_modes,
 )
 from estimator.records import Estimate, TruthRecord
 
@@ -45,6 +47,7 @@ class ReplayOptions:
     keep_history: bool = True  # published estimates per track (figures); off: O(1) memory
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)} or 'all'")
@@ -55,13 +58,18 @@ class ReplayOptions:
 
 
 def parse_modes(text: str) -> tuple[str, ...]:
-    """``all`` (the paper's six), one name, or a comma-separated list."""
+    """``all`` (the paper's six), one name, or a comma-separated list.
+
+    Aliases resolve to the mode's real name (``best`` -> ``refined``, the recommended
+    mode), so the estimates carry it; duplicates are dropped.
+    """
     if text == "all":
         return PAPER_MODES
-    modes = tuple(m.strip() for m in text.split(",") if m.strip())
+    modes = resolve_modes(m.strip() for m in text.split(",") if m.strip())
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
-        raise ValueError(f"unknown mode {text!r}; choose from {', '.join(MODES)} or all")
+        names = ", ".join([*MODES, *MODE_ALIASES])
+        raise ValueError(f"unknown mode {text!r}; choose from {names} or all")
     return modes
 
 
