@@ -396,13 +396,15 @@ def associated_enu(paths, frame=None):
     return np.array(us, float).reshape(-1, 3), np.array(ds, float), np.array(ks, int)
 
 
-def batch_reference_fit(paths, *, loss: str = "soft_l1", f_scale_m: float = 1.0) -> np.ndarray:
-    """The plain batch robust fit of issue 8, in the world frame: scipy least_squares
-    on [x, y, z, b] over every associated range, unweighted, multi-start (the anchors'
-    centroid 45 m down and four points 30 m around it), the lowest cost kept."""
+def batch_reference_fit(paths, *, frame=None, loss: str = "soft_l1", f_scale_m: float = 1.0
+                        ) -> np.ndarray:
+    """The plain batch robust fit of issue 8: scipy least_squares on [x, y, z, b] over
+    every associated range, unweighted, multi-start (the anchors' centroid 45 m down and
+    four points 30 m around it), the lowest cost kept; in ``frame`` (default the world's
+    exact ENU; pass the replay's frame to compare in the same ENU frame)."""
     from scipy.optimize import least_squares
 
-    u, d, _ = associated_enu(paths)
+    u, d, _ = associated_enu(paths, frame)
 
     def resid(th):
         return np.linalg.norm(th[:3] - u, axis=1) + th[3] - d
@@ -454,6 +456,22 @@ def crlb_cov_h(world: World) -> np.ndarray:
     keep = [i for i in range(3 + na) if info[i, i] > 0]
     cov = np.linalg.inv(info[np.ix_(keep, keep)])
     return cov[:2, :2]
+
+
+def reference_error_m(world: World, projection: str = "tangent") -> float:
+    """Horizontal error of :func:`batch_reference_fit` in the frame a replay with this
+    ``projection`` uses (the eq. 1 tangent plane, or exact WGS84, at the first anchor)."""
+    from estimator.geodesy import make_frame
+
+    _, tangent = associated_ranges(world.paths)
+    if tangent is None:
+        return math.inf
+    frame = tangent if projection == "tangent" else make_frame(
+        projection, tangent.lat0_deg, tangent.lon0_deg, tangent.h0_m)
+    fit = batch_reference_fit(world.paths, frame=frame)
+    lat, lon, alt = ExactENU(*ORIGIN).to_geodetic(*world.ap_enu_m)
+    te, tn, _ = frame.to_enu(lat, lon, alt)
+    return math.hypot(fit[0] - te, fit[1] - tn)
 
 
 def associated_ranges(paths):
