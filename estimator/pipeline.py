@@ -7,7 +7,11 @@ filter, a noise model and a smoother (:data:`MODES`), not six pipelines. Further
 Counting (Table "Filter comparison on AP_1F"): ``n_meas`` associated measurements enter
 the track; those up to and including the successful bootstrap are ``n_bootstrap``;
 after it every measurement is either rejected (``n_gate`` = MAD ``n_mad`` + NIS
-``n_nis``) or accepted (``n_acc``), so n_meas = n_bootstrap + n_gate + n_acc.
+``n_nis``) or accepted (``n_acc``), so n_meas = n_bootstrap + n_gate + n_acc. When the
+filter state becomes invalid the track restarts: the measurements of the discarded
+filter (and the one that broke it) join ``n_bootstrap``, the post-bootstrap counts
+restart at zero (``n_restarts`` counts restarts), so the identity holds and ``n_acc``
+(which the convergence rules read) counts the running filter's updates only.
 """
 
 from __future__ import annotations
@@ -398,9 +402,9 @@ class FilterRun:
                 c.n_gate += 1
                 c.n_nis += 1
                 return NIS
-            c.n_acc += 1
             if self.ground_prior:
                 f.update_height(self.front.ground_median(), self.cfg.ground.r_z_m2)
+            c.n_acc += 1
         except FilterError:
             self._restart()
             return RESTART
@@ -438,9 +442,16 @@ class FilterRun:
         self.diverged = False
 
     def _restart(self) -> None:
-        """Filter blew up: mark diverged and bootstrap again from new samples."""
+        """Filter blew up: mark diverged and bootstrap again from new samples.
+
+        The current measurement (already in ``n_meas``) and everything the discarded
+        filter counted join ``n_bootstrap``; the post-bootstrap counts restart at zero.
+        """
+        c = self.counts
+        c.n_bootstrap += c.n_gate + c.n_acc + 1
+        c.n_gate = c.n_mad = c.n_nis = c.n_acc = 0
+        c.n_restarts += 1
         self.diverged = True
-        self.counts.n_restarts += 1
         self.generation += 1
         self.filter = None
         self._boot.clear()
