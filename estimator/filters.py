@@ -24,12 +24,12 @@ RSpec = float | Callable[[float, float], float]
 
 @dataclass(frozen=True, kw_only=True)
 class IekfConfig:
-    """IEKF3D parameters (eqs. 15-20)."""
+    """IEKF3D parameters (eqs. 12-17)."""
 
     q_diag: tuple[float, float, float, float] = (0.01, 0.01, 0.04, 1e-4)  # Q, m^2
     p0_diag: tuple[float, float, float, float] = (25.0, 25.0, 100.0, 4.0)  # P0, m^2
     iterations: int = 3  # M relinearising iterations
-    nis_gate: float = 9.0  # eq. (19)
+    nis_gate: float = 9.0  # eq. (16)
     bias0_m: float = 0.0
 
 
@@ -128,7 +128,7 @@ def _check(x: Vec, P: Mat) -> None:
 
 
 class IEKF3D:
-    """Iterated EKF on [x, y, z, b] with h(x) = |p - u| + b (eqs. 15-20)."""
+    """Iterated EKF on [x, y, z, b] with h(x) = |p - u| + b (eqs. 12-17)."""
 
     n = 4
     has_bias = True
@@ -153,14 +153,14 @@ class IEKF3D:
         return r + x[3], [dx / r, dy / r, dz / r, 1.0]
 
     def predict(self) -> None:
-        """Eq. (15): static AP, P^- = P + Q."""
+        """Eq. (12): static AP, P^- = P + Q."""
         P = self.P
         q = self._q
         for i in range(4):
             P[i][i] += q[i]
 
     def innovation(self, anchor: Sequence[float], range_m: float) -> tuple[float, float]:
-        """Prior innovation nu = d - h(x^-) and H P^- H^T (eq. 18)."""
+        """Prior innovation nu = d - h(x^-) and H P^- H^T (eq. 15)."""
         h, H = self._h_and_jac(self.x, anchor)
         P = self.P
         hph = 0.0
@@ -175,7 +175,7 @@ class IEKF3D:
 
         ``r_m2`` is R, or a callable ``(nu, H P^- H^T) -> R`` for innovation-based
         noise models (evaluated once, at the prior). The gate uses nu and S at the prior
-        (eqs. 18-19); iteration i relinearises at x_i:
+        (eqs. 15-16); iteration i relinearises at x_i:
         x_{i+1} = x^- + K_i (d - h(x_i) - H_i (x^- - x_i)).
         """
         x0 = self.x
@@ -226,7 +226,7 @@ class IEKF3D:
         return UpdateResult(True, nu, S, nis, r_m2)
 
     def update_height(self, z_m: float, r_m2: float) -> None:
-        """Ground-height pseudo-measurement z = z_prior, R_z (eq. 16)."""
+        """Ground-height pseudo-measurement z = z_prior, R_z (eq. 18)."""
         _height_update(self, z_m, r_m2)
 
     @property

@@ -56,7 +56,7 @@ DEFAULT_AGL_M = 45.0  # shared/spec/cli.md: header config.agl_m, else 45 m
 
 @dataclass(frozen=True, kw_only=True)
 class GroundPriorConfig:
-    """Ground-height pseudo-measurement after each accepted update (eq. 16)."""
+    """Ground-height pseudo-measurement after each accepted update (eq. 18)."""
 
     enabled: bool = True
     window: int = 25  # W_z of the ground prior: last 25 drone altitudes
@@ -177,7 +177,7 @@ class PipelineConfig:
 
 
 class _EmpiricalNlos:
-    """Empirical-R inflated by the NLoS decision of eq. (12) (mode ``robust``)."""
+    """Empirical-R inflated by the NLoS decision of eq. (22) (mode ``robust``)."""
 
     def __init__(self, cfg: PipelineConfig) -> None:
         self.emp = EmpiricalR(cfg.empirical)
@@ -209,7 +209,7 @@ class Published(NamedTuple):
     """One published (smoothed) estimate in the track's history.
 
     ``cov_m2`` is the filter's 3 x 3 position covariance at publication (row-major
-    tuples); ``sigma_h_m`` = sqrt(P_xx + P_yy) and ``sigma_z_m`` = sqrt(P_zz) (eq. 21).
+    tuples); ``sigma_h_m`` = sqrt(P_xx + P_yy) and ``sigma_z_m`` = sqrt(P_zz) (eq. 19).
     ``r95_h_m`` (modes beyond the paper's) is the radius of the 95 % horizontal circle.
     """
 
@@ -293,7 +293,7 @@ class SharedFront:
         return gm
 
     def ground_median(self) -> float:
-        """z_prior = median of the last W (z_d - H_AGL), eq. (16)."""
+        """z_prior = median of the last W (z_d - H_AGL), eq. (18)."""
         if self._ground_med is None:
             self._ground_med = median(self.ground)
         return self._ground_med
@@ -527,7 +527,7 @@ class Track:
         f = self.run.filter
         assert f is not None
         P = f.P
-        sigma_h = math.sqrt(P[0][0] + P[1][1])  # eq. (21)
+        sigma_h = math.sqrt(P[0][0] + P[1][1])  # eq. (19)
         sigma_z = math.sqrt(P[2][2])
         pos = self.smoother.push(f.position_enu_m)
         n_acc = self.run.counts.n_acc
