@@ -123,9 +123,9 @@ class RefinedTrack(Track):
             )
         run = self.run
         out = run.step(self._corrected(m), g, agl)
-        if run.generation != self._generation:
+        if run.generation != self._generation:  # the front restarted; the buffer stays
             self._generation = run.generation
-            self.last = None
+            self.last = self._refined_pub
             for obs in self.observers:
                 obs.restarted(self)
         pub = self._publish_front(m.t_s) if out == ACC else None
@@ -321,14 +321,19 @@ class RefinedTrack(Track):
         return self.last is not None
 
     def reported(self) -> Published | None:
-        """The latest estimate (front or refinement), with its 95 % circle."""
-        pub = self.last
+        """The latest estimate (front or refinement) with its 95 % circle; while the
+        verdict is ``ambiguous``, the refinement's mixture (the front follows one side)."""
+        amb = self.verdict == "ambiguous"
+        pub = self._refined_pub if amb else self.last
         if pub is None:
             return None
         if pub.r95_h_m is None and pub.cov_m2 is not None:
             C = np.array(pub.cov_m2)
             pub = pub._replace(r95_h_m=r_circle_m(C[:2, :2], 0.95))
-            self.last = pub
+            if amb:
+                self._refined_pub = pub
+            else:
+                self.last = pub
         return pub
 
 

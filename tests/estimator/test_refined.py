@@ -251,3 +251,30 @@ def test_online_front_refinements_and_final(tmp_path):
     rep1 = replay_logs(w.paths, ReplayOptions(modes=("refined",))).to_json()
     rep2 = replay_logs(w.paths, ReplayOptions(modes=("refined",))).to_json()
     assert rep1 == rep2
+
+
+def test_a_front_restart_keeps_the_refined_estimate_and_the_counts(tmp_path):
+    from estimator.filters import FilterError
+
+    w = W.los_world(2, tmp_path)
+    ms, _ = W.associated_ranges(w.paths)
+    tr = make_track(W.BSSID, "refined", front=SharedFront())
+    for m in ms[:200]:
+        tr.process(m)
+    assert tr.status == "converged" and tr.n_refinements >= 3
+    refined = tr._refined_pub
+
+    def broken(*a, **k):
+        raise FilterError("covariance is not positive")
+
+    tr.run.filter.update = broken
+    tr.process(ms[200])
+    c = tr.counts
+    assert c.n_restarts == 1 and c.n_acc == 0
+    assert c.n_meas == c.n_bootstrap + c.n_gate + c.n_acc == 201
+    assert tr.reported() is not None and tr.reported().enu_m == refined.enu_m
+    for m in ms[201:]:
+        tr.process(m)
+    tr.finalize()
+    assert tr.status == "converged" and tr.buffer.n == len(ms)
+    assert c.n_meas == c.n_bootstrap + c.n_gate + c.n_acc == len(ms)
