@@ -42,7 +42,7 @@ from estimator.batch import (
 )
 from estimator.gate import MadGate
 from estimator.geometry import horizontal_condition_number
-from estimator.noise import CalibratedR, empirical_model_m2
+from estimator.noise import CalibratedR, GatedRange, empirical_model_m2
 from estimator.pipeline import (
     ACC,
     MODES,
@@ -62,6 +62,30 @@ Candidate = tuple[tuple[float, float, float], float, float]  # mean ENU, sigma_h
 
 def _tuple3(M: np.ndarray) -> tuple[tuple[float, float, float], ...]:
     return tuple((float(r[0]), float(r[1]), float(r[2])) for r in M)
+
+
+class _AgentGates:
+    """The front a :class:`FilterRun` asks for, for a track that gates each agent in its
+    own MAD window: the measurement index, the gated range (with its sigma_gate)."""
+
+    def __init__(self, cfg: PipelineConfig) -> None:
+        self.cfg = cfg
+        self.index = -1
+        self._gates: dict[str, MadGate] = {}
+        self._gm: GatedRange | None = None
+
+    def front(self, m: AssociatedRange):
+        gate = self._gates.get(m.agent)
+        if gate is None:
+            gate = self._gates[m.agent] = MadGate(self.cfg.gate)
+        g = gate.check(m.t_s, m.range_m)
+        self.index += 1
+        self._gm = GatedRange(m, g.sigma_gate_m)
+        return g
+
+    def gated(self) -> GatedRange:
+        assert self._gm is not None
+        return self._gm
 
 
 class RefinedTrack(Track):
@@ -85,13 +109,13 @@ class RefinedTrack(Track):
         self.verdict: str | None = None
         self.candidates: tuple[Candidate, ...] = ()
         self.n_refinements = 0
-        self._next_n = 0
+        self._next_n = self.rcfg.min_n  # no refinement on fewer ranges than a verdict needs
         self._n_refined = 0
         self._n_checked = 0  # ranges at the last check for other minima
         self._corr: dict[str, tuple] = {}  # agent -> (offset, knot times, knots) or const
         self._gnss_cov: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3
         self._refined_pub: Published | None = None
-        self._gates: dict[str, MadGate] = {}
+        self._agent_gates = _AgentGates(cfg)
         super().__init__(bssid, mode, cfg, keep_history=keep_history, front=front,
                          observers=observers)
 
@@ -100,7 +124,7 @@ class RefinedTrack(Track):
         return FilterRun(
             self.spec,
             cfg,
-            self.front,
+            self._agent_gates,  # type: ignore[arg-type]  # index and gated() only
             noise_factory=lambda: CalibratedR(cfg.empirical, self.scales),
             iekf=self.rcfg.front,
             ground_prior=False,
@@ -110,11 +134,7 @@ class RefinedTrack(Track):
     # ------------------------------------------------------------------ processing
     def process(self, m: AssociatedRange) -> Published | None:
         agl = m.agl_m if m.agl_m is not None else self.cfg.agl_m
-        self.front.front(m, agl)  # keeps the shared front's measurement index
-        gate = self._gates.get(m.agent)
-        if gate is None:
-            gate = self._gates[m.agent] = MadGate(self.cfg.gate)
-        g = gate.check(m.t_s, m.range_m)
+        g = self._agent_gates.front(m)
         if g.accepted:
             self.buffer.append(
                 m.t_s, m.anchor_enu_m, m.range_m,
