@@ -17,7 +17,7 @@ fit of every gated range of one responder, with
   per-agent scale s_a calibrated from the agent's own residuals (robust MAD, shrunk
   towards 1 with ``scale_prior_n`` pseudo-samples);
 * priors used once: beta_a ~ Gauss-Markov N(0, sigma_gnss^2 exp(-|dt| / tau)) per axis
-  (:class:`GnssErrorModel`, from the fix accuracy and type), b_a ~ N(0, 2 m^2) (the
+  (:class:`GnssErrorModel`, from the fix accuracy and type), b_a ~ N(0, (2 m)^2) (the
   paper's P0 for the bias), and the ground height p_z ~ N(median(z_d - H_AGL), 5 m^2)
   (eq. 18's value and R_z, once per agent with its variance times the agent count, so
   the prior counts once overall);
@@ -29,7 +29,7 @@ pure translation, so the horizontal covariance is the range-only one plus the GN
 bias covariance; with several agents each agent's bias is shrunk by the others, which
 weights each agent by its own GNSS quality and measured noise (multi-agent fusion).
 
-:func:`candidates` checks for other minima (multi-start from the mirror images about
+:func:`search_minima` checks for other minima (multi-start from the mirror images about
 the anchors' principal axes, and both sides of a straight pass) and weighs them by
 their Laplace-approximated evidence; :func:`r_circle_m` gives the radius of a
 probability circle of a 2 x 2 covariance (``r95_h_m``).
@@ -529,7 +529,7 @@ def _merge_radius_m(sol: Solution, min_separation_m: float = 1.0) -> float:
     return max(min_separation_m, 0.1 * sig)
 
 
-def distinct_minima(data: RangeData, sols: Sequence[Solution], *, min_weight: float = 0.01,
+def distinct_minima(sols: Sequence[Solution], *, min_weight: float = 0.01,
                     min_separation_m: float = 1.0) -> list[Minimum]:
     """Merge minima closer than :func:`_merge_radius_m` and weigh the rest by their
     Laplace evidence; drop those below ``min_weight``. Best first, weights sum to 1."""
@@ -581,7 +581,7 @@ def search_minima(data: RangeData, main: Solution, cfg: BatchConfig = BatchConfi
         t, it = prob.minimise(th, max_iter, stop_near=(main.theta[:2], lim))
         if math.dist(t[:2], main.theta[:2]) >= lim:
             sols.append(prob.solution(t, main.scales, it))
-    minima = distinct_minima(data, sols, min_weight=0.0)
+    minima = distinct_minima(sols, min_weight=0.0)
     if straight_pass:
         best = minima[0].solution
         side = np.sign((best.theta[:2] - c) @ minor)
@@ -591,7 +591,7 @@ def search_minima(data: RangeData, main: Solution, cfg: BatchConfig = BatchConfi
             th[:2] = mirror_xy(best.theta, c, major)
             t, it = prob.minimise(th, max_iter, hold_xy=True)
             sols.append(prob.solution(t, main.scales, it))
-    return distinct_minima(data, sols, min_weight=min_weight)
+    return distinct_minima(sols, min_weight=min_weight)
 
 
 # ----------------------------------------------------------------------------- circles

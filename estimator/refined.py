@@ -57,7 +57,7 @@ from estimator.pipeline import (
 )
 from estimator.records import AssociatedRange
 
-Candidate = tuple[tuple[float, float, float], float, float]  # mean ENU, sigma_h, weight
+CandidateEnu = tuple[tuple[float, float, float], float, float]  # mean ENU, sigma_h, weight
 
 
 def _tuple3(M: np.ndarray) -> tuple[tuple[float, float, float], ...]:
@@ -107,7 +107,7 @@ class RefinedTrack(Track):
         self.solution: Solution | None = None
         self.minima: list[Minimum] = []
         self.verdict: str | None = None
-        self.candidates: tuple[Candidate, ...] = ()
+        self.candidates: tuple[CandidateEnu, ...] = ()
         self.n_refinements = 0
         self._next_n = self.rcfg.min_n  # no refinement on fewer ranges than a verdict needs
         self._n_refined = 0
@@ -298,8 +298,8 @@ class RefinedTrack(Track):
         # the 95 % circle lies inside the isotropic one of the major sigma
         r95_max = math.sqrt(float(np.linalg.eigvalsh(C[:2, :2])[-1]) * -2.0 * math.log(0.05))
         best = minima[0].solution
-        counted = [s for s, k in zip(best.scales, range(len(data.agents)), strict=True)
-                   if int(np.sum(data.agent == k)) >= 10]
+        n_by_agent = np.bincount(data.agent, minlength=len(data.agents))
+        counted = [s for s, n in zip(best.scales, n_by_agent, strict=True) if n >= 10]
         if len(minima) > 1:
             verdict = "ambiguous"
         elif not kappa < rc.max_kappa:
