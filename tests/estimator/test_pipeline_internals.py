@@ -67,6 +67,40 @@ def test_ground_prior_is_applied_after_every_accepted_update():
         assert checked > 300
 
 
+def test_adaptive_r_is_wired_into_the_filter_update():
+    """Mode adaptive-r: each measurement reaching the filter updates R_hat with nu and
+    H P^- H^T at the prior (eq. 24, R_0 = sigma_gate^2, clipped to [0.01, 25]) and the
+    update uses exactly that R (then the ground prior)."""
+    tr = Track("b", "adaptive-r")
+    checked = 0
+    for m in stream():
+        f = tr.run.filter
+        if f is not None:
+            ref = copy.deepcopy(f)
+            gate = copy.deepcopy(tr.front.gate)
+            window = [*list(tr.front.ground)[-24:], m.anchor_enu_m[2] - 45.0]
+            prev = tr.run.noise.r_hat_m2
+            before_acc, before_nis = tr.counts.n_acc, tr.counts.n_nis
+        tr.process(m)
+        if f is None or tr.run.filter is None:
+            continue
+        sg = gate.check(m.t_s, m.range_m).sigma_gate_m
+        ref.predict()
+        nu, hph = ref.innovation(m.anchor_enu_m, m.range_m)
+        r0 = sg * sg if prev is None else prev
+        r = min(25.0, max(0.01, 0.95 * r0 + 0.05 * (nu * nu - hph)))
+        assert tr.run.noise.r_hat_m2 == pytest.approx(r, abs=1e-12)
+        if tr.counts.n_acc == before_acc + 1:
+            assert ref.update(m.anchor_enu_m, m.range_m, r).accepted
+            ref.update_height(statistics.median(window), 25.0)
+            np.testing.assert_allclose(np.array(tr.run.filter.P), np.array(ref.P), atol=1e-12)
+            np.testing.assert_allclose(tr.run.filter.x, ref.x, atol=1e-12)
+            checked += 1
+        else:
+            assert tr.counts.n_nis == before_nis + 1
+    assert checked > 300
+
+
 def _converged_track():
     tr = Track("b", "baseline")
     ms = stream(duration_s=240.0)
