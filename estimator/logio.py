@@ -337,10 +337,23 @@ def _open_binary(path: str | os.PathLike) -> IO[bytes]:
         raise LogError(f"{p}: cannot open ({exc.strerror})") from exc
     head = fh.peek(2)[:2] if hasattr(fh, "peek") else b""
     if head == _GZIP_MAGIC:
-        # gzip.open owns its file (a GzipFile given a fileobj leaves it open on close)
-        fh.close()
-        return gzip.open(p, "rb")  # type: ignore[return-value]
+        return _GzipReader(fh)
     return fh
+
+
+class _GzipReader(gzip.GzipFile):
+    """A gzip stream that owns the file under it: closing it closes both (a GzipFile
+    given a ``fileobj`` leaves that file open, and it leaks as a ResourceWarning)."""
+
+    def __init__(self, raw: IO[bytes]) -> None:
+        self._raw = raw
+        super().__init__(fileobj=raw, mode="rb")
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self._raw.close()
 
 
 @dataclass

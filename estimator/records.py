@@ -102,6 +102,7 @@ class AssociatedRange:
     anchor_vacc_m: float | None = None
     agl_m: float | None = None  # H_AGL of the agent that measured it (None: pipeline default)
     agent: str = ""
+    anchor_fix: str | None = None  # GNSS fix type of the anchor (GNSS_FIX_TYPES), if logged
 
 
 EstimateStatus = Literal[

@@ -24,10 +24,12 @@ from estimator.geodesy import EnuFrame
 from estimator.logio import LogStream, RejectCounts, iter_log_sorted
 from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
 from estimator.pipeline import (
+    MODE_ALIASES,
     MODES,
     PAPER_MODES,
     PipelineConfig,
     Published,
+    resolve_modes,
 )
 from estimator.records import Estimate, TruthRecord
 
@@ -45,6 +47,7 @@ class ReplayOptions:
     keep_history: bool = True  # published estimates per track (figures); off: O(1) memory
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)} or 'all'")
@@ -56,17 +59,21 @@ class ReplayOptions:
 
 def parse_modes(text: str) -> tuple[str, ...]:
     """``all`` (the paper's six), one name, or a list joined by ``,`` or ``+``
-    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped."""
+    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped.
+
+    Aliases resolve to the mode's real name (``best`` -> ``refined``, the recommended
+    mode), so the estimates carry it.
+    """
     names = [m.strip() for m in text.replace("+", ",").split(",") if m.strip()]
-    modes: list[str] = []
+    expanded: list[str] = []
     for m in names:
-        for name in PAPER_MODES if m == "all" else (m,):
-            if name not in modes:
-                modes.append(name)
+        expanded.extend(PAPER_MODES if m == "all" else (m,))
+    modes = resolve_modes(expanded)
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
-        raise ValueError(f"unknown mode {text!r}; choose from {', '.join(MODES)} or all")
-    return tuple(modes)
+        choices = ", ".join([*MODES, *MODE_ALIASES])
+        raise ValueError(f"unknown mode {text!r}; choose from {choices} or all")
+    return modes
 
 
 @dataclass

@@ -817,3 +817,23 @@ def test_a_gzip_log_closes_its_file_when_abandoned(tmp_path: Path) -> None:
         gc.collect()
     assert stream.n_records == 2  # the header and the first fix
     assert [w for w in caught if issubclass(w.category, ResourceWarning)] == []
+
+
+@pytest.mark.parametrize("name", ["log.jsonl.gz", "log.jsonl"])
+def test_reading_closes_the_file_under_the_gzip_stream(tmp_path: Path, name: str) -> None:
+    """Every replay of a gzip log printed 'unclosed file': the GzipFile did not close the
+    file it was given. Reading to the end, or stopping early, must leave nothing open."""
+    import gc
+
+    from estimator.replay import replay_logs
+    from tests.estimator.synth import write_flight
+
+    path = write_flight(tmp_path / name, seed=1, duration_s=30.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        replay_logs([path])
+        it = iter_log(path)
+        next(it)
+        it.close()  # an abandoned reader closes too
+        gc.collect()
+    assert [w for w in caught if issubclass(w.category, ResourceWarning)] == []
