@@ -24,6 +24,7 @@ Rows (one per policy, seed and responder) carry the ``osa search`` report's fiel
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import csv
 import math
 import multiprocessing
@@ -245,6 +246,24 @@ def _wait_first(pending: set, timeout_s: float, client) -> tuple[set, set]:
     return set(done), set(not_done)
 
 
+# what Dask's nanny sets for its workers: one BLAS/OpenMP thread per worker process
+# (N processes with a spinning OpenBLAS pool each oversubscribe the cores)
+SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def _single_threaded_children():
+    """Spawned children start with one BLAS thread unless the user chose otherwise."""
+    added = [k for k in SINGLE_THREADED if k not in os.environ]
+    for k in added:
+        os.environ[k] = "1"
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
 def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
     """Stop a local pool now (after a timeout or an error): its workers are ours."""
     terminate = getattr(pool, "terminate_workers", None)  # Python >= 3.14
@@ -326,9 +345,10 @@ def evaluate(
             if dask:
                 futures = client.map(run_episodes, tasks, scenario=scenario, config=config,
                                      track_seeds=examples, pure=False)
-            else:
-                futures = [runner.submit(run_episodes, t, scenario, config, examples)
-                           for t in tasks]
+            else:  # a spawning pool starts its processes as tasks are submitted
+                with _single_threaded_children() if own_pool else contextlib.nullcontext():
+                    futures = [runner.submit(run_episodes, t, scenario, config, examples)
+                               for t in tasks]
             pending = set(futures)
             while pending:
                 done, pending = _wait_first(pending, task_timeout_s, client if dask else None)
