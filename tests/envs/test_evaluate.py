@@ -121,6 +121,15 @@ def test_a_dask_cluster_gives_the_serial_rows(scenario, serial, dask_client):
     assert len(seen) == 3  # 9 episodes in tasks of 4: three tasks
 
 
+def test_any_executor_will_do(scenario, serial):
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        ev = evaluate(scenario, ["lawnmower"], SEEDS, client=pool, task_size=1,
+                      task_timeout_s=60)
+    assert ev.rows == [r for r in serial.rows if r["policy"] == "lawnmower"]
+
+
 def test_rows_are_in_a_fixed_order(serial):
     keys = [(r["policy"], r["seed"]) for r in serial.rows]
     assert keys == [(p, s) for p in POLICIES for s in SEEDS]
