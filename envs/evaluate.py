@@ -279,6 +279,18 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
         proc.join(timeout=10)
 
 
+def _result(future, timeout_s: float, dask: bool) -> list[EpisodeResult]:
+    """A finished task's episodes; a worker that died is an :class:`EpisodeError`."""
+    try:
+        return future.result(timeout=timeout_s) if dask else future.result()
+    except cf.BrokenExecutor as exc:  # BrokenProcessPool
+        raise EpisodeError(f"a local worker process died ({exc})") from exc
+    except Exception as exc:
+        if type(exc).__name__ == "KilledWorker":  # distributed.KilledWorker
+            raise EpisodeError(f"Dask workers died running a task ({exc})") from exc
+        raise
+
+
 def evaluate(
     scenario: Scenario,
     policies: Sequence[str],
@@ -346,7 +358,8 @@ def evaluate(
                 futures = client.map(run_episodes, tasks, scenario=scenario, config=config,
                                      track_seeds=examples, pure=False)
             else:  # a spawning pool starts its processes as tasks are submitted
-                with _single_threaded_children() if own_pool else contextlib.nullcontext():
+                with (_single_threaded_children() if own_pool is not None
+                      else contextlib.nullcontext()):
                     futures = [runner.submit(run_episodes, t, scenario, config, examples)
                                for t in tasks]
             pending = set(futures)
@@ -357,7 +370,7 @@ def evaluate(
                         f"no task of {len(tasks)} finished within {task_timeout_s:g} s "
                         f"({len(done_results)} of {len(todo)} episodes done)")
                 for f in done:
-                    finished(f.result(timeout=task_timeout_s) if dask else f.result())
+                    finished(_result(f, task_timeout_s, dask))
         except BaseException:
             if dask:
                 client.cancel(futures)
