@@ -308,7 +308,7 @@ def evaluate(
 
     ``client``: a pre-configured ``dask.distributed.Client`` (or any
     ``concurrent.futures.Executor``) to run on; otherwise ``workers`` local processes
-    (1: serially, in this process). ``progress(episodes_done, note)`` is called as
+    (1, or a single task: serially, in this process). ``progress(episodes_done, note)`` is called as
     tasks finish. ``example_seeds`` keep their tracks (trajectory figure). Raises
     :class:`EpisodeError` if an episode fails, :class:`EvaluationTimeoutError` if no task
     finishes within ``task_timeout_s``.
@@ -340,7 +340,7 @@ def evaluate(
         if progress is not None and batch:
             progress(len(done_results), f"{batch[-1].policy} seed {batch[-1].seed}")
 
-    if client is None and workers == 1:
+    if client is None and (workers == 1 or len(tasks) == 1):  # no pool for one task
         for t in tasks:
             finished(run_episodes(t, scenario, config, examples))
     else:
