@@ -25,16 +25,17 @@ class SearchEnv(SearchEnvBase):
     | 0 | `sweep`: continue the search sweep (the lawnmower, resumed where it was left) |
     | 1 | `orbit-near`: level orbit of the target's estimate, 25 m radius |
     | 2 | `orbit-far`: level orbit of the target's estimate, 60 m radius |
-    | 3 | `helix`: close helix about the estimate (18 m, -15 to +20 m about the search |
-    |   | height); the climbing probe helix while there is no estimate |
+    | 3 | `helix`: close helix about the estimate (the probe helix without one) |
     | 4 | `close-pass`: straight pass over the estimate along its least known axis |
     | 5 | `next-responder`: target the next detected responder not yet localised and fly to it |
     | 6 | `return`: fly back to the take-off point and hold |
 
-    The target is the most recently detected responder not yet localised (until
-    `next-responder` changes it); orbits and passes use where it was heard while it has
-    no estimate; without a target every manoeuvre continues the sweep. Choosing the
-    manoeuvre being flown again keeps flying it until its segment ends.
+    The close helix has an 18 m radius and climbs from 15 m below to 20 m above the
+    search height; the probe helix climbs 20 m at about the range heard. The target is
+    the most recently detected responder not yet localised (until `next-responder`
+    changes it); orbits and passes use where it was heard while it has no estimate;
+    without a target every manoeuvre continues the sweep. Choosing the manoeuvre being
+    flown again keeps flying it until its segment ends.
 
     ## Observation Space
 
