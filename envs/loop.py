@@ -131,6 +131,7 @@ class ClosedLoop:
         s = scenario.search
         self.stepper = Stepper(self.realisation, header_agl_m=s.height_m)
         self.mission = mission_of(scenario, self.realisation, config.area_margin_m)
+        self._convex = self.mission.area.convex
         self.world = self.realisation.world
         self.estimator = OnlineEstimator(EstimatorOptions(modes=(self.mode,)))
         for a in self.stepper.agents:
@@ -226,7 +227,10 @@ class ClosedLoop:
         if tuple(traj.origin) != tuple(self.mission.origin):
             return False
         here = np.asarray(self.stepper.navigation_position_m(agent)[:2])[None, :]
-        return self.mission.area.path_inside(np.vstack([here, traj.enu_m[:, :2]]), 0.0)
+        pts = np.vstack([here, traj.enu_m[:, :2]])
+        if self._convex:  # straight legs between inside points stay inside a convex area
+            return bool(np.all(self.mission.area.contains(pts, 0.0)))
+        return self.mission.area.path_inside(pts, 0.0)
 
     # ------------------------------------------------------------------ advance
     def advance(self, dt_s: float) -> list[list[Emitted]]:

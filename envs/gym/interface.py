@@ -366,10 +366,11 @@ class WaypointActions:
     vehicle: east and north times the reach of one decision (speed x period), height
     above the terrain changed by up to ``climb_m`` within the altitude band (the
     adaptive policy's: 20 m below to 25 m above the search height, at least 10 m).
-    The waypoint is pulled inside the area (a request outside it costs
-    ``leave_penalty`` times the share of the reach it lies outside); the vehicle flies
-    to it at cruise speed and on along the same line (so it does not brake at each
-    waypoint), routed inside a concave area. A request shorter than 1 m holds.
+    A waypoint beyond the area's margin is moved back along the requested line to the
+    margin (a convex area) or pulled to the nearest inside point (a concave one); such
+    a request costs ``leave_penalty`` times the share of the reach it lies outside. The
+    vehicle flies to it at cruise speed and on along the same line (so it does not brake
+    at each waypoint), routed inside a concave area. A request shorter than 1 m holds.
     """
 
     climb_m = 10.0
@@ -388,6 +389,26 @@ class WaypointActions:
         band = self.cfg.adaptive.agl_band_m
         self.band = (max(10.0, mission.height_m + band[0]), mission.height_m + band[1])
         self.penalty = 0.0  # of the last decision: share of the reach outside the area
+        area = mission.area
+        self.halfplanes = None
+        if area.convex:  # inside with the margin: n . (p - v) >= margin for every edge
+            v = area.vertices
+            e = np.concatenate([v[1:], v[:1]]) - v
+            nrm = np.column_stack([-e[:, 1], e[:, 0]]) / np.linalg.norm(e, axis=1)[:, None]
+            self.halfplanes = (nrm, (nrm * v).sum(axis=1) + area.margin_m)
+
+    def _clip(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+        """How far along start -> end the vehicle may go and stay inside with the margin
+        (a convex area); the start itself counts as allowed."""
+        nrm, c = self.halfplanes
+        d = end - start
+        g0 = nrm @ start - c
+        gd = nrm @ d
+        f = 1.0
+        for a, b in zip(g0.tolist(), gd.tolist(), strict=True):
+            if b < 0.0:
+                f = min(f, max(0.0, -a / b))
+        return start + f * d
 
     def decide(self, action, obs: Observation) -> Decision:
         from estimator.records import Trajectory
@@ -400,7 +421,10 @@ class WaypointActions:
         here = np.asarray(a.position_enu_m, dtype=float)
         reach = self.speed * self.cfg.decision_period_s
         want = here[:2] + reach * act[:2]
-        wp = np.asarray(area._pull_inside(want), dtype=float)
+        if self.halfplanes is not None:  # convex: stop where the line meets the margin
+            wp = self._clip(here[:2], want)
+        else:
+            wp = np.asarray(area._pull_inside(want), dtype=float)
         self.penalty = min(1.0, float(np.linalg.norm(want - wp)) / reach)
         ground = float(np.asarray(m.terrain.height_m(here[0], here[1])))
         if self.ground:
@@ -410,6 +434,11 @@ class WaypointActions:
         i = self.enc.agent
         if float(np.linalg.norm(wp - here[:2])) < 1.0:
             pts = [tuple(here[:2])]
+        elif self.halfplanes is not None:  # on along the same line, up to the margin
+            on = self._clip(wp, 2.0 * wp - here[:2])
+            pts = [tuple(here[:2]), tuple(wp)]
+            if float(np.linalg.norm(on - wp)) > 1.0:
+                pts.append(tuple(on))
         else:
             pts = area.route(here[:2], wp)
             on = wp + (wp - np.asarray(pts[-2], dtype=float))
