@@ -164,10 +164,12 @@ class SearchEnvBase(gym.Env):
             self._rr = rr.RecordingStream("osa-testbed", recording_id="osa-env",
                                           send_properties=False)
             self._rr.set_log_time_enabled(False)
+            # a file, else kept in memory (``self.rerun_memory``, e.g. for a notebook):
+            # never a spawned viewer, which would open a network port
             if self.rerun_path:
                 self._rr.save(self.rerun_path)
             else:
-                self._rr.spawn()
+                self.rerun_memory = self._rr.memory_recording()
         log_rerun(self._rr, self.loop, self.pilot)
         return None
 
@@ -184,5 +186,6 @@ class SearchEnvBase(gym.Env):
     def __getstate__(self) -> dict:
         d = self.__dict__.copy()
         d["_rr"] = None  # a rerun stream does not pickle; it reopens on the next render
+        d.pop("rerun_memory", None)
         return d
 

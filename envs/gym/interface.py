@@ -150,9 +150,7 @@ class Encoder:
         changes the reward needs (``information``: increase of the potential,
         ``detected``: responders heard for the first time)."""
         self.tracker.update(obs)
-        a = obs.agents[self.agent]
-        pos = np.asarray(a.position_enu_m, dtype=float)
-        self._cover(pos, obs.t_s)
+        self._cover([np.asarray(a.position_enu_m, dtype=float) for a in obs.agents], obs.t_s)
         new = [r.bssid for r in obs.responders if r.bssid not in self.detected]
         self.detected.update(new)
         for r in obs.responders:
@@ -171,20 +169,23 @@ class Encoder:
                 total += self.prior_half_logdet - half_logdet(r.cov_m2, self.cfg.cov_floor_m2)
         return total
 
-    def _cover(self, pos: np.ndarray, t_s: float) -> None:
-        """Coverage: the chance that a responder in each cell would have been heard."""
+    def _cover(self, positions: list[np.ndarray], t_s: float) -> None:
+        """Coverage: the chance that a responder in each cell would have been heard (by
+        any agent: they share one estimator)."""
+        pos = np.asarray(positions, dtype=float)  # (agents, 3)
         if self.last_pos is None:
             self.last_pos, self.last_t = pos, t_s
             return
         dt = t_s - self.last_t
         if dt > 0:
-            link = self.mission.link
-            for f in (1 / 6, 1 / 2, 5 / 6):  # three points along the flown step
-                p = self.last_pos + f * (pos - self.last_pos)
-                d = np.sqrt((self.cells[:, 0] - p[0]) ** 2 + (self.cells[:, 1] - p[1]) ** 2
-                            + (p[2] - self.cell_ground) ** 2)
-                q = np.clip(np.asarray(link.response_probability(d), dtype=float), 0.0, 0.999)
-                self.log_miss += self.rate_hz * dt / 3.0 * np.log1p(-q)
+            f = np.array([1 / 6, 1 / 2, 5 / 6])[:, None, None]  # three points along the step
+            p = (self.last_pos[None] + f * (pos - self.last_pos)[None]).reshape(-1, 3)
+            d = np.sqrt((self.cells[:, 0][None] - p[:, 0:1]) ** 2
+                        + (self.cells[:, 1][None] - p[:, 1:2]) ** 2
+                        + (p[:, 2:3] - self.cell_ground[None]) ** 2)
+            q = np.clip(np.asarray(self.mission.link.response_probability(d), dtype=float),
+                        0.0, 0.999)
+            self.log_miss += self.rate_hz * dt / 3.0 * np.log1p(-q).sum(axis=0)
         self.last_pos, self.last_t = pos, t_s
 
     # ------------------------------------------------------------------ encode

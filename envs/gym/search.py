@@ -93,7 +93,8 @@ class SearchEnv(SearchEnvBase):
 
     ``scenario``: a search preset name, a TOML path or a ``sim.Scenario`` (one agent);
     ``render_mode``: ``"rgb_array"`` (a map of the area, track, estimates and coverage)
-    or ``"human"`` (a rerun recording: viewer, or ``rerun_path`` for an ``.rrd``);
+    or ``"human"`` (a rerun recording: the ``.rrd`` file ``rerun_path``, which
+    ``rerun FILE`` opens, else kept in memory as ``env.unwrapped.rerun_memory``);
     ``mode``: the estimator mode.
     """
 
