@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
+import numpy as np
 
 from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig
@@ -119,13 +120,18 @@ class SearchEnvBase(gym.Env):
         enc, changes = self.pilot.observe(self._obs)
         changes["dt_s"] = loop.t_s - t0
         changes["refused"] = loop.refused_plans - refused0
-        changes["outside"] = self.pilot.area_penalty()
+        changes["outside"] = self.pilot.area_penalty() + self._outside()
         reward = self._compute_reward(changes)
         terminated = self.pilot.done(self._obs)
         truncated = not terminated and loop.t_s >= loop.mission.budget_s - 1e-9
         if self.render_mode == "human":
             self.render()
         return enc, reward, terminated, truncated, self._info()
+
+    def _outside(self, agent: int = 0) -> float:
+        """1 when the autopilot's position is outside the area now, else 0."""
+        p = np.asarray(self._obs.agents[agent].position_enu_m[:2], dtype=float)[None, :]
+        return 0.0 if self.loop.mission.area.contains(p, 0.0)[0] else 1.0
 
     # ------------------------------------------------------------------ hooks
     def _compute_reward(self, changes: dict) -> float:

@@ -159,8 +159,11 @@ class SearchParallelEnv(ParallelEnv):
         dt = loop.t_s - t0
         rewards = {}
         for i, name in enumerate(self.possible_agents):
+            here = np.asarray(self._obs.agents[i].position_enu_m[:2])[None, :]
+            outside = 0.0 if loop.mission.area.contains(here, 0.0)[0] else 1.0
             own = -c.time_cost_per_s * dt - c.leave_penalty * (
-                (i in refused) + (self.pilots[name].area_penalty() if name in actions else 0.0))
+                (i in refused) + outside
+                + (self.pilots[name].area_penalty() if name in actions else 0.0))
             rewards[name] = float(team + own)
         done = self.pilots[self.possible_agents[0]].done(self._obs)
         out_of_time = not done and loop.t_s >= loop.mission.budget_s - 1e-9

@@ -64,7 +64,8 @@ class SearchEnv(SearchEnvBase):
     estimate: the reduction of 1/2 log det of the covariance, the D-optimal objective of
     the CasADi planner); ``detection_bonus`` per responder heard for the first time;
     minus ``time_cost_per_s`` per second flown; minus ``leave_penalty`` per segment the
-    loop refused because it left the area. ``info["reward_terms"]`` has the parts.
+    loop refused because it left the area and per decision that ends with the vehicle
+    outside it (a turn swung wide). ``info["reward_terms"]`` has the parts.
 
     ## Starting State
 

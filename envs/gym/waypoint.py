@@ -34,9 +34,9 @@ class WaypointEnv(SearchEnvBase):
     ## Rewards
 
     As ``osa/Search-v0`` (information gained as the reduction of 1/2 log det of the
-    estimates' covariance, detection bonus, minus time), with the area term
-    ``-leave_penalty`` times the share of the reach by which the requested waypoint lay
-    outside the area.
+    estimates' covariance, detection bonus, minus time, minus ``leave_penalty`` per
+    decision ending outside the area), the area term adding ``-leave_penalty`` times
+    the share of the reach by which the requested waypoint lay outside the area.
 
     ## Starting State
 
