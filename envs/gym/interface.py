@@ -288,9 +288,10 @@ class ManoeuvreActions:
     - ``return``: fly back to the take-off point and hold there.
 
     The target is the responder the manoeuvres are about: the most recently detected one
-    not yet localised, until ``next-responder`` changes it. Without a target every
-    manoeuvre continues the sweep. Choosing the manoeuvre being flown again keeps flying
-    it until its segment is done, then starts it anew about the current estimate.
+    not yet localised, until ``next-responder`` changes it. Without a target (nothing
+    heard, or everything heard localised) every action continues the sweep. Choosing the
+    manoeuvre being flown again keeps flying it until its segment is done, then starts
+    it anew about the current estimate.
     """
 
     def __init__(self, config: EnvConfig) -> None:
@@ -326,7 +327,7 @@ class ManoeuvreActions:
                 i = pending.index(self.enc.target) if self.enc.target in pending else -1
                 self.enc.target = pending[(i + 1) % len(pending)]
         target = self.enc.target
-        if target is None and name not in ("return",):
+        if target is None:  # nothing to manoeuvre about (and nothing to return with)
             name = "sweep"
         key = (name, target if name != "sweep" else None)
         if name == "sweep":

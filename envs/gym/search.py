@@ -34,7 +34,8 @@ class SearchEnv(SearchEnvBase):
     search height; the probe helix climbs 20 m at about the range heard. The target is
     the most recently detected responder not yet localised (until `next-responder`
     changes it); orbits and passes use where it was heard while it has no estimate;
-    without a target every manoeuvre continues the sweep. Choosing the manoeuvre being
+    without a target (nothing heard yet, or all localised) every action continues the
+    sweep. Choosing the manoeuvre being
     flown again keeps flying it until its segment ends.
 
     ## Observation Space
