@@ -177,7 +177,8 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
         "algo": settings.algo,
         "env_id": settings.env_id,
         "kind": env.kind,
-        "env_kwargs": settings.env_kwargs,
+        "env_kwargs": {k: getattr(v, "name", v) if k == "scenario" else v
+                       for k, v in settings.env_kwargs.items()},
         "config": env.config.to_json(),
         "scenario": env.scenario.name,
         "seed": settings.seed,

@@ -63,6 +63,7 @@ class SearchEnvBase(gym.Env):
         max_responders: int = 3,
         coverage_cells: int = 8,
         detection_bonus: float = 1.0,
+        coverage_bonus: float = 5.0,
         time_cost_per_s: float = 0.01,
         leave_penalty: float = 1.0,
         mode: str = DEFAULT_MODE,
@@ -81,6 +82,7 @@ class SearchEnvBase(gym.Env):
         self.config = EnvConfig(decision_period_s=decision_period_s,
                                 max_responders=max_responders, coverage_cells=coverage_cells,
                                 detection_bonus=detection_bonus,
+                                coverage_bonus=coverage_bonus,
                                 time_cost_per_s=time_cost_per_s, leave_penalty=leave_penalty)
         self.loop_config = LoopConfig(mode=mode, decision_period_s=decision_period_s)
         self.pilot = Pilot(self.kind, self.config)
@@ -139,6 +141,7 @@ class SearchEnvBase(gym.Env):
         terms = {
             "information": float(changes["information"]),
             "detection": c.detection_bonus * changes["detected"],
+            "coverage": c.coverage_bonus * changes["covered"],
             "time": -c.time_cost_per_s * changes["dt_s"],
             "area": -c.leave_penalty * (changes["refused"] + changes["outside"]),
         }

@@ -13,12 +13,15 @@ the truth) and the :class:`planner.policy.SearchMission` (what the operator know
 - :class:`ManoeuvreActions` (``osa/Search-v0``) and :class:`WaypointActions`
   (``osa/Waypoint-v0``): action -> :class:`planner.policy.Decision`.
 
-Reward of one decision (all terms from the estimator and the vehicle):
-``information + detection_bonus * newly detected - time_cost_per_s * dt -
-leave_penalty * (leaving the area)``, where information is the increase of
+Reward of one decision (all terms from the estimator, the vehicle and the link model):
+``information + detection_bonus * newly detected + coverage_bonus * newly covered
+share - time_cost_per_s * dt - leave_penalty * (leaving the area)``, where information
+is the increase of
 ``sum_b 0.5 (log det P0 - log det P_b)`` over the detected responders b (P_b the
 estimate's 3 x 3 position covariance, P0 the prior before any estimate): the reduction of
-1/2 log det of the covariance, the D-optimal objective the CasADi planner maximises.
+1/2 log det of the covariance, the D-optimal objective the CasADi planner maximises,
+and the covered share is the mean of the coverage map over the area: what the search
+has learnt before anything is heard (where the responder is not).
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ class EnvConfig:
     max_responders: int = 3  # responder slots in the observation
     coverage_cells: int = 8  # the coverage map is cells x cells over the area's box
     detection_bonus: float = 1.0  # per responder heard for the first time
+    coverage_bonus: float = 5.0  # for covering the whole area once (the search map)
     time_cost_per_s: float = 0.01  # per second of flight
     leave_penalty: float = 1.0  # a segment refused / a waypoint outside the area
     prior_sigma_h_m: float = 100.0  # P0: the covariance "before any estimate"
@@ -85,6 +89,7 @@ class EnvConfig:
         """The settings a trained model needs to meet the same observation and actions."""
         return {k: getattr(self, k) for k in (
             "decision_period_s", "max_responders", "coverage_cells", "detection_bonus",
+            "coverage_bonus",
             "time_cost_per_s", "leave_penalty", "prior_sigma_h_m", "prior_sigma_z_m",
             "cov_floor_m2")}
 
@@ -141,6 +146,7 @@ class Encoder:
         self.last_t = 0.0
         self.detected: set[str] = set()
         self.information = 0.0
+        self.covered_share = 0.0
         self.slots: list[str] = []  # bssids in order of detection
         self.target: str | None = None
 
@@ -159,7 +165,18 @@ class Encoder:
         info = self.potential(obs)
         gain = info - self.information
         self.information = info
-        return {"information": gain, "detected": len(new)}
+        covered = self.covered()
+        more = covered - self.covered_share
+        self.covered_share = covered
+        return {"information": gain, "detected": len(new), "covered": more}
+
+    def covered(self) -> float:
+        """The share of the area where a responder would have been heard by now (the
+        mean coverage of the cells inside the area)."""
+        inside = self.cell_inside
+        if not inside.any():
+            return 0.0
+        return float(np.mean(1.0 - np.exp(self.log_miss[inside])))
 
     def potential(self, obs: Observation) -> float:
         """sum over detected responders of 0.5 (log det P0 - log det P)."""
@@ -368,11 +385,11 @@ class WaypointActions:
     vehicle: east and north times the reach of one decision (speed x period), height
     above the terrain changed by up to ``climb_m`` within the altitude band (the
     adaptive policy's: 20 m below to 25 m above the search height, at least 10 m).
-    A waypoint beyond the area's margin is moved back along the requested line to the
-    margin (a convex area) or pulled to the nearest inside point (a concave one); such
-    a request costs ``leave_penalty`` times the share of the reach it lies outside. The
-    vehicle flies to it at cruise speed and on along the same line (so it does not brake
-    at each waypoint), routed inside a concave area. A request shorter than 1 m holds.
+    A waypoint beyond the area's margin is moved to the nearest point inside it (so the
+    vehicle slides along the edge instead of stopping there); such a request costs
+    ``leave_penalty`` times the share of the reach it lies outside. The vehicle flies to
+    it at cruise speed and on along the same line (so it does not brake at each
+    waypoint), routed inside a concave area. A request shorter than 1 m holds.
     """
 
     climb_m = 10.0
@@ -399,18 +416,18 @@ class WaypointActions:
             nrm = np.column_stack([-e[:, 1], e[:, 0]]) / np.linalg.norm(e, axis=1)[:, None]
             self.halfplanes = (nrm, (nrm * v).sum(axis=1) + area.margin_m)
 
-    def _clip(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-        """How far along start -> end the vehicle may go and stay inside with the margin
-        (a convex area); the start itself counts as allowed."""
+    def _inside(self, p: np.ndarray) -> np.ndarray:
+        """The point of the area inset by its margin nearest to ``p`` (a convex area:
+        projections onto the violated edges; exact for a box, close otherwise)."""
         nrm, c = self.halfplanes
-        d = end - start
-        g0 = nrm @ start - c
-        gd = nrm @ d
-        f = 1.0
-        for a, b in zip(g0.tolist(), gd.tolist(), strict=True):
-            if b < 0.0:
-                f = min(f, max(0.0, -a / b))
-        return start + f * d
+        q = np.asarray(p, dtype=float).copy()
+        for _ in range(2 * len(c)):
+            g = nrm @ q - c
+            i = int(np.argmin(g))
+            if g[i] >= -1e-9:
+                break
+            q = q - g[i] * nrm[i]
+        return q
 
     def decide(self, action, obs: Observation) -> Decision:
         from estimator.records import Trajectory
@@ -423,8 +440,8 @@ class WaypointActions:
         here = np.asarray(a.position_enu_m, dtype=float)
         reach = self.speed * self.cfg.decision_period_s
         want = here[:2] + reach * act[:2]
-        if self.halfplanes is not None:  # convex: stop where the line meets the margin
-            wp = self._clip(here[:2], want)
+        if self.halfplanes is not None:  # convex: the nearest point inside the margin
+            wp = self._inside(want)
         else:
             wp = np.asarray(area._pull_inside(want), dtype=float)
         self.penalty = min(1.0, float(np.linalg.norm(want - wp)) / reach)
@@ -437,7 +454,7 @@ class WaypointActions:
         if float(np.linalg.norm(wp - here[:2])) < 1.0:
             pts = [tuple(here[:2])]
         elif self.halfplanes is not None:  # on along the same line, up to the margin
-            on = self._clip(wp, 2.0 * wp - here[:2])
+            on = self._inside(2.0 * wp - here[:2])
             pts = [tuple(here[:2]), tuple(wp)]
             if float(np.linalg.norm(on - wp)) > 1.0:
                 pts.append(tuple(on))

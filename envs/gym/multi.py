@@ -51,10 +51,10 @@ class SearchParallelEnv(ParallelEnv):
     waypoint; a ground agent walks at its own speed and ignores the height), and its
     observation (``agent``, ``responders``, ``responder_mask``, ``coverage``, the
     coverage and the estimates shared by all) plus ``others``: every other agent's
-    position relative to it and velocity. Rewards: the team's information gained and
-    detection bonus, shared by all agents, minus each agent's own time and area terms.
-    Every agent terminates when every detected responder is localised (the estimator's
-    judgement); all are truncated at the budget.
+    position relative to it and velocity. Rewards: the team's information gained,
+    detection bonus and coverage (one map for all), shared by all agents, minus each
+    agent's own time and area terms. Every agent terminates when every detected
+    responder is localised (the estimator's judgement); all are truncated at the budget.
 
     ``scenario`` with one agent gets ``uavs`` UAVs and ``ground`` ground agents
     (:func:`with_agents`); a scenario with ``[[agents]]`` keeps its own. Other
@@ -76,6 +76,7 @@ class SearchParallelEnv(ParallelEnv):
         max_responders: int = 3,
         coverage_cells: int = 8,
         detection_bonus: float = 1.0,
+        coverage_bonus: float = 5.0,
         time_cost_per_s: float = 0.01,
         leave_penalty: float = 1.0,
         mode: str = DEFAULT_MODE,
@@ -93,6 +94,7 @@ class SearchParallelEnv(ParallelEnv):
         self.config = EnvConfig(decision_period_s=decision_period_s,
                                 max_responders=max_responders, coverage_cells=coverage_cells,
                                 detection_bonus=detection_bonus,
+                                coverage_bonus=coverage_bonus,
                                 time_cost_per_s=time_cost_per_s, leave_penalty=leave_penalty)
         self.loop_config = LoopConfig(mode=mode, decision_period_s=decision_period_s)
         self.possible_agents = [a.name for a in sc.agents]
@@ -155,7 +157,8 @@ class SearchParallelEnv(ParallelEnv):
         obs, changes = self._observe_all()
         c = self.config
         first = changes[self.possible_agents[0]]  # the team's: one shared estimate
-        team = first["information"] + c.detection_bonus * first["detected"]
+        team = (first["information"] + c.detection_bonus * first["detected"]
+                + c.coverage_bonus * first["covered"])
         dt = loop.t_s - t0
         rewards = {}
         for i, name in enumerate(self.possible_agents):

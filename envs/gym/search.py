@@ -59,11 +59,13 @@ class SearchEnv(SearchEnvBase):
 
     ## Rewards
 
-    Per decision: the information gained, i.e. the increase of
-    ``sum_b 0.5 (log det P0 - log det P_b)`` over the detected responders (P_b the
-    estimate's 3 x 3 position covariance, P0 = diag(100, 100, 30)^2 m^2 before an
-    estimate: the reduction of 1/2 log det of the covariance, the D-optimal objective of
-    the CasADi planner); ``detection_bonus`` per responder heard for the first time;
+    Per decision: the information gained, i.e. the increase of ``sum_b 0.5 (log det P0 -
+    log det P_b)`` over the detected responders (P_b the estimate's 3 x 3 position
+    covariance, P0 = diag(100, 100, 30)^2 m^2 before an estimate: the reduction of 1/2
+    log det of the covariance, the D-optimal objective of the CasADi planner);
+    ``detection_bonus`` per responder heard for the first time; ``coverage_bonus`` times
+    the share of the area newly covered (the mean of the coverage map: what the search
+    learns before anything is heard, where the responder is not; 1 for the whole area);
     minus ``time_cost_per_s`` per second flown; minus ``leave_penalty`` per segment the
     loop refused because it left the area and per decision that ends with the vehicle
     outside it (a turn swung wide). ``info["reward_terms"]`` has the parts.
@@ -89,7 +91,8 @@ class SearchEnv(SearchEnvBase):
     ```python
     gymnasium.make("osa/Search-v0", scenario="search-random-los", seed_split="train",
                    decision_period_s=5.0, max_responders=3, coverage_cells=8,
-                   detection_bonus=1.0, time_cost_per_s=0.01, leave_penalty=1.0,
+                   detection_bonus=1.0, coverage_bonus=5.0,
+                   time_cost_per_s=0.01, leave_penalty=1.0,
                    mode="robust", render_mode=None, rerun_path=None)
     ```
 

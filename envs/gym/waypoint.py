@@ -19,10 +19,10 @@ class WaypointEnv(SearchEnvBase):
     ``Box(-1, 1, (3,), float32)``: the next waypoint relative to the drone. East and
     north times the reach of one decision (cruise speed x decision period, 40 m by
     default); the height above the terrain changed by up to 10 m, within the altitude
-    band (20 m below to 25 m above the search height, at least 10 m). The waypoint is
-    pulled inside the area; the drone flies to it at cruise speed and on along the same
-    line (no braking at each waypoint), routed inside a concave area; a request shorter
-    than 1 m holds.
+    band (20 m below to 25 m above the search height, at least 10 m). A waypoint beyond
+    the area's margin moves to the nearest point inside it (the drone slides along the
+    edge); the drone flies to it at cruise speed and on along the same line (no braking
+    at each waypoint), routed inside a concave area; a request shorter than 1 m holds.
 
     ## Observation Space
 
@@ -34,9 +34,10 @@ class WaypointEnv(SearchEnvBase):
     ## Rewards
 
     As ``osa/Search-v0`` (information gained as the reduction of 1/2 log det of the
-    estimates' covariance, detection bonus, minus time, minus ``leave_penalty`` per
-    decision ending outside the area), the area term adding ``-leave_penalty`` times
-    the share of the reach by which the requested waypoint lay outside the area.
+    estimates' covariance, detection bonus, coverage of the area, minus time, minus
+    ``leave_penalty`` per decision ending outside the area), the area term adding
+    ``-leave_penalty`` times the share of the reach by which the requested waypoint lay
+    outside the area.
 
     ## Starting State
 
@@ -56,7 +57,8 @@ class WaypointEnv(SearchEnvBase):
     ```python
     gymnasium.make("osa/Waypoint-v0", scenario="search-random-los", seed_split="train",
                    decision_period_s=5.0, max_responders=3, coverage_cells=8,
-                   detection_bonus=1.0, time_cost_per_s=0.01, leave_penalty=1.0,
+                   detection_bonus=1.0, coverage_bonus=5.0,
+                   time_cost_per_s=0.01, leave_penalty=1.0,
                    mode="robust", render_mode=None, rerun_path=None)
     ```
 

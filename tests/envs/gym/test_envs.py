@@ -223,7 +223,7 @@ def test_reward_is_the_information_gain_of_a_hand_built_step():
     p2 = np.array([[4.0, 1.0, 0.0], [1.0, 9.0, 0.5], [0.0, 0.5, 16.0]])
     pilot.observe(_obs(0.0, None, heard=False))  # nothing heard yet
     _, ch = pilot.observe(_obs(5.0, None))  # heard: no estimate yet, no information
-    assert ch == {"information": 0.0, "detected": 1}
+    assert ch["information"] == 0.0 and ch["detected"] == 1 and ch["covered"] > 0
     _, ch = pilot.observe(_obs(10.0, p1))  # the first estimate: from the prior P0
     h0 = 0.5 * (2 * math.log(cfg.prior_sigma_h_m**2 + eps) + math.log(cfg.prior_sigma_z_m**2
                                                                         + eps))
@@ -239,10 +239,10 @@ def test_reward_is_the_information_gain_of_a_hand_built_step():
     assert ch["information"] == pytest.approx(h1 - 0.5 * math.log(cof), abs=1e-9)
     # the env's reward of a step is the sum of its terms
     terms = {"information": ch["information"], "detected": 1, "dt_s": 5.0, "refused": 0,
-             "outside": 0.0}
+             "outside": 0.0, "covered": ch["covered"]}
     r = env._compute_reward(terms)
-    assert r == pytest.approx(ch["information"] + cfg.detection_bonus - 5.0 *
-                              cfg.time_cost_per_s, abs=1e-12)
+    assert r == pytest.approx(ch["information"] + cfg.detection_bonus + cfg.coverage_bonus
+                              * ch["covered"] - 5.0 * cfg.time_cost_per_s, abs=1e-12)
 
 
 def test_env_reward_follows_the_estimators_covariance():
