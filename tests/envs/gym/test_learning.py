@@ -22,9 +22,9 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from envs.gym.trained import TrainedPolicy  # noqa: E402
-from envs.rl import TrainSettings, make_env, model_actor, rollout, train  # noqa: E402
-from envs.seeds import split_seeds  # noqa: E402
+from envs.gym.trained import TrainedPolicy
+from envs.rl import TrainSettings, make_env, model_actor, rollout, train
+from envs.seeds import split_seeds
 
 STEPS = 8192
 WORLDS = 30
@@ -79,7 +79,7 @@ def test_what_osa_train_writes_is_a_search_policy_that_flies_as_in_the_env(train
     from envs.loop import run_search
     from envs.policies import load_policy
 
-    d, summary, toml = trained
+    d, _summary, toml = trained
     m = d / "model"
     for f in ("model.zip", "vecnormalize.pkl", "osa-model.json", "progress.csv",
               "validation.json", "best/model.zip", "best/vecnormalize.pkl"):
