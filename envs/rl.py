@@ -238,8 +238,8 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     try:
         model.learn(total_timesteps=settings.steps, callback=cbs)
         if settings.eval_every and (not val.history or val.history[-1]["steps"]
-                                    < model.num_timesteps):
-            val.run()
+                                    < model.num_timesteps - settings.eval_every // 2):
+            val.run()  # the end is far from the last evaluation
     finally:
         venv.close()
     wall = time.perf_counter() - t0

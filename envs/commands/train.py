@@ -16,8 +16,18 @@ import sys
 
 from envs.commands._args import non_negative_int
 
+
+def linear_schedule(start: float):
+    """A learning rate falling linearly from ``start`` to 0 over the training (SB3 calls
+    it with the remaining share of the training, 1 -> 0): steadier late updates."""
+    def rate(remaining: float) -> float:
+        return start * remaining
+    return rate
+
+
 PPO_DEFAULTS = dict(n_steps=256, batch_size=128, n_epochs=10, gamma=0.995, gae_lambda=0.95,
-                    ent_coef=0.01, learning_rate=3e-4, clip_range=0.2)  # docs/rl.md
+                    ent_coef=0.01, learning_rate=linear_schedule(3e-4),
+                    clip_range=0.2)  # docs/rl.md
 
 
 def positive_int(text: str) -> int:

@@ -183,7 +183,9 @@ class Encoder:
         total = 0.0
         for r in obs.responders:
             if r.cov_m2 is not None:
-                total += self.prior_half_logdet - half_logdet(r.cov_m2, self.cfg.cov_floor_m2)
+                h = half_logdet(r.cov_m2, self.cfg.cov_floor_m2)
+                if math.isfinite(h):  # a covariance that is not positive definite: no gain
+                    total += self.prior_half_logdet - h
         return total
 
     def _cover(self, positions: list[np.ndarray], t_s: float) -> None:

@@ -95,6 +95,9 @@ class TrainedPolicy:
             stats.training = False
         return cls(model, stats, meta, d)
 
+    def __reduce__(self):  # pickles as its path (to worker processes): loaded there again
+        return (TrainedPolicy.load, (str(self.path),))
+
     # ------------------------------------------------------------------ Policy
     def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
         if mission.n_agents != 1:

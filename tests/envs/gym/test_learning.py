@@ -98,6 +98,10 @@ def test_what_osa_train_writes_is_a_search_policy_that_flies_as_in_the_env(train
     assert (res.ended == "localised") == ep.localised
     again = run_search(sim.load_scenario(toml), load_policy(f"ppo:{m}"), world)
     assert again.to_json() == res.to_json()
+    import pickle
+
+    twin = pickle.loads(pickle.dumps(policy))  # to worker processes: loaded again there
+    assert run_search(sim.load_scenario(toml), twin, world).to_json() == res.to_json()
 
 
 @pytest.mark.parametrize(
