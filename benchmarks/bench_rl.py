@@ -1,7 +1,8 @@
 """The training recipe against the fixed patterns, on held-out (test split) worlds.
 
-1. Trains the recipe of docs/rl.md (``osa train --env osa/Search-v0 --steps 40000
-   --seed 0``, timed), unless ``--model`` names a trained one.
+1. Trains the recipe of docs/rl.md (``osa train --env osa/Search-v0 --steps 80000
+   --seed 0 --eval-every 10000 --eval-worlds 20``, timed), unless ``--model`` names a
+   trained one.
 2. Flies ``osa search`` (``envs.loop.run_search``) on the first ``--seeds`` worlds of
    the test split with the trained policy (``ppo:MODEL``), ``lawnmower``,
    ``expanding-square``, ``adaptive`` and a uniformly random choice of manoeuvre
@@ -69,7 +70,7 @@ def main() -> None:
     ap.add_argument("--scenario", default="search-random-los")
     ap.add_argument("--seeds", type=int, default=30)
     ap.add_argument("--model", default=None, help="a trained model (default: train one)")
-    ap.add_argument("--steps", type=int, default=40_000)
+    ap.add_argument("--steps", type=int, default=80_000)
     ap.add_argument("--out", default="osa-rl-recipe", help="where the recipe's model goes")
     ap.add_argument("--policies", default="ppo,lawnmower,expanding-square,adaptive,random")
     ap.add_argument("--figure", default=None)
@@ -82,7 +83,8 @@ def main() -> None:
         model = a.out
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "envs.cli", "train", "--env", "osa/Search-v0",
-                        "--steps", str(a.steps), "--seed", "0", "-o", model], check=True)
+                        "--steps", str(a.steps), "--seed", "0", "--eval-every", "10000",
+                        "--eval-worlds", "20", "-o", model], check=True)
         print(f"recipe trained in {(time.perf_counter() - t0) / 60:.1f} min (wall)")
     seeds = split_seeds("test", a.seeds)
     pols = a.policies.split(",")
@@ -131,7 +133,7 @@ def plot(times: dict, budget: float, scenario: str, n: int, path: str) -> None:
     ax.set_xlabel("flight time to localise (s)")
     ax.set_ylabel("share of worlds localised")
     ax.set_title(f"{scenario}: {n} held-out test worlds", fontsize=10)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="center right")
     ax.grid(alpha=0.3)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
