@@ -131,3 +131,24 @@ def test_ppo_path_errors_are_clear(tmp_path):
 
     with pytest.raises(ValueError, match="not a model written by osa train"):
         load_policy(f"ppo:{tmp_path}")
+
+
+def test_training_is_seeded(tmp_path):
+    """The same seed and settings give the same network, bit for bit; another seed not."""
+    import torch
+
+    def weights(seed: int, name: str):
+        settings = TrainSettings(env_id="osa/Search-v0", steps=128, seed=seed, n_envs=1,
+                                 eval_every=0, checkpoint_every=0, progress=False,
+                                 algo_kwargs=dict(n_steps=64, batch_size=32, n_epochs=2))
+        train(settings, tmp_path / name)
+        policy = TrainedPolicy.load(tmp_path / name)
+        return [p.detach().clone() for p in policy.model.policy.parameters()], policy.stats
+
+    a, sa = weights(3, "a")
+    b, sb = weights(3, "b")
+    c, _ = weights(4, "c")
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    assert not all(torch.equal(x, y) for x, y in zip(a, c, strict=True))
+    for key in sa.obs_rms:
+        assert np.array_equal(sa.obs_rms[key].mean, sb.obs_rms[key].mean)
