@@ -67,6 +67,7 @@ def same(a, b) -> bool:
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_gymnasium_and_sb3_checkers_pass_without_warnings(env_id):
+    pytest.importorskip("stable_baselines3")  # the 'rl' extra
     from gymnasium.utils.env_checker import check_env
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
@@ -143,6 +144,7 @@ def test_gymnasium_vector_envs(mode):
 
 
 def test_sb3_subproc_vec_env_equals_dummy():
+    pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -324,6 +326,7 @@ def test_no_truth_in_observations():
 
 
 def test_parallel_env_passes_the_pettingzoo_api_test():
+    pytest.importorskip("pettingzoo")  # the 'rl' extra
     from pettingzoo.test import parallel_api_test
 
     from envs.gym.multi import SearchParallelEnv
@@ -334,6 +337,7 @@ def test_parallel_env_passes_the_pettingzoo_api_test():
 
 
 def test_parallel_env_shares_one_fused_estimate():
+    pytest.importorskip("pettingzoo")
     from envs.gym.multi import SearchParallelEnv
 
     env = SearchParallelEnv(short("search-random-los-rtk", 400.0), uavs=2)
