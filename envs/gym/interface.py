@@ -353,8 +353,10 @@ class ManoeuvreActions:
             if self.current == key and not a.segment_done:
                 self.sweep.advance(a.position_enu_m[:2])
                 return Decision(localised=loc)
-            if self.current == key and self.sweep.at_end:
-                self.sweep.reverse()
+            if self.current == key:  # the segment is flown: mark its end, reverse if over
+                self.sweep.advance(a.position_enu_m[:2])
+                if self.sweep.at_end:
+                    self.sweep.reverse()
             self.current = key
             return Decision(plans={self.enc.agent: self.sweep.resume(a.position_enu_m[:2])},
                             localised=loc, note="sweep")
