@@ -131,6 +131,7 @@ class ClosedLoop:
         s = scenario.search
         self.stepper = Stepper(self.realisation, header_agl_m=s.height_m)
         self.mission = mission_of(scenario, self.realisation, config.area_margin_m)
+        self._convex = self.mission.area.convex
         self.world = self.realisation.world
         self.estimator = OnlineEstimator(EstimatorOptions(modes=(self.mode,)))
         for a in self.stepper.agents:
@@ -222,11 +223,23 @@ class ClosedLoop:
             self._segment[i] = self.stepper.follow(i, traj)
 
     def plan_inside(self, traj: Trajectory, agent: int = 0) -> bool:
-        """Does a segment, and the leg to it from where the autopilot is, stay inside?"""
+        """Does a segment, and the leg to it from where the autopilot is, stay inside?
+        (From outside, e.g. after a turn swung wide, the segment from its first point
+        inside on: what comes before brings the vehicle back in.)"""
         if tuple(traj.origin) != tuple(self.mission.origin):
             return False
         here = np.asarray(self.stepper.navigation_position_m(agent)[:2])[None, :]
-        return self.mission.area.path_inside(np.vstack([here, traj.enu_m[:, :2]]), 0.0)
+        pts = traj.enu_m[:, :2]
+        if self.mission.area.contains(here, 0.0)[0]:
+            pts = np.vstack([here, pts])
+        else:  # outside: the segment from its first point inside on (the rest comes back)
+            inside = self.mission.area.contains(pts, 0.0)
+            if not inside.any():
+                return False
+            pts = pts[int(np.argmax(inside)):]
+        if self._convex:  # straight legs between inside points stay inside a convex area
+            return bool(np.all(self.mission.area.contains(pts, 0.0)))
+        return self.mission.area.path_inside(pts, 0.0)
 
     # ------------------------------------------------------------------ advance
     def advance(self, dt_s: float) -> list[list[Emitted]]:

@@ -95,12 +95,79 @@ class ExactENU:
         return e, n, u
 
     def to_geodetic(self, e_m, n_m, u_m):
+        if _float_vectors(e_m, n_m, u_m):
+            return _enu2geodetic_wgs84(self._origin_terms(), e_m, n_m, u_m)
         lat, lon, h = pymap3d.enu2geodetic(
             e_m, n_m, u_m, self.lat0_deg, self.lon0_deg, self.h0_m
         )
         if np.ndim(lat) == 0:
             return float(lat), float(lon), float(h)
         return lat, lon, h
+
+    def _origin_terms(self) -> tuple:
+        terms = self.__dict__.get("_terms")
+        if terms is None:
+            terms = _origin_terms_wgs84(self.lat0_deg, self.lon0_deg, self.h0_m)
+            object.__setattr__(self, "_terms", terms)
+        return terms
+
+
+# The array path of ExactENU.to_geodetic: pymap3d's enu2geodetic (enu2ecef then You's
+# non-iterative ecef2geodetic) operation for operation, the same NumPy ufuncs in the same
+# order, so the results are bit for bit pymap3d's (tests/estimator/test_geodesy.py checks
+# it), without its per-call costs (the origin's ECEF position and sines recomputed, the
+# ellipsoid rebuilt, masked copies when no point is degenerate).
+_WGS84_A = 6378137.0
+_WGS84_B = 6356752.31424518
+
+
+def _float_vectors(*xs) -> bool:
+    return all(isinstance(x, np.ndarray) and x.ndim == 1 and x.dtype == np.float64
+               for x in xs) and len({x.shape for x in xs}) == 1
+
+
+def _origin_terms_wgs84(lat0_deg: float, lon0_deg: float, h0_m: float) -> tuple:
+    a, b = _WGS84_A, _WGS84_B
+    lat0, lon0 = np.radians(lat0_deg), np.radians(lon0_deg)
+    n0 = a**2 / np.hypot(a * np.cos(lat0), b * np.sin(lat0))
+    x0 = (n0 + h0_m) * np.cos(lat0) * np.cos(lon0)
+    y0 = (n0 + h0_m) * np.cos(lat0) * np.sin(lon0)
+    z0 = (n0 * (b / a) ** 2 + h0_m) * np.sin(lat0)
+    return (x0, y0, z0, np.cos(lat0), np.sin(lat0), np.cos(lon0), np.sin(lon0))
+
+
+def _enu2geodetic_wgs84(terms: tuple, east, north, up):
+    x0, y0, z0, clat0, slat0, clon0, slon0 = terms
+    a, b = _WGS84_A, _WGS84_B
+    t = clat0 * up - slat0 * north
+    w = slat0 * up + clat0 * north
+    u_ = clon0 * t - slon0 * east
+    v = slon0 * t + clon0 * east
+    x, y, z = x0 + u_, y0 + v, z0 + w
+    r = np.sqrt(x**2 + y**2 + z**2)
+    E = np.sqrt(a**2 - b**2)
+    u = np.sqrt(0.5 * (r**2 - E**2) + 0.5 * np.hypot(r**2 - E**2, 2 * E * z))
+    hxy = np.hypot(x, y)
+    huE = np.hypot(u, E)
+    if np.any(np.abs(u) <= 1e-8) or np.any(np.abs(hxy) <= 1e-8):  # pymap3d's isclose(., 0)
+        return pymap3d.ecef2geodetic(x, y, z)
+    Beta = np.empty_like(r)
+    Beta[:] = np.arctan(huE / u * z / hxy)
+    Beta += ((b * u - a * huE + E**2) * np.sin(Beta)) / (a * huE * 1 / np.cos(Beta)
+                                                       - E**2 * np.cos(Beta))
+    lat = np.arctan(a / b * np.tan(Beta))
+    lim_pi2 = math.pi / 2 - np.finfo(Beta.dtype).eps
+    lat = np.where(Beta >= lim_pi2, math.pi / 2, lat)
+    lat = np.where(Beta <= -lim_pi2, -math.pi / 2, lat)
+    lon = np.arctan2(y, x)
+    cosBeta = np.cos(Beta)
+    cosBeta = np.where(Beta >= lim_pi2, 0, cosBeta)
+    cosBeta = np.where(Beta <= -lim_pi2, 0, cosBeta)
+    alt = np.hypot(z - b * np.sin(Beta), hxy - a * cosBeta)
+    inside = x**2 / a**2 + y**2 / a**2 + z**2 / b**2 < 1
+    if inside.any():
+        alt[inside] = -alt[inside]
+    return np.degrees(lat), np.degrees(lon), alt
 
 
 PROJECTIONS = {"tangent": TangentPlaneENU, "wgs84": ExactENU}

@@ -71,13 +71,19 @@ def bbox_diagonal_m(anchors_xy_m: Sequence[Sequence[float]] | np.ndarray) -> flo
 # checks) and the closed loop.
 
 
+def _next_vertex(poly: np.ndarray) -> np.ndarray:
+    """The vertices shifted by one (each edge's end): ``np.roll(poly, -1, axis=0)``."""
+    return np.concatenate([poly[1:], poly[:1]])
+
+
 def point_in_polygon(polygon_m: ArrayLike, points_m: ArrayLike) -> np.ndarray:
     """Even-odd rule: which of the (M, 2) points lie inside the (N, 2) polygon."""
     poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
     x, y = p[:, 0][:, None], p[:, 1][:, None]
+    nxt = _next_vertex(poly)
     x0, y0 = poly[:, 0][None, :], poly[:, 1][None, :]
-    x1, y1 = np.roll(poly[:, 0], -1)[None, :], np.roll(poly[:, 1], -1)[None, :]
+    x1, y1 = nxt[:, 0][None, :], nxt[:, 1][None, :]
     crosses = (y0 > y) != (y1 > y)
     with np.errstate(divide="ignore", invalid="ignore"):
         x_at = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
@@ -89,7 +95,7 @@ def polygon_edge_distance_m(polygon_m: ArrayLike, points_m: ArrayLike) -> np.nda
     poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
     a = poly[None, :, :]
-    b = np.roll(poly, -1, axis=0)[None, :, :]
+    b = _next_vertex(poly)[None, :, :]
     ab = b - a
     t = np.clip(((p[:, None, :] - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2),
                                                                      1e-300), 0.0, 1.0)

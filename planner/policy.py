@@ -307,6 +307,191 @@ class AdaptiveConfig:
     reserve_s: float = 20.0  # stop planning new work this close to the budget
 
 
+class Sweep:
+    """The search sweep of a policy: the lawnmower's waypoints, which of them have been
+    flown, and the segment that resumes it from anywhere (reversed at each end)."""
+
+    PASSED_M = 15.0  # a waypoint counts as flown once the vehicle passed within this
+
+    def __init__(self, mission: SearchMission, spacing_m: float, heading_deg: float = 0.0
+                 ) -> None:
+        self.mission = mission
+        self.waypoints = mission.area.sweep(spacing_m, heading_deg, start=mission.start_enu_m)
+        self.next = 0  # next waypoint to fly to
+        self.passes = 0  # sweeps flown to their end
+
+    @property
+    def at_end(self) -> bool:
+        return self.next >= len(self.waypoints)
+
+    @property
+    def progress(self) -> float:
+        """The share of this pass's waypoints flown (0 to 1)."""
+        return self.next / max(len(self.waypoints), 1)
+
+    def advance(self, here: Sequence[float]) -> None:
+        """Mark waypoints as flown once the vehicle has passed within ``PASSED_M``."""
+        wps = self.waypoints
+        while self.next < len(wps) and math.dist(here, wps[self.next]) < self.PASSED_M:
+            self.next += 1
+
+    def reverse(self) -> None:
+        """The pass is over: fly it again the other way."""
+        self.passes += 1
+        self.waypoints = self.waypoints[::-1]
+        self.next = 0
+
+    def resume(self, here: Sequence[float]) -> Trajectory:
+        """The segment from ``here`` through the waypoints not flown yet."""
+        m = self.mission
+        if self.next >= len(self.waypoints):
+            self.next = 0
+        pts = m.area.join([here, *self.waypoints[self.next:]])
+        return polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "search")
+
+
+class Manoeuvres:
+    """The path segments flown about a responder (the adaptive policy's, and the
+    discrete actions of ``osa/Search-v0``), each kept inside the area with the leg to it.
+
+    Circles are moved and shrunk until they fit inside the area (with its margin); a
+    segment starts with a leg from where the vehicle is, routed inside concave areas.
+    """
+
+    def __init__(self, mission: SearchMission, cfg: AdaptiveConfig = AdaptiveConfig()) -> None:
+        self.mission = mission
+        self.cfg = cfg
+
+    def inside_center(self, xy: Sequence[float], radius: float) -> tuple[XY, float]:
+        """The centre moved (and the radius shrunk) so the circle stays in the area."""
+        area = self.mission.area
+        cx, cy = float(xy[0]), float(xy[1])
+        if not area.contains(np.array([[cx, cy]]), area.margin_m)[0]:
+            cx, cy = area._pull_inside(np.array([cx, cy]))
+        for _ in range(40):
+            th = np.linspace(0.0, 2.0 * math.pi, 73)
+            ring = np.column_stack([cx + radius * np.cos(th), cy + radius * np.sin(th)])
+            if area.path_inside(ring, area.margin_m):
+                break
+            radius *= 0.85
+        return (cx, cy), max(radius, 8.0)
+
+    def helix(self, center: XY, radius: float, z0: float, z1: float, turns: float,
+              a: AgentView, name: str) -> Trajectory:
+        """A helix about ``center`` from height ``z0`` to ``z1`` above the terrain, at the
+        cruise speed or slower (lateral acceleration), with the leg to it kept inside."""
+        from planner.patterns import FlightConfig, helix
+
+        m = self.mission
+        flight = FlightConfig(speed_m_s=min(m.speed_mps, 0.9 * math.sqrt(2.5 * radius)),
+                              alt_m=z0, height_ref="terrain", origin=m.origin)
+        traj = helix(center, radius, alt_start_m=z0, alt_end_m=z1, turns=turns, flight=flight)
+        # the vehicle flies a leg to the helix from where it is: keep that leg inside too
+        p0 = traj.enu_m[0]
+        leg = self.mission.area.route(a.position_enu_m[:2], p0[:2])
+        if len(leg) > 2:
+            prefix = polyline_trajectory(leg[:-1], z0, m.speed_mps, m.origin, name)
+            t = np.concatenate([prefix.t_s, prefix.t_s[-1] + 1e-3 +
+                                traj.t_s + math.dist(leg[-2], p0[:2]) / m.speed_mps])
+            enu = np.vstack([prefix.enu_m, traj.enu_m])
+            return Trajectory(t, enu, m.origin, "terrain", name)
+        return Trajectory(traj.t_s, traj.enu_m, m.origin, "terrain", name)
+
+    def heard_center(self, r: ResponderView) -> tuple[XY, float]:
+        """Where the responder was heard (the drone positions weighted by 1/range^2) and
+        the median horizontal range it was heard at (clipped to the probe radii)."""
+        m, c = self.mission, self.cfg
+        heard = np.asarray(r.heard_enu_m, dtype=float).reshape(-1, 3)
+        rng_m = np.asarray(r.heard_range_m, dtype=float)
+        w = 1.0 / np.maximum(rng_m, 5.0) ** 2
+        center = tuple((heard[:, :2] * w[:, None]).sum(axis=0) / w.sum())
+        horiz = np.sqrt(np.maximum(rng_m**2 - m.height_m**2, 0.0))
+        return center, float(np.clip(np.median(horiz), *c.probe_radius_m))
+
+    def probe(self, r: ResponderView, a: AgentView) -> Trajectory:
+        """Orbit where the heard ranges put the responder (a coarse grid fit), climbing;
+        both mirror candidates when the estimator reports them; the range ring when too
+        few ranges place it."""
+        m, c = self.mission, self.cfg
+        if r.candidates:
+            cand = np.asarray(r.candidates)[:, :2]
+            center = tuple(np.mean(cand, axis=0))
+            radius = max(c.probe_radius_m[0], 0.5 * float(np.ptp(cand, axis=0).max()) + 15.0)
+        else:
+            fit = coarse_fit(r, m)
+            if fit is None or fit[1] > 2.0 * c.probe_radius_m[1]:
+                return self.ring(r, a)
+            center, spread = fit
+            radius = float(np.clip(spread + 15.0, *c.probe_radius_m))
+        (cx, cy), radius = self.inside_center(center, radius)
+        return self.helix((cx, cy), radius, m.height_m, m.height_m + c.probe_climb_m, 1.25, a,
+                          "probe")
+
+    def ring(self, r: ResponderView, a: AgentView) -> Trajectory:
+        """Too few ranges to place it: the responder lies about the horizontal range
+        sqrt(d^2 - h^2) from where the nearest range was heard; fly that ring (its part
+        inside the area, the rest pulled onto the area's margin), starting nearest."""
+        m = self.mission
+        heard = np.asarray(r.heard_enu_m, dtype=float).reshape(-1, 3)
+        rng = np.asarray(r.heard_range_m, dtype=float)
+        k = int(np.argmin(rng))
+        c = heard[k, :2]
+        ground = float(np.asarray(m.terrain.height_m(c[0], c[1])))
+        rho = math.sqrt(max(rng[k] ** 2 - (heard[k, 2] - ground) ** 2, 0.0))
+        rho = max(rho, self.cfg.probe_radius_m[0])
+        th0 = math.atan2(a.position_enu_m[1] - c[1], a.position_enu_m[0] - c[0])
+        n = max(12, math.ceil(2.0 * math.pi * rho / 15.0))
+        th = th0 + 2.0 * math.pi * np.arange(n + 1) / n
+        ring = [m.area._pull_inside(np.array([c[0] + rho * math.cos(t), c[1] + rho * math.sin(t)]))
+                for t in th]
+        pts = m.area.join([a.position_enu_m[:2], *ring])
+        return polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "probe ring")
+
+    def close_helix(self, r: ResponderView, a: AgentView) -> Trajectory:
+        """A close helix about the estimate, through an altitude band (height and range
+        bias cannot be told apart at one altitude)."""
+        m, c = self.mission, self.cfg
+        assert r.mean_enu_m is not None
+        (cx, cy), radius = self.inside_center(r.mean_enu_m[:2], c.close_radius_m)
+        lo = max(10.0, m.height_m + c.close_climb_m[0])
+        return self.helix((cx, cy), radius, lo, m.height_m + c.close_climb_m[1],
+                          c.close_turns, a, "close")
+
+    def orbit(self, center: Sequence[float], radius: float, a: AgentView,
+              turns: float = 1.0) -> Trajectory:
+        """A level orbit at the search height about ``center`` (moved to fit inside)."""
+        m = self.mission
+        (cx, cy), radius = self.inside_center(center, radius)
+        return self.helix((cx, cy), radius, m.height_m, m.height_m, turns, a, "orbit")
+
+    def close_pass(self, center: Sequence[float], cov_m2, a: AgentView,
+                   half_length_m: float = 60.0) -> Trajectory:
+        """A straight pass over ``center`` along the major axis of the horizontal
+        covariance (the direction the estimate knows least), nearer end first, clipped
+        into the area."""
+        m = self.mission
+        c = np.asarray(center, dtype=float)[:2]
+        if cov_m2 is not None:
+            w, v = np.linalg.eigh(np.asarray(cov_m2, dtype=float)[:2, :2])
+            axis = v[:, int(np.argmax(w))]
+        else:
+            axis = np.array([1.0, 0.0])
+        ends = [c - half_length_m * axis, c + half_length_m * axis]
+        here = np.asarray(a.position_enu_m[:2], dtype=float)
+        if np.linalg.norm(ends[1] - here) < np.linalg.norm(ends[0] - here):
+            ends.reverse()
+        pts = [self.mission.area._pull_inside(p) for p in (ends[0], c, ends[1])]
+        return polyline_trajectory(m.area.join([here, *pts]), m.height_m, m.speed_mps,
+                                   m.origin, "close-pass")
+
+    def goto(self, xy: Sequence[float], a: AgentView, name: str = "goto") -> Trajectory:
+        """Fly to ``xy`` (pulled inside the area) at the search height, routed inside."""
+        m = self.mission
+        dest = m.area._pull_inside(np.asarray(xy, dtype=float)[:2])
+        return polyline_trajectory(m.area.route(a.position_enu_m[:2], dest), m.height_m,
+                                   m.speed_mps, m.origin, name)
+
+
 class AdaptivePolicy:
     """Search until a responder is heard, then localise it by planning around the
     estimate (see the module docstring)."""
@@ -326,10 +511,9 @@ class AdaptivePolicy:
         self.mission = mission
         self.rng = rng
         self.tracker = _Tracker(self.rule)
-        spacing = search_spacing_m(mission, self.cfg.detect_probability)
-        self.sweep = mission.area.sweep(spacing, self.heading_deg, start=mission.start_enu_m)
-        self.sweep_next = 0  # next sweep waypoint to fly to
-        self.sweeps_done = 0
+        self.sweep = Sweep(mission, search_spacing_m(mission, self.cfg.detect_probability),
+                           self.heading_deg)
+        self.manoeuvres = Manoeuvres(mission, self.cfg)
         self.target: str | None = None
         self.phase = "search"
         self.phase_since = 0.0
@@ -404,32 +588,17 @@ class AdaptivePolicy:
         a = obs.agent
         here = a.position_enu_m[:2]
         if self._started and not a.segment_done and not getattr(self, "_resume", False):
-            self._advance_sweep(here)
+            self.sweep.advance(here)
             return Decision(localised=loc)
         self._resume = False
-        if self._started and a.segment_done and self.sweep_next >= len(self.sweep):
-            self.sweeps_done += 1
+        if self._started and a.segment_done and self.sweep.at_end:
             heard = {r.bssid for r in obs.responders}
             if m.expected_responders is None and heard and heard <= set(loc):
+                self.sweep.passes += 1
                 return Decision(localised=loc, done=True, note="covered, all localised")
-            self.sweep = self.sweep[::-1]
-            self.sweep_next = 0
+            self.sweep.reverse()
         self._started = True
-        if self.sweep_next >= len(self.sweep):
-            self.sweep_next = 0
-        # resume the sweep at the waypoint that continues it best from here
-        rest = self.sweep[self.sweep_next:]
-        pts = m.area.join([here, *rest])
-        traj = polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "search")
-        self._sweep_traj_pts = rest
-        return Decision(plans={0: traj}, localised=loc, note="search")
-
-    def _advance_sweep(self, here: Sequence[float]) -> None:
-        """Mark sweep waypoints as flown once the vehicle has passed within 15 m."""
-        while self.sweep_next < len(self.sweep) and math.dist(
-            here, self.sweep[self.sweep_next]
-        ) < 15.0:
-            self.sweep_next += 1
+        return Decision(plans={0: self.sweep.resume(here)}, localised=loc, note="search")
 
     def _localise(self, obs: Observation, r: ResponderView, loc: frozenset[str],
                   a: AgentView) -> Decision:
@@ -464,83 +633,11 @@ class AdaptivePolicy:
         return Decision(localised=loc)
 
     # ------------------------------------------------------------------ manoeuvres
-    def _inside_center(self, xy: Sequence[float], radius: float) -> tuple[XY, float]:
-        """The centre moved (and the radius shrunk) so the circle stays in the area."""
-        area = self.mission.area
-        cx, cy = float(xy[0]), float(xy[1])
-        if not area.contains(np.array([[cx, cy]]), area.margin_m)[0]:
-            cx, cy = area._pull_inside(np.array([cx, cy]))
-        for _ in range(40):
-            th = np.linspace(0.0, 2.0 * math.pi, 73)
-            ring = np.column_stack([cx + radius * np.cos(th), cy + radius * np.sin(th)])
-            if area.path_inside(ring, area.margin_m):
-                break
-            radius *= 0.85
-        return (cx, cy), max(radius, 8.0)
-
-    def _helix(self, center: XY, radius: float, z0: float, z1: float, turns: float,
-               a: AgentView, name: str) -> Trajectory:
-        from planner.patterns import FlightConfig, helix
-
-        m = self.mission
-        flight = FlightConfig(speed_m_s=min(m.speed_mps, 0.9 * math.sqrt(2.5 * radius)),
-                              alt_m=z0, height_ref="terrain", origin=m.origin)
-        traj = helix(center, radius, alt_start_m=z0, alt_end_m=z1, turns=turns, flight=flight)
-        # the vehicle flies a leg to the helix from where it is: keep that leg inside too
-        p0 = traj.enu_m[0]
-        leg = self.mission.area.route(a.position_enu_m[:2], p0[:2])
-        if len(leg) > 2:
-            prefix = polyline_trajectory(leg[:-1], z0, m.speed_mps, m.origin, name)
-            t = np.concatenate([prefix.t_s, prefix.t_s[-1] + 1e-3 +
-                                traj.t_s + math.dist(leg[-2], p0[:2]) / m.speed_mps])
-            enu = np.vstack([prefix.enu_m, traj.enu_m])
-            return Trajectory(t, enu, m.origin, "terrain", name)
-        return Trajectory(traj.t_s, traj.enu_m, m.origin, "terrain", name)
-
     def _probe(self, r: ResponderView, a: AgentView) -> Trajectory:
-        """Orbit where the heard ranges put the responder (a coarse grid fit), climbing."""
-        m, c = self.mission, self.cfg
-        if r.candidates:
-            cand = np.asarray(r.candidates)[:, :2]
-            center = tuple(np.mean(cand, axis=0))
-            radius = max(c.probe_radius_m[0], 0.5 * float(np.ptp(cand, axis=0).max()) + 15.0)
-        else:
-            fit = coarse_fit(r, m)
-            if fit is None or fit[1] > 2.0 * c.probe_radius_m[1]:
-                return self._ring(r, a)
-            center, spread = fit
-            radius = float(np.clip(spread + 15.0, *c.probe_radius_m))
-        (cx, cy), radius = self._inside_center(center, radius)
-        return self._helix((cx, cy), radius, m.height_m, m.height_m + c.probe_climb_m, 1.25, a,
-                           "probe")
-
-    def _ring(self, r: ResponderView, a: AgentView) -> Trajectory:
-        """Too few ranges to place it: the responder lies about the horizontal range
-        sqrt(d^2 - h^2) from where the nearest range was heard; fly that ring (its part
-        inside the area, the rest pulled onto the area's margin), starting nearest."""
-        m = self.mission
-        heard = np.asarray(r.heard_enu_m, dtype=float).reshape(-1, 3)
-        rng = np.asarray(r.heard_range_m, dtype=float)
-        k = int(np.argmin(rng))
-        c = heard[k, :2]
-        ground = float(np.asarray(m.terrain.height_m(c[0], c[1])))
-        rho = math.sqrt(max(rng[k] ** 2 - (heard[k, 2] - ground) ** 2, 0.0))
-        rho = max(rho, self.cfg.probe_radius_m[0])
-        th0 = math.atan2(a.position_enu_m[1] - c[1], a.position_enu_m[0] - c[0])
-        n = max(12, math.ceil(2.0 * math.pi * rho / 15.0))
-        th = th0 + 2.0 * math.pi * np.arange(n + 1) / n
-        ring = [m.area._pull_inside(np.array([c[0] + rho * math.cos(t), c[1] + rho * math.sin(t)]))
-                for t in th]
-        pts = m.area.join([a.position_enu_m[:2], *ring])
-        return polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "probe ring")
+        return self.manoeuvres.probe(r, a)
 
     def _close_helix(self, r: ResponderView, a: AgentView) -> Trajectory:
-        m, c = self.mission, self.cfg
-        assert r.mean_enu_m is not None
-        (cx, cy), radius = self._inside_center(r.mean_enu_m[:2], c.close_radius_m)
-        lo = max(10.0, m.height_m + c.close_climb_m[0])
-        return self._helix((cx, cy), radius, lo, m.height_m + c.close_climb_m[1],
-                           c.close_turns, a, "close")
+        return self.manoeuvres.close_helix(r, a)
 
     def _optimal(self, r: ResponderView, a: AgentView) -> tuple[Trajectory, int]:
         m, c = self.mission, self.cfg

@@ -25,6 +25,7 @@ Per result, with d the true slant range from the drone's antenna to the responde
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field, fields
 
@@ -482,15 +483,8 @@ class FtmRadio:
         return self._results(reqs, antenna_at)
 
     def _grid_index(self, tau: float) -> int:
-        w = self.w_grid
-        lo, hi = 0, len(w) - 2
-        while lo < hi:  # bisection: last g with w[g] <= tau
-            mid = (lo + hi + 1) >> 1
-            if w[mid] <= tau:
-                lo = mid
-            else:
-                hi = mid - 1
-        return lo
+        """The last g <= len(w) - 2 with w[g] <= tau (0 if none): w increases."""
+        return max(0, min(bisect.bisect_right(self.w_grid, tau) - 1, len(self.w_grid) - 2))
 
     def _results(self, reqs: list[tuple[int, float, int]], antenna_at) -> FtmBatch:
         cfg = self.cfg

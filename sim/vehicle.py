@@ -308,18 +308,19 @@ class PathGuidance:
             v_node[stops] = 0.0
             # braking: backward pass on v^2 (deceleration max_accel over each cell)
             a2 = 2.0 * cfg.max_accel_mps2
-            v2 = v_node * v_node
+            v2 = (v_node * v_node).tolist()  # Python floats: the passes run element-wise
+            cell_l = cell.tolist()
             for i in range(m - 2, -1, -1):
-                lim = v2[i + 1] + a2 * cell[i]
+                lim = v2[i + 1] + a2 * cell_l[i]
                 if v2[i] > lim:
                     v2[i] = lim
             # acceleration from the current speed: forward pass
             v2[0] = min(v2[0], max(start_speed_mps, 0.0) ** 2)
             for i in range(1, m):
-                lim = v2[i - 1] + a2 * cell[i - 1]
+                lim = v2[i - 1] + a2 * cell_l[i - 1]
                 if v2[i] > lim:
                     v2[i] = lim
-            v_prof = np.sqrt(v2)
+            v_prof = np.sqrt(np.array(v2))
             # the reference never stands still between stops
             floor = np.where(stops, 0.0, cfg.crawl_speed_mps)
             v_prof = np.maximum(v_prof, floor)
@@ -595,14 +596,18 @@ class Multirotor:
         vx, vy, vz = self._v
         yaw = self._yaw
         g = self.guidance
-        rows = np.empty((n, 8))
+        command = g.command
+        rows: list[tuple[float, ...]] = []
+        row = rows.append
+        t_l = t_ticks.tolist()
         nav_l = nav.tolist() if nav is not None else None
+        hypot, atan2, pi, two_pi = math.hypot, math.atan2, math.pi, 2.0 * math.pi
         for j in range(n):
             if nav_l is not None:
                 bx, by, bz = nav_l[j]
-                cx, cy, cz = g.command(x + bx, y + by, z + bz, dt)
+                cx, cy, cz = command(x + bx, y + by, z + bz, dt)
             else:
-                cx, cy, cz = g.command(x, y, z, dt)
+                cx, cy, cz = command(x, y, z, dt)
             if we or wn:  # air speed: shorten the ground velocity along its own direction
                 ax_, ay_ = cx - we, cy - wn
                 if ax_ * ax_ + ay_ * ay_ > vmax * vmax:
@@ -612,16 +617,16 @@ class Multirotor:
                     cx *= lam
                     cy *= lam
             elif cx * cx + cy * cy > vmax * vmax:
-                sc = vmax / math.hypot(cx, cy)
+                sc = vmax / hypot(cx, cy)
                 cx *= sc
                 cy *= sc
             # horizontal: along-track and lateral acceleration limits
             dvx, dvy = cx - vx, cy - vy
-            sp = math.hypot(vx, vy)
+            sp = hypot(vx, vy)
             if sp > 0.1:
                 ux, uy = vx / sp, vy / sp
             else:
-                dn = math.hypot(dvx, dvy)
+                dn = hypot(dvx, dvy)
                 ux, uy = (dvx / dn, dvy / dn) if dn > 0 else (1.0, 0.0)
             along = dvx * ux + dvy * uy
             latx, laty = dvx - along * ux, dvy - along * uy
@@ -629,7 +634,7 @@ class Multirotor:
                 along = a_long
             elif along < -a_long:
                 along = -a_long
-            lat = math.hypot(latx, laty)
+            lat = hypot(latx, laty)
             if lat > a_lat:
                 latx *= a_lat / lat
                 laty *= a_lat / lat
@@ -637,7 +642,7 @@ class Multirotor:
             nvy = vy + along * uy + laty
             # air speed
             ax_, ay_ = nvx - we, nvy - wn
-            air = math.hypot(ax_, ay_)
+            air = hypot(ax_, ay_)
             if air > vmax:
                 nvx = we + ax_ * vmax / air
                 nvy = wn + ay_ * vmax / air
@@ -661,29 +666,21 @@ class Multirotor:
                 z += 0.5 * (vz + nvz) * dt
             vx, vy, vz = nvx, nvy, nvz
             # the nose follows the course, within the yaw-rate limit
-            sp = math.hypot(vx, vy)
+            sp = hypot(vx, vy)
             if sp > 0.5:
-                d = math.atan2(vy, vx) - yaw
-                d = (d + math.pi) % (2.0 * math.pi) - math.pi
+                d = atan2(vy, vx) - yaw
+                d = (d + pi) % two_pi - pi
                 yaw += yaw_step if d > yaw_step else -yaw_step if d < -yaw_step else d
-            rows[j, 0] = t_ticks[j]
-            rows[j, 1] = x
-            rows[j, 2] = y
-            rows[j, 3] = z
-            rows[j, 4] = vx
-            rows[j, 5] = vy
-            rows[j, 6] = vz
-            rows[j, 7] = yaw
+            row((t_l[j], x, y, z, vx, vy, vz, yaw))
             if until_done and g.done:
                 n = j + 1
-                rows = rows[:n]
                 k_end = self.k + n
                 break
         self._p = [x, y, z]
         self._v = [vx, vy, vz]
         self._yaw = yaw
         self.k = k_end
-        self._record(rows)
+        self._record(np.array(rows, dtype=float).reshape(-1, 8))
         agl = self.out_log.view[-n:, 2] - ground(self.out_log.view[-n:, 0],
                                                   self.out_log.view[-n:, 1])
         i = int(np.argmin(agl))

@@ -205,3 +205,23 @@ class _NoRaise:
 
     def __exit__(self, *exc):
         return False
+
+
+def test_a_segment_bringing_a_vehicle_back_inside_is_accepted(monkeypatch):
+    """From inside, a segment (with the leg to it) must stay inside; from outside (a wide
+    turn), the segment counts from its first point inside on."""
+    from planner.policy import polyline_trajectory
+
+    loop = ClosedLoop(_short(RTK, 60.0), 0)
+    m = loop.mission
+
+    def seg(*pts):
+        return polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "t")
+
+    monkeypatch.setattr(loop.stepper, "navigation_position_m", lambda i=0: (0.0, -255.0, 0.0))
+    assert loop.plan_inside(seg((0.0, -255.0), (0.0, -200.0), (50.0, -200.0)))
+    assert not loop.plan_inside(seg((0.0, -255.0), (0.0, -260.0)))  # never comes back
+    assert not loop.plan_inside(seg((0.0, -255.0), (0.0, -200.0), (0.0, -270.0)))
+    monkeypatch.setattr(loop.stepper, "navigation_position_m", lambda i=0: (0.0, -200.0, 0.0))
+    assert loop.plan_inside(seg((0.0, -200.0), (100.0, 0.0)))
+    assert not loop.plan_inside(seg((0.0, -200.0), (0.0, -260.0), (0.0, -200.0)))

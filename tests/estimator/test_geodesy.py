@@ -211,3 +211,24 @@ def test_tangent_across_the_antimeridian() -> None:
     for lon in (-179.998, 179.998, 179.9995, -179.9999):
         t = fr.to_enu(-16.801, lon, 12.0)
         assert math.dist(t, ex.to_enu(-16.801, lon, 12.0)) < 0.00675 * math.hypot(*t[:2])
+
+
+def test_exact_enu_array_path_is_pymap3d_bit_for_bit():
+    """ExactENU.to_geodetic on float arrays skips pymap3d's per-call costs but does its
+    operations in its order: the same bits (the simulator's logs depend on them)."""
+    import pymap3d
+
+    from estimator.geodesy import ExactENU
+
+    rng = np.random.default_rng(7)
+    for lat0, lon0, h0 in ((36.715, -4.478, 140.0), (-33.86, 151.21, 3.0), (64.1, -21.9, 60.0)):
+        f = ExactENU(lat0, lon0, h0)
+        for n in (1, 7, 300):
+            e, no, u = (rng.uniform(-3000, 3000, n), rng.uniform(-3000, 3000, n),
+                        rng.uniform(-200, 800, n))
+            got = f.to_geodetic(e, no, u)
+            want = pymap3d.enu2geodetic(e, no, u, lat0, lon0, h0)
+            for g, w in zip(got, want, strict=True):
+                assert np.array_equal(g, w)
+        assert f.to_geodetic(10.0, 20.0, 5.0) == tuple(
+            float(v) for v in pymap3d.enu2geodetic(10.0, 20.0, 5.0, lat0, lon0, h0))

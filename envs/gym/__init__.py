@@ -1,0 +1,19 @@
+"""Gymnasium and PettingZoo environments of the search (docs/rl.md).
+
+- ``osa/Search-v0`` (:class:`envs.gym.search.SearchEnv`): a discrete choice of
+  manoeuvre per decision;
+- ``osa/Waypoint-v0`` (:class:`envs.gym.waypoint.WaypointEnv`): a continuous
+  ``Box(-1, 1)`` next waypoint;
+- :class:`envs.gym.multi.SearchParallelEnv`: N agents (UAVs, optionally a ground
+  agent) sharing one fused estimate (PettingZoo ``ParallelEnv``);
+- :class:`envs.gym.trained.TrainedPolicy`: a model trained by ``osa train`` as a
+  search policy (``ppo:PATH``).
+"""
+
+from __future__ import annotations
+
+from envs.gym.registration import ENVS, register_envs
+
+register_envs()
+
+__all__ = ["ENVS", "register_envs"]

@@ -1,0 +1,522 @@
+"""What the environments observe, how their actions become flights, and their reward.
+
+One object per episode, shared by the Gymnasium envs and :class:`envs.gym.trained.
+TrainedPolicy`, so a network trained in an env meets exactly the same observation and
+action mapping when it flies ``osa search``: everything here is computed from a
+:class:`planner.policy.Observation` (what the autopilot and the estimator say, never
+the truth) and the :class:`planner.policy.SearchMission` (what the operator knows).
+
+- :class:`Encoder`: the observation (a flat ``Dict`` of normalised float32 vectors:
+  the vehicle, responder slots with a mask, a coarse coverage map), the estimator-only
+  "localised" bookkeeping (:class:`planner.policy.LocalisedRule`) and the information
+  potential behind the reward.
+- :class:`ManoeuvreActions` (``osa/Search-v0``) and :class:`WaypointActions`
+  (``osa/Waypoint-v0``): action -> :class:`planner.policy.Decision`.
+
+Reward of one decision (all terms from the estimator, the vehicle and the link model):
+``information + detection_bonus * newly detected + coverage_bonus * newly covered
+share - time_cost_per_s * dt - leave_penalty * (leaving the area)``, where information
+is the increase of
+``sum_b 0.5 (log det P0 - log det P_b)`` over the detected responders b (P_b the
+estimate's 3 x 3 position covariance, P0 the prior before any estimate): the reduction of
+1/2 log det of the covariance, the D-optimal objective the CasADi planner maximises,
+and the covered share is the mean of the coverage map over the area: what the search
+has learnt before anything is heard (where the responder is not).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from gymnasium import spaces
+
+from planner.policy import (
+    AdaptiveConfig,
+    AgentView,
+    Decision,
+    LocalisedRule,
+    Manoeuvres,
+    Observation,
+    ResponderView,
+    SearchMission,
+    Sweep,
+    _Tracker,
+    search_spacing_m,
+)
+
+SLOT_FEATURES = (
+    "present_estimate", "d_east", "d_north", "d_up", "log_sigma_h", "log_sigma_z",
+    "status_none", "status_tracking", "status_converged", "status_diverged",
+    "log_heard", "log_accepted", "localised", "heard_d_east", "heard_d_north",
+    "age", "target",
+)  # fmt: skip
+AGENT_FEATURES = (
+    "east", "north", "height", "v_east", "v_north", "v_up", "time", "time_left",
+    "edge", "segment_done",
+)  # fmt: skip
+_TRACKING = ("tracking",)
+_NONE = ("bootstrapping", "weak_geometry", "ambiguous", "no_data")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EnvConfig:
+    """The environments' settings (documented in docs/rl.md, Arguments)."""
+
+    decision_period_s: float = 5.0  # flight between two actions
+    max_responders: int = 3  # responder slots in the observation
+    coverage_cells: int = 8  # the coverage map is cells x cells over the area's box
+    detection_bonus: float = 1.0  # per responder heard for the first time
+    coverage_bonus: float = 5.0  # for covering the whole area once (the search map)
+    time_cost_per_s: float = 0.01  # per second of flight
+    leave_penalty: float = 1.0  # a segment refused / a waypoint outside the area
+    prior_sigma_h_m: float = 100.0  # P0: the covariance "before any estimate"
+    prior_sigma_z_m: float = 30.0
+    cov_floor_m2: float = 0.01  # added to P before log det (keeps it finite)
+    rule: LocalisedRule = field(default_factory=LocalisedRule)
+    adaptive: AdaptiveConfig = field(default_factory=AdaptiveConfig)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.decision_period_s) and 0.5 <= self.decision_period_s <= 600):
+            raise ValueError("decision_period_s must be in [0.5, 600] s")
+        if not 1 <= self.max_responders <= 32:
+            raise ValueError("max_responders must be in [1, 32]")
+        if not 2 <= self.coverage_cells <= 32:
+            raise ValueError("coverage_cells must be in [2, 32]")
+
+    def to_json(self) -> dict:
+        """The settings a trained model needs to meet the same observation and actions."""
+        return {k: getattr(self, k) for k in (
+            "decision_period_s", "max_responders", "coverage_cells", "detection_bonus",
+            "coverage_bonus",
+            "time_cost_per_s", "leave_penalty", "prior_sigma_h_m", "prior_sigma_z_m",
+            "cov_floor_m2")}
+
+
+def half_logdet(cov: np.ndarray, floor_m2: float) -> float:
+    """0.5 log det (P + floor I) of a 3 x 3 covariance."""
+    sign, ld = np.linalg.slogdet(np.asarray(cov, dtype=float) + floor_m2 * np.eye(3))
+    return 0.5 * float(ld) if sign > 0 else math.inf
+
+
+class Encoder:
+    """Observation vectors, coverage, localised bookkeeping and the information potential
+    of one agent's episode (see the module docstring)."""
+
+    def __init__(self, config: EnvConfig, n_others: int = 0) -> None:
+        self.cfg = config
+        self.n_others = n_others
+        k, g = config.max_responders, config.coverage_cells
+        f32 = np.float32
+        sp = {
+            "agent": spaces.Box(-4.0, 4.0, (len(AGENT_FEATURES),), f32),
+            "responders": spaces.Box(-4.0, 4.0, (k * len(SLOT_FEATURES),), f32),
+            "responder_mask": spaces.Box(0.0, 1.0, (k,), f32),
+            "coverage": spaces.Box(0.0, 1.0, (g * g,), f32),
+        }
+        if n_others:
+            sp["others"] = spaces.Box(-4.0, 4.0, (4 * n_others,), f32)
+        self.space = spaces.Dict(sp)
+        p0 = np.diag([config.prior_sigma_h_m**2, config.prior_sigma_h_m**2,
+                      config.prior_sigma_z_m**2])
+        self.prior_half_logdet = half_logdet(p0, config.cov_floor_m2)
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, mission: SearchMission, agent: int = 0) -> None:
+        self.mission = mission
+        self.agent = agent
+        self.tracker = _Tracker(self.cfg.rule)
+        v = mission.area.vertices
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        self.center = 0.5 * (lo + hi)
+        self.half = max(float(np.max(hi - lo)) / 2.0, 1.0)
+        g = self.cfg.coverage_cells
+        edges_e = np.linspace(lo[0], hi[0], g + 1)
+        edges_n = np.linspace(lo[1], hi[1], g + 1)
+        ce, cn = np.meshgrid(0.5 * (edges_e[:-1] + edges_e[1:]),
+                             0.5 * (edges_n[:-1] + edges_n[1:]))  # row = north index
+        self.cells = np.column_stack([ce.ravel(), cn.ravel()])
+        self.cell_ground = np.asarray(mission.terrain.height_m(self.cells[:, 0],
+                                                               self.cells[:, 1]), dtype=float)
+        self.cell_inside = mission.area.contains(self.cells)
+        self.log_miss = np.zeros(len(self.cells))  # log P(not heard | responder in cell)
+        self.rate_hz = float(getattr(mission.link, "ranging_rate_hz", 4.0))
+        self.last_pos: np.ndarray | None = None
+        self.last_t = 0.0
+        self.detected: set[str] = set()
+        self.information = 0.0
+        self.covered_share = 0.0
+        self.slots: list[str] = []  # bssids in order of detection
+        self.target: str | None = None
+
+    # ------------------------------------------------------------------ update
+    def update(self, obs: Observation) -> dict:
+        """Take a new observation: bookkeeping, coverage, information; returns the
+        changes the reward needs (``information``: increase of the potential,
+        ``detected``: responders heard for the first time)."""
+        self.tracker.update(obs)
+        self._cover([np.asarray(a.position_enu_m, dtype=float) for a in obs.agents], obs.t_s)
+        new = [r.bssid for r in obs.responders if r.bssid not in self.detected]
+        self.detected.update(new)
+        for r in obs.responders:
+            if r.bssid not in self.slots:
+                self.slots.append(r.bssid)
+        info = self.potential(obs)
+        gain = info - self.information
+        self.information = info
+        covered = self.covered()
+        more = covered - self.covered_share
+        self.covered_share = covered
+        return {"information": gain, "detected": len(new), "covered": more}
+
+    def covered(self) -> float:
+        """The share of the area where a responder would have been heard by now (the
+        mean coverage of the cells inside the area)."""
+        inside = self.cell_inside
+        if not inside.any():
+            return 0.0
+        return float(np.mean(1.0 - np.exp(self.log_miss[inside])))
+
+    def potential(self, obs: Observation) -> float:
+        """sum over detected responders of 0.5 (log det P0 - log det P)."""
+        total = 0.0
+        for r in obs.responders:
+            if r.cov_m2 is not None:
+                h = half_logdet(r.cov_m2, self.cfg.cov_floor_m2)
+                if math.isfinite(h):  # a covariance that is not positive definite: no gain
+                    total += self.prior_half_logdet - h
+        return total
+
+    def _cover(self, positions: list[np.ndarray], t_s: float) -> None:
+        """Coverage: the chance that a responder in each cell would have been heard (by
+        any agent: they share one estimator)."""
+        pos = np.asarray(positions, dtype=float)  # (agents, 3)
+        if self.last_pos is None:
+            self.last_pos, self.last_t = pos, t_s
+            return
+        dt = t_s - self.last_t
+        if dt > 0:
+            f = np.array([1 / 6, 1 / 2, 5 / 6])[:, None, None]  # three points along the step
+            p = (self.last_pos[None] + f * (pos - self.last_pos)[None]).reshape(-1, 3)
+            d = np.sqrt((self.cells[:, 0][None] - p[:, 0:1]) ** 2
+                        + (self.cells[:, 1][None] - p[:, 1:2]) ** 2
+                        + (p[:, 2:3] - self.cell_ground[None]) ** 2)
+            q = np.clip(np.asarray(self.mission.link.response_probability(d), dtype=float),
+                        0.0, 0.999)
+            self.log_miss += self.rate_hz * dt / 3.0 * np.log1p(-q).sum(axis=0)
+        self.last_pos, self.last_t = pos, t_s
+
+    # ------------------------------------------------------------------ encode
+    def done(self, obs: Observation) -> bool:
+        """Every detected responder localised (estimator judgement), at least one, and as
+        many as the mission expects when it says."""
+        loc = self.tracker.localised
+        heard = {r.bssid for r in obs.responders}
+        if not heard or not heard <= set(loc):
+            return False
+        n = self.mission.expected_responders
+        return n is None or len(loc) >= n
+
+    def encode(self, obs: Observation, others: tuple[AgentView, ...] = ()) -> dict:
+        m, c = self.mission, self.cfg
+        a = obs.agents[self.agent]
+        pos = np.asarray(a.position_enu_m, dtype=float)
+        ground = float(np.asarray(m.terrain.height_m(pos[0], pos[1])))
+        sd = float(m.area.signed_distance_m(pos[None, :2])[0])
+        agent = np.array([
+            (pos[0] - self.center[0]) / self.half, (pos[1] - self.center[1]) / self.half,
+            (pos[2] - ground) / m.height_m - 1.0,
+            *(np.asarray(a.velocity_enu_mps, dtype=float) / m.speed_mps),
+            obs.t_s / obs.budget_s, obs.time_left_s / obs.budget_s,
+            -sd / self.half, float(a.segment_done),
+        ])
+        views = {r.bssid: r for r in obs.responders}
+        k, nf = c.max_responders, len(SLOT_FEATURES)
+        slots = np.zeros((k, nf))
+        mask = np.zeros(k)
+        for i, b in enumerate(self.slots[:k]):
+            mask[i] = 1.0
+            slots[i] = self._slot(views[b], pos, obs)
+        cov = 1.0 - np.exp(self.log_miss)
+        cov[~self.cell_inside] = 1.0
+        out = {
+            "agent": agent,
+            "responders": slots.ravel(),
+            "responder_mask": mask,
+            "coverage": cov,
+        }
+        if self.n_others:
+            rows = np.zeros((self.n_others, 4))
+            for j, o in enumerate(others[: self.n_others]):
+                rows[j] = [(o.position_enu_m[0] - pos[0]) / self.half,
+                           (o.position_enu_m[1] - pos[1]) / self.half,
+                           o.velocity_enu_mps[0] / m.speed_mps,
+                           o.velocity_enu_mps[1] / m.speed_mps]
+            out["others"] = rows.ravel()
+        return {key: np.clip(v, self.space[key].low, self.space[key].high).astype(np.float32)
+                for key, v in out.items()}
+
+    def _slot(self, r: ResponderView, pos: np.ndarray, obs: Observation) -> np.ndarray:
+        m = self.mission
+        s = np.zeros(len(SLOT_FEATURES))
+        if r.mean_enu_m is not None and r.cov_m2 is not None:
+            s[0] = 1.0
+            s[1] = (r.mean_enu_m[0] - pos[0]) / self.half
+            s[2] = (r.mean_enu_m[1] - pos[1]) / self.half
+            s[3] = (r.mean_enu_m[2] - pos[2]) / m.height_m
+            s[4] = math.log10(max(r.sigma_h_m or 1e-2, 1e-2)) / 2.0
+            cz = float(r.cov_m2[2][2])
+            s[5] = math.log10(max(math.sqrt(max(cz, 0.0)), 1e-2)) / 2.0
+        else:
+            s[4] = s[5] = 2.0  # no estimate: as if sigma were 10 km
+        st = r.status
+        s[6 + (1 if st in _TRACKING else 2 if st == "converged" else 0 if st in _NONE else 3)] = 1
+        s[10] = math.log1p(r.n_heard) / math.log(1000.0)
+        s[11] = math.log1p(r.n_acc) / math.log(1000.0)
+        s[12] = float(r.bssid in self.tracker.localised)
+        if r.heard_enu_m:
+            h = np.asarray(r.heard_enu_m, dtype=float)
+            w = 1.0 / np.maximum(np.asarray(r.heard_range_m, dtype=float), 5.0) ** 2
+            cx, cy = (h[:, :2] * w[:, None]).sum(axis=0) / w.sum()
+            s[13] = (cx - pos[0]) / self.half
+            s[14] = (cy - pos[1]) / self.half
+        s[15] = (obs.t_s - r.detected_at_s) / obs.budget_s
+        s[16] = float(r.bssid == self.target)
+        return s
+
+
+# ----------------------------------------------------------------------------- actions
+
+
+MANOEUVRES = ("sweep", "orbit-near", "orbit-far", "helix", "close-pass", "next-responder",
+              "return")
+
+
+class ManoeuvreActions:
+    """``osa/Search-v0``: a choice of manoeuvre per decision (:data:`MANOEUVRES`).
+
+    - ``sweep``: continue the search sweep (the lawnmower, resumed where it was left);
+    - ``orbit-near`` / ``orbit-far``: a level orbit of the target's estimate at the
+      probe radii (25 / 60 m), or of where it was heard while there is no estimate;
+    - ``helix``: the close helix about the estimate (18 m, through the altitude band),
+      or the climbing probe helix while there is no estimate;
+    - ``close-pass``: a straight pass over the estimate along its least known axis;
+    - ``next-responder``: make the next detected responder not yet localised the
+      target and fly to it;
+    - ``return``: fly back to the take-off point and hold there.
+
+    The target is the responder the manoeuvres are about: the most recently detected one
+    not yet localised, until ``next-responder`` changes it. Without a target (nothing
+    heard, or everything heard localised) every action continues the sweep. Choosing the
+    manoeuvre being flown again keeps flying it until its segment is done, then starts
+    it anew about the current estimate.
+    """
+
+    def __init__(self, config: EnvConfig) -> None:
+        self.cfg = config
+        self.space = spaces.Discrete(len(MANOEUVRES))
+
+    def reset(self, mission: SearchMission, encoder: Encoder) -> None:
+        self.mission = mission
+        self.enc = encoder
+        self.man = Manoeuvres(mission, self.cfg.adaptive)
+        self.sweep = Sweep(mission, search_spacing_m(mission, self.cfg.adaptive.detect_probability))
+        self.current: tuple[str, str | None] | None = None  # (manoeuvre, target)
+        self.refused = 0
+
+    def _pick_target(self, obs: Observation) -> None:
+        loc = self.enc.tracker.localised
+        views = {r.bssid: r for r in obs.responders}
+        t = self.enc.target
+        if t is not None and t not in loc and t in views:
+            return
+        pending = [r for r in obs.responders if r.bssid not in loc]
+        self.enc.target = max(pending, key=lambda r: r.detected_at_s).bssid if pending else None
+
+    def decide(self, action, obs: Observation) -> Decision:
+        loc = self.enc.tracker.frozen()
+        a = obs.agents[self.enc.agent]
+        name = MANOEUVRES[int(action)]
+        self._pick_target(obs)
+        if name == "next-responder":
+            loc_set = self.enc.tracker.localised
+            pending = [r.bssid for r in obs.responders if r.bssid not in loc_set]
+            if pending:
+                i = pending.index(self.enc.target) if self.enc.target in pending else -1
+                self.enc.target = pending[(i + 1) % len(pending)]
+        target = self.enc.target
+        if target is None:  # nothing to manoeuvre about (and nothing to return with)
+            name = "sweep"
+        key = (name, target if name != "sweep" else None)
+        if name == "sweep":
+            if self.current == key and not a.segment_done:
+                self.sweep.advance(a.position_enu_m[:2])
+                return Decision(localised=loc)
+            if self.current == key:  # the segment is flown: mark its end, reverse if over
+                self.sweep.advance(a.position_enu_m[:2])
+                if self.sweep.at_end:
+                    self.sweep.reverse()
+            self.current = key
+            return Decision(plans={self.enc.agent: self.sweep.resume(a.position_enu_m[:2])},
+                            localised=loc, note="sweep")
+        if self.current == key and not a.segment_done:
+            return Decision(localised=loc)
+        self.current = key
+        traj = self._build(name, target, obs, a)
+        return Decision(plans={self.enc.agent: traj}, localised=loc, note=f"{name} {target}")
+
+    def _build(self, name: str, target: str | None, obs: Observation, a: AgentView):
+        m, man, c = self.mission, self.man, self.cfg.adaptive
+        if name == "return":
+            return man.goto(m.start_enu_m, a, "return")
+        r = next(v for v in obs.responders if v.bssid == target)
+        est = r.mean_enu_m is not None and r.status in ("converged", "tracking")
+        center = r.mean_enu_m[:2] if est else man.heard_center(r)[0]
+        if name == "orbit-near":
+            return man.orbit(center, c.probe_radius_m[0], a)
+        if name == "orbit-far":
+            return man.orbit(center, c.probe_radius_m[1], a)
+        if name == "helix":
+            return man.close_helix(r, a) if est else man.probe(r, a)
+        if name == "close-pass":
+            return man.close_pass(center, r.cov_m2 if est else None, a)
+        return man.goto(center, a, "next-responder")  # next-responder
+
+
+class WaypointActions:
+    """``osa/Waypoint-v0``: ``Box(-1, 1, (3,))``, the next waypoint relative to the
+    vehicle: east and north times the reach of one decision (speed x period), height
+    above the terrain changed by up to ``climb_m`` within the altitude band (the
+    adaptive policy's: 20 m below to 25 m above the search height, at least 10 m).
+    A waypoint beyond the area's margin is moved to the nearest point inside it (so the
+    vehicle slides along the edge instead of stopping there); such a request costs
+    ``leave_penalty`` times the share of the reach it lies outside. The vehicle flies to
+    it at cruise speed and on along the same line (so it does not brake at each
+    waypoint), routed inside a concave area. A request shorter than 1 m holds.
+    """
+
+    climb_m = 10.0
+
+    def __init__(self, config: EnvConfig, speed_mps: float | None = None,
+                 ground: bool = False) -> None:
+        self.cfg = config
+        self.space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.speed_override = speed_mps
+        self.ground = ground
+
+    def reset(self, mission: SearchMission, encoder: Encoder) -> None:
+        self.mission = mission
+        self.enc = encoder
+        self.speed = self.speed_override or mission.speed_mps
+        band = self.cfg.adaptive.agl_band_m
+        self.band = (max(10.0, mission.height_m + band[0]), mission.height_m + band[1])
+        self.penalty = 0.0  # of the last decision: share of the reach outside the area
+        area = mission.area
+        self.halfplanes = None
+        if area.convex:  # inside with the margin: n . (p - v) >= margin for every edge
+            v = area.vertices
+            e = np.concatenate([v[1:], v[:1]]) - v
+            nrm = np.column_stack([-e[:, 1], e[:, 0]]) / np.linalg.norm(e, axis=1)[:, None]
+            self.halfplanes = (nrm, (nrm * v).sum(axis=1) + area.margin_m)
+
+    def _inside(self, p: np.ndarray) -> np.ndarray:
+        """The point of the area inset by its margin nearest to ``p`` (a convex area:
+        projections onto the violated edges; exact for a box, close otherwise)."""
+        nrm, c = self.halfplanes
+        q = np.asarray(p, dtype=float).copy()
+        for _ in range(2 * len(c)):
+            g = nrm @ q - c
+            i = int(np.argmin(g))
+            if g[i] >= -1e-9:
+                break
+            q = q - g[i] * nrm[i]
+        return q
+
+    def decide(self, action, obs: Observation) -> Decision:
+        from estimator.records import Trajectory
+
+        m = self.mission
+        area = m.area
+        loc = self.enc.tracker.frozen()
+        act = np.clip(np.asarray(action, dtype=float).reshape(3), -1.0, 1.0)
+        a = obs.agents[self.enc.agent]
+        here = np.asarray(a.position_enu_m, dtype=float)
+        reach = self.speed * self.cfg.decision_period_s
+        want = here[:2] + reach * act[:2]
+        if self.halfplanes is not None:  # convex: the nearest point inside the margin
+            wp = self._inside(want)
+        else:
+            wp = np.asarray(area._pull_inside(want), dtype=float)
+        self.penalty = min(1.0, float(np.linalg.norm(want - wp)) / reach)
+        ground = float(np.asarray(m.terrain.height_m(here[0], here[1])))
+        if self.ground:
+            agl = 0.0
+        else:
+            agl = float(np.clip(here[2] - ground + self.climb_m * act[2], *self.band))
+        i = self.enc.agent
+        if float(np.linalg.norm(wp - here[:2])) < 1.0:
+            pts = [tuple(here[:2])]
+        elif self.halfplanes is not None:  # on along the same line, up to the margin
+            on = self._inside(2.0 * wp - here[:2])
+            pts = [tuple(here[:2]), tuple(wp)]
+            if float(np.linalg.norm(on - wp)) > 1.0:
+                pts.append(tuple(on))
+        else:
+            pts = area.route(here[:2], wp)
+            on = wp + (wp - np.asarray(pts[-2], dtype=float))
+            if area.path_inside(np.array([wp, on]), area.margin_m, step_m=5.0):
+                pts = [*pts, (float(on[0]), float(on[1]))]
+        p = np.asarray(pts, dtype=float)
+        if len(p) == 1:
+            p = np.vstack([p, p])
+            t = np.array([0.0, self.cfg.decision_period_s])
+        else:
+            seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+            keep = np.concatenate([[True], seg > 1e-6])
+            t = np.concatenate([[0.0], np.cumsum(seg / self.speed)])[keep]
+            p = p[keep]
+        enu = np.column_stack([p, np.full(len(p), agl)])
+        traj = Trajectory(t, enu, m.origin, "terrain", "waypoint")
+        return Decision(plans={i: traj}, localised=loc)
+
+
+class Pilot:
+    """One agent's observation and action mapping (``kind`` "search" or "waypoint"): what
+    an env wraps around the closed loop and a trained policy around its network."""
+
+    def __init__(self, kind: str, config: EnvConfig = EnvConfig(), *, n_others: int = 0,
+                 speed_mps: float | None = None, ground: bool = False) -> None:
+        if kind not in ("search", "waypoint"):
+            raise ValueError(f"unknown action kind {kind!r} (search, waypoint)")
+        self.kind = kind
+        self.cfg = config
+        self.encoder = Encoder(config, n_others)
+        self.actions = (ManoeuvreActions(config) if kind == "search"
+                        else WaypointActions(config, speed_mps, ground))
+        self.observation_space = self.encoder.space
+        self.action_space = self.actions.space
+
+    def reset(self, mission: SearchMission, agent: int = 0) -> None:
+        self.encoder.reset(mission, agent)
+        self.actions.reset(mission, self.encoder)
+
+    def observe(self, obs: Observation, others: tuple[AgentView, ...] = ()
+                ) -> tuple[dict, dict]:
+        """(encoded observation, reward changes) of a new observation; call once each."""
+        changes = self.encoder.update(obs)
+        return self.encoder.encode(obs, others), changes
+
+    def act(self, action, obs: Observation) -> Decision:
+        return self.actions.decide(action, obs)
+
+    def done(self, obs: Observation) -> bool:
+        return self.encoder.done(obs)
+
+    @property
+    def localised(self) -> frozenset[str]:
+        return self.encoder.tracker.frozen()
+
+    def area_penalty(self) -> float:
+        """Share of the last waypoint request outside the area (waypoint actions)."""
+        return float(getattr(self.actions, "penalty", 0.0))

@@ -1,0 +1,119 @@
+"""A model trained by ``osa train`` as a search policy (``--policy ppo:PATH``).
+
+``osa train -o MODEL`` writes a folder::
+
+    MODEL/model.zip          the Stable-Baselines3 model (PPO unless --algo said otherwise)
+    MODEL/vecnormalize.pkl   its VecNormalize statistics (observation normalisation)
+    MODEL/osa-model.json     the env id, its settings and the algorithm
+    MODEL/best/              the same three files for the best model on validation seeds
+    MODEL/checkpoints/       periodic checkpoints (model and statistics)
+    MODEL/progress.csv       the training log (TensorBoard event files beside it, if installed)
+    MODEL/validation.json    the evaluations on validation worlds during training
+
+:class:`TrainedPolicy` wraps the model, its statistics and the env's observation and
+action mapping (:class:`envs.gym.interface.Pilot`) into a
+:class:`planner.policy.Policy`: each ``decide`` encodes the observation exactly as the
+env did in training, normalises it with the saved statistics, asks the network for its
+deterministic action and turns it into a flight with the env's mapping. So a policy
+trained in the env flies ``osa search`` and ``osa evaluate`` as it flew in training.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+
+from envs.gym.interface import EnvConfig, Pilot
+from planner.policy import Decision, Observation, SearchMission
+
+MODEL_FILE, STATS_FILE, META_FILE = "model.zip", "vecnormalize.pkl", "osa-model.json"
+ALGOS = ("PPO", "A2C", "DQN", "SAC", "TD3")
+
+
+def model_dir(path: str | Path) -> Path:
+    """The model folder of ``path`` (the folder itself, or its ``model.zip``)."""
+    p = Path(path)
+    return p.parent if p.name == MODEL_FILE else p
+
+
+def algo_class(name: str):
+    """A Stable-Baselines3 algorithm class by name (PPO, A2C, DQN, SAC, TD3)."""
+    import stable_baselines3 as sb3
+
+    key = name.upper()
+    if key not in ALGOS:
+        raise ValueError(f"unknown algorithm {name!r}; choose from {', '.join(ALGOS)}")
+    return getattr(sb3, key)
+
+
+class TrainedPolicy:
+    """A policy trained in ``osa/Search-v0`` or ``osa/Waypoint-v0`` (see the module)."""
+
+    def __init__(self, model, stats, meta: dict, path: Path) -> None:
+        self.model = model
+        self.stats = stats
+        self.meta = meta
+        self.path = path
+        self.name = f"ppo:{path}"
+        cfg = dict(meta.get("config", {}))
+        self.config = EnvConfig(**cfg)
+        self.kind = meta["kind"]
+
+    @classmethod
+    def load(cls, path: str | Path) -> TrainedPolicy:
+        """Load ``MODEL`` written by ``osa train`` (ValueError with the reason if not)."""
+        d = model_dir(path)
+        meta_p = d / META_FILE
+        if not (d / MODEL_FILE).is_file() or not meta_p.is_file():
+            raise ValueError(f"{path}: not a model written by osa train (no {MODEL_FILE} "
+                             f"and {META_FILE} there)")
+        try:
+            meta = json.loads(meta_p.read_text())
+            kind = meta["kind"]
+            algo = meta.get("algo", "PPO")
+        except (ValueError, KeyError) as exc:
+            raise ValueError(f"{meta_p}: unreadable ({exc})") from None
+        if kind not in ("search", "waypoint"):
+            raise ValueError(f"{meta_p}: unknown env kind {kind!r}")
+        try:
+            import torch
+
+            cls_ = algo_class(algo)
+        except ImportError:
+            raise ValueError("ppo:PATH needs the optional 'rl' extra (stable-baselines3, "
+                             "torch): pip install -e '.[rl]'") from None
+        if torch.get_num_threads() > 1:  # one decision at a time: threads only contend
+            torch.set_num_threads(1)
+        model = cls_.load(str(d / MODEL_FILE), device="cpu")
+        stats = None
+        if (d / STATS_FILE).is_file():
+            with open(d / STATS_FILE, "rb") as f:
+                stats = pickle.load(f)  # a VecNormalize without its env
+            stats.training = False
+        return cls(model, stats, meta, d)
+
+    def __reduce__(self):  # pickles as its path (to worker processes): loaded there again
+        return (TrainedPolicy.load, (str(self.path),))
+
+    # ------------------------------------------------------------------ Policy
+    def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
+        if mission.n_agents != 1:
+            raise ValueError(f"{self.name} flies one agent; the mission has {mission.n_agents}")
+        self.pilot = Pilot(self.kind, self.config)
+        self.pilot.reset(mission)
+
+    def decide(self, obs: Observation) -> Decision:
+        enc, _ = self.pilot.observe(obs)
+        if self.pilot.done(obs):
+            return Decision(localised=self.pilot.localised, done=True,
+                            note="every detected responder localised")
+        return self.pilot.act(self.action(enc), obs)
+
+    def action(self, encoded: dict):
+        """The network's deterministic action for one encoded observation."""
+        x = self.stats.normalize_obs(encoded) if self.stats is not None else encoded
+        action, _ = self.model.predict(x, deterministic=True)
+        return action

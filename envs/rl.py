@@ -1,0 +1,248 @@
+"""Training and evaluating policies in the search envs with Stable-Baselines3 (docs/rl.md).
+
+:func:`train` is ``osa train``: vectorised envs in subprocesses (world seeds of the
+train split, each env seeded from ``--seed``), ``VecNormalize``, checkpoints, a
+progress bar, evaluation on fixed validation worlds (:class:`ValidationCallback`, the
+best model kept), a CSV log and TensorBoard logs when TensorBoard is installed.
+:func:`rollout` runs one episode of any action function on a given world, the common
+yardstick of the learning test and the recipe benchmark.
+
+Needs the optional ``rl`` extra (stable-baselines3 and torch).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+
+import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
+from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
+from envs.seeds import split_seeds
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainSettings:
+    env_id: str = "osa/Search-v0"
+    env_kwargs: dict = field(default_factory=dict)
+    steps: int = 200_000
+    seed: int = 0
+    algo: str = "PPO"
+    n_envs: int = 2
+    eval_every: int = 20_000
+    eval_worlds: int = 20
+    checkpoint_every: int = 50_000
+    progress: bool = True
+    algo_kwargs: dict = field(default_factory=dict)
+    policy_kwargs: dict = field(default_factory=lambda: {"net_arch": [128, 128]})
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode's outcome (from the env's info; the truth only in ``err_h_m``)."""
+
+    world_seed: int
+    ret: float
+    steps: int
+    flight_time_s: float
+    localised: bool  # terminated: every detected responder localised (estimator judgement)
+    err_h_m: float | None
+
+
+def make_env(env_id: str, kwargs: dict) -> gymnasium.Env:
+    """A registered env (module level: picklable for subprocess vector envs)."""
+    return gymnasium.make(env_id, **kwargs)
+
+
+def rollout(env: gymnasium.Env, act: Callable[[dict], object], world_seed: int) -> Episode:
+    """Run ``act`` (observation -> action) for one episode on world ``world_seed``."""
+    obs, info = env.reset(options={"world_seed": world_seed})
+    ret, n = 0.0, 0
+    while True:
+        obs, r, term, trunc, info = env.step(act(obs))
+        ret += float(r)
+        n += 1
+        if term or trunc:
+            break
+    errs = [v["err_h_m"] for v in info["eval"].values() if "err_h_m" in v]
+    return Episode(world_seed, ret, n, float(info["flight_time_s"]), bool(term),
+                   float(np.mean(errs)) if errs else None)
+
+
+def summarise(episodes: list[Episode]) -> dict:
+    """Success share, median flight time (censored at the budget: an episode not
+    localised counts as its flight time, the budget) and mean return."""
+    return {
+        "worlds": len(episodes),
+        "localised": sum(e.localised for e in episodes) / max(len(episodes), 1),
+        "median_time_s": statistics.median(e.flight_time_s for e in episodes),
+        "mean_return": statistics.fmean(e.ret for e in episodes),
+    }
+
+
+def model_actor(model, stats) -> Callable[[dict], object]:
+    """The deterministic action of a model for one observation (normalised by ``stats``)."""
+    def act(obs):
+        x = stats.normalize_obs(obs) if stats is not None else obs
+        return model.predict(x, deterministic=True)[0]
+    return act
+
+
+def evaluate(model, stats, env_id: str, env_kwargs: dict, world_seeds: list[int]
+             ) -> list[Episode]:
+    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
+    act = model_actor(model, stats)
+    try:
+        return [rollout(env, act, s) for s in world_seeds]
+    finally:
+        env.close()
+
+
+def _callbacks(settings: TrainSettings, out: Path, venv):
+    from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+
+    from envs.commands._progress import QuantityProgress
+
+    class Progress(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = QuantityProgress(f"osa train {settings.env_id}", settings.steps, "steps",
+                                        enabled=settings.progress)
+
+        def _on_step(self) -> bool:
+            note = ""
+            buf = self.model.ep_info_buffer
+            if buf:
+                note = f"episode return {np.mean([e['r'] for e in buf]):.2f}"
+            self.bar.update(self.num_timesteps, note)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    class ValidationCallback(BaseCallback):
+        """Every ``eval_every`` steps: the deterministic policy on the first
+        ``eval_worlds`` validation worlds; the best (lowest median time to localise,
+        then highest return) is saved in MODEL/best."""
+
+        def _on_training_start(self) -> None:
+            self.next = settings.eval_every
+            self.seeds = split_seeds("validation", settings.eval_worlds)
+            self.best: tuple | None = None
+            self.history: list[dict] = []
+
+        def _on_step(self) -> bool:
+            if settings.eval_every and self.num_timesteps >= self.next:
+                self.next += settings.eval_every
+                self.run()
+            return True
+
+        def run(self) -> None:
+            eps = evaluate(self.model, venv, settings.env_id, settings.env_kwargs, self.seeds)
+            s = summarise(eps)
+            s["steps"] = int(self.num_timesteps)
+            self.history.append(s)
+            for k in ("localised", "median_time_s", "mean_return"):
+                self.logger.record(f"validation/{k}", s[k])
+            key = (-s["median_time_s"], s["mean_return"])
+            if self.best is None or key > self.best:
+                self.best = key
+                save(self.model, venv, settings, out / "best", s)
+            (out / "validation.json").write_text(json.dumps(self.history, indent=1))
+
+    cbs = [Progress()]
+    if settings.checkpoint_every:
+        cbs.append(CheckpointCallback(max(settings.checkpoint_every // settings.n_envs, 1),
+                                      str(out / "checkpoints"), name_prefix="model",
+                                      save_vecnormalize=True))
+    val = ValidationCallback()
+    cbs.append(val)
+    return cbs, val
+
+
+def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None = None) -> None:
+    """The three files ``ppo:FOLDER`` loads."""
+    folder.mkdir(parents=True, exist_ok=True)
+    model.save(str(folder / MODEL_FILE))
+    venv.save(str(folder / STATS_FILE))
+    env = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    meta = {
+        "format": 1,
+        "algo": settings.algo,
+        "env_id": settings.env_id,
+        "kind": env.kind,
+        "env_kwargs": {k: getattr(v, "name", v) if k == "scenario" else v
+                       for k, v in settings.env_kwargs.items()},
+        "config": env.config.to_json(),
+        "scenario": env.scenario.name,
+        "seed": settings.seed,
+        "steps": int(model.num_timesteps),
+        **({"validation": extra} if extra else {}),
+    }
+    env.close()
+    (folder / META_FILE).write_text(json.dumps(meta, indent=1))
+
+
+@dataclass
+class TrainSummary:
+    out: Path
+    steps: int
+    wall_s: float
+    validation: list[dict]
+
+    def text(self) -> str:
+        lines = [f"trained {self.steps} steps in {self.wall_s / 60:.1f} min -> {self.out}"]
+        for v in self.validation:
+            lines.append(f"  validation at {v['steps']:>8} steps: localised "
+                         f"{100 * v['localised']:.0f} %, median time {v['median_time_s']:.0f} s,"
+                         f" mean return {v['mean_return']:.2f}")
+        return "\n".join(lines)
+
+
+def train(settings: TrainSettings, out: Path) -> TrainSummary:
+    """Train and save (see the module docstring); returns what the CLI prints."""
+    import torch
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.logger import configure
+    from stable_baselines3.common.utils import set_random_seed
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+    torch.set_num_threads(1)  # small networks: the envs' subprocesses want the cores
+    set_random_seed(settings.seed)
+    kwargs = {**settings.env_kwargs, "seed_split": "train"}
+    fn = functools.partial(make_env, settings.env_id, kwargs)
+    vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
+    venv = make_vec_env(fn, n_envs=settings.n_envs, seed=settings.seed, vec_env_cls=vec_cls)
+    algo_kw = dict(settings.algo_kwargs)
+    gamma = algo_kw.get("gamma", 0.99)
+    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, clip_obs=10.0, gamma=gamma)
+    cls = algo_class(settings.algo)
+    model = cls("MultiInputPolicy", venv, seed=settings.seed, device="cpu", verbose=0,
+                policy_kwargs=settings.policy_kwargs, **algo_kw)
+    formats = ["csv"]
+    try:
+        import tensorboard  # noqa: F401
+
+        formats.append("tensorboard")
+    except ImportError:
+        pass
+    model.set_logger(configure(str(out), formats))
+    cbs, val = _callbacks(settings, out, venv)
+    t0 = time.perf_counter()
+    try:
+        model.learn(total_timesteps=settings.steps, callback=cbs)
+        if settings.eval_every and (not val.history or val.history[-1]["steps"]
+                                    < model.num_timesteps - settings.eval_every // 2):
+            val.run()  # the end is far from the last evaluation
+    finally:
+        venv.close()
+    wall = time.perf_counter() - t0
+    save(model, venv, settings, out, val.history[-1] if val.history else None)
+    return TrainSummary(out, int(model.num_timesteps), wall, val.history)
+
