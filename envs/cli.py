@@ -13,7 +13,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-COMMANDS = ("run", "replay", "simulate", "plan", "upload")
+COMMANDS = ("run", "replay", "simulate", "plan", "upload", "vehicle")
 
 
 class _Parser(argparse.ArgumentParser):
