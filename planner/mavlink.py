@@ -88,6 +88,7 @@ __all__ = [
     "UploadTimeoutError",
     "VerifyMismatchError",
     "WireItem",
+    "ardupilot_stored",
     "compare_wire",
     "connected",
     "detected_autopilot",
@@ -361,6 +362,18 @@ ARDUPILOT_ALT_TOLERANCE_M = 0.01  # ArduPilot stores altitudes in whole centimet
 
 def _frame_class(frame: int) -> int:
     return _SAME_FRAME.get(frame, frame)
+
+
+def ardupilot_stored(item: WireItem) -> WireItem:
+    """``item`` as ArduPilot's AP_Mission gives it back on download
+    (``mission_cmd_to_mavlink_int``): the float frame twin of an INT frame, the
+    altitude in whole centimetres, commands without a position (RTL, CONDITION_*,
+    DO_*) with frame 0 and x = y = z = 0. :func:`compare_wire` accepts exactly
+    these changes; seq 0 (home) is the vehicle's own and not derived from the item."""
+    if item.command in _POSITIONLESS:
+        return dataclasses.replace(item, frame=MAV_FRAME_GLOBAL, x=0, y=0, z=0.0)
+    return dataclasses.replace(item, frame=_frame_class(item.frame),
+                               z=round(item.z * 100.0) / 100.0)
 
 
 def compare_wire(sent: Sequence[WireItem], held: Sequence[WireItem], *,

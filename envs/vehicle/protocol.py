@@ -79,6 +79,7 @@ class MissionServer:
         self._rx: dict[int, _Upload] = {}
         self._last: dict[int, _Commit] = {}
         self.refused: list[tuple[int, int]] = []  # (mission_type, MAV_MISSION_RESULT)
+        self.commits: dict[int, int] = {t: 0 for t in CAPACITY}  # accepted lists per type
 
     # ------------------------------------------------------------------ helpers
     def _ack(self, peer: Peer, result: int, mission_type: int) -> None:
@@ -99,6 +100,7 @@ class MissionServer:
             flagged = [w.seq for w in items if w.current]
             current = flagged[0] if flagged else 0
         self.held[mission_type] = items
+        self.commits[mission_type] += 1
         self._last[mission_type] = _Commit(peer, len(items))
         self.on_commit(mission_type, list(items), current)
 
