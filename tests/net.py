@@ -25,12 +25,14 @@ class LossyUdpProxy:
     Ground stations send to :attr:`port` (``udpout:127.0.0.1:PORT``); the proxy
     forwards to ``target_port`` (a vehicle listening with ``udpin``) from its own
     socket and relays the answers back to the last ground-station address. Each
-    direction draws its drops from its own stream of ``seed`` (``drop`` in [0, 1)).
+    direction draws its drops from its own stream of ``seed`` (``drop`` in [0, 1));
+    setting :attr:`cut` drops everything from then on.
     """
 
-    def __init__(self, target_port: int, drop: float, seed: int = 0) -> None:
+    def __init__(self, target_port: int, drop: float = 0.0, seed: int = 0) -> None:
         self.target = (LOOPBACK, target_port)
         self.drop = drop
+        self.cut = False  # True: drop everything from now on (a link that dies)
         rng = np.random.default_rng(seed)
         self._rng_up, self._rng_down = (np.random.default_rng(s) for s in
                                         rng.bit_generator.seed_seq.spawn(2))
@@ -58,7 +60,7 @@ class LossyUdpProxy:
                     self._gcs = addr
                 rng = self._rng_up if up else self._rng_down
                 k = 0 if up else 1
-                if rng.random() < self.drop:
+                if self.cut or rng.random() < self.drop:
                     self.dropped[k] += 1
                     continue
                 self.passed[k] += 1

@@ -45,7 +45,7 @@ class RunningVehicle:
 @contextlib.contextmanager
 def running_vehicle(scenario: str = "three-aps", *, speedup: float = 1.0, seed: int = 0,
                     log_path: Any = None, params: dict[str, float] | None = None,
-                    attempts: int = 5) -> Iterator[RunningVehicle]:
+                    attempts: int = 5, **options: Any) -> Iterator[RunningVehicle]:
     """A started vehicle on ``udpin:127.0.0.1:<free port>``, stopped afterwards."""
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
     last: Exception | None = None
@@ -53,7 +53,7 @@ def running_vehicle(scenario: str = "three-aps", *, speedup: float = 1.0, seed: 
         port = free_udp_port()
         try:
             v = VirtualVehicle(sc, [f"udpin:{LOOPBACK}:{port}"], speedup=speedup, seed=seed,
-                               log_path=log_path, params=params)
+                               log_path=log_path, params=params, **options)
         except ConnectionURLError as exc:  # the port was taken meanwhile
             last = exc
             continue

@@ -98,6 +98,7 @@ from sim.stepper import Emitted, Stepper
 
 FORCE_DISARM_MAGIC = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2: force
 TERRAIN_CLEARANCE_M = 2.0  # the vehicle never flies lower above the ground (not PX4)
+FENCE_MARGIN_M = 1.0  # a breach is predicted this far beyond the stopping point
 
 
 @dataclass
@@ -187,6 +188,7 @@ class Autopilot:
         self.rally_enu: list[Vec3] = []
         self.task: Task = Idle()
         self.events: list[tuple] = []
+        self.reached_log: list[tuple[int, float, Vec3]] = []  # (seq, t_s, position)
         self.speed_override_mps: float | None = None
         self._item: _Item | None = None
         self._rtl: _Rtl | None = None
@@ -291,10 +293,11 @@ class Autopilot:
         return cmd
 
     # ------------------------------------------------------------------ sensing
-    def _bias_now(self) -> tuple[float, float, float]:
+    def _bias_now(self, fresh: bool = False) -> tuple[float, float, float]:
+        """The navigation error now (cached for a second unless ``fresh``)."""
         if self.vehicle.nav_error is None:
             return 0.0, 0.0, 0.0
-        if self.t_s - self._bias_t >= 1.0:
+        if self.t_s - self._bias_t >= (1e-9 if fresh else 1.0):
             b = self.vehicle.nav_error(np.array([self.t_s]))[0]
             self._bias = (float(b[0]), float(b[1]), float(b[2]))
             self._bias_t = self.t_s
@@ -305,7 +308,11 @@ class Autopilot:
         b = self._bias_now()
         e, n, z = p[0] - b[0], p[1] - b[1], p[2] - b[2]
         ge, gn, gh = self._ground
-        tol = 0.25 if z - gh < 5.0 else 2.0
+        low = z - gh < 5.0
+        if low:  # near the ground: the error of this tick (it drifts by dm per second)
+            b = self._bias_now(fresh=True)
+            e, n, z = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+        tol = 0.25 if low else 2.0
         if abs(e - ge) > tol or abs(n - gn) > tol:
             gh = float(self.world.ground_m(e, n))
             self._ground = (e, n, gh)
@@ -356,7 +363,9 @@ class Autopilot:
             self.text(SEVERITY_INFO, f"mode {mode.label}")
 
     def _hold_here(self, point: Vec3 | None = None) -> None:
-        self.task = Hold(point or stopping_point(self._pos, self._vel, self.limits))
+        """Brake along the current velocity to its stopping point (or ``point``) and
+        hold there: a line with a braking profile, so the stop does not overshoot."""
+        self.task = Line(self._pos, point or stopping_point(self._pos, self._vel, self.limits))
 
     def _enter_mode(self, mode: Mode) -> None:
         """Switch to ``mode`` (already judged possible) and start flying it."""
@@ -726,6 +735,7 @@ class Autopilot:
         self._emit_current()
 
     def _reached(self, seq: int) -> None:
+        self.reached_log.append((seq, self.t_s, self._pos))
         self.emit("reached", seq)
 
     def _enter_item(self, seq: int, leg_start: Vec3) -> None:
@@ -796,7 +806,7 @@ class Autopilot:
         end = 0.0
         if cmd == MAV_CMD_NAV_WAYPOINT and w.param1 <= 0 and w.autocontinue:
             end = self._corner_after(seq, leg_start, it.target, it.radius_m)
-        self.task = Line(leg_start, it.target, end_speed_mps=end)
+        self.task = Line(leg_start, it.target, end_speed_mps=end, end_at_m=it.radius_m)
 
     def _corner_after(self, seq: int, start: Vec3, target: Vec3, radius: float) -> float:
         nxt = self._resolve(seq + 1, count=False)
@@ -832,8 +842,11 @@ class Autopilot:
             t = it.target
             assert t is not None
             h = math.hypot(t[0] - p[0], t[1] - p[1])
-            if h > it.radius_m or abs(t[2] - p[2]) > alt_rad:
+            if h > it.radius_m:
                 return
+            if abs(t[2] - p[2]) > alt_rad and not (
+                    t[2] < p[2] and self.true_agl_m(p) <= TERRAIN_CLEARANCE_M + alt_rad):
+                return  # (a target below the terrain clearance counts as reached above it)
             cmd = w.command
             if cmd == MAV_CMD_NAV_LAND:
                 it.phase = "land"
@@ -938,7 +951,9 @@ class Autopilot:
             return False
         lim = self.limits
         point = stopping_point(p, v, lim) if self.params["GF_PREDICT"] else p
-        ok = self.fence.allows(point[0], point[1])
+        sh = math.hypot(v[0], v[1])
+        m = FENCE_MARGIN_M / sh if sh > 0.1 else 0.0  # look a margin beyond the stop
+        ok = self.fence.allows(point[0] + v[0] * m, point[1] + v[1] * m)
         if ok:
             self._fence_ok = True
             self._safe_stop = point
@@ -950,7 +965,7 @@ class Autopilot:
         self.text(SEVERITY_CRITICAL, "geofence breached" + (" (predicted)" if point != p else ""))
         if action == 2:
             self._enter_mode(Mode.LOITER)
-            self.task = Hold(self._safe_stop or p)
+            self._hold_here(self._safe_stop or p)
         elif action == 3:
             self._enter_mode(Mode.RTL)
         elif action == 5:

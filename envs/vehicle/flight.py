@@ -8,9 +8,12 @@ yaw-rate limits to it. Tasks:
 - :class:`Idle`: on the ground, motors off (no command).
 - :class:`Hold`: a point, reached with a proportional pull (PX4 Hold / Loiter).
 - :class:`Line`: a straight 3-D line from ``start`` to ``target`` at cruise speed,
-  braking so that the vehicle passes ``target`` at ``end_speed`` (0: it stops), the
-  climb and descent limited; a cross-track pull keeps it on the line (PX4's
-  line-following auto mode). Reaching is judged by the caller (acceptance radius).
+  braking so that the vehicle is down to ``end_speed`` ``end_at_m`` before ``target``
+  (where the caller switches to the next leg; 0 and 0: it stops there), the climb and
+  descent limited, and not speeding up while the velocity still points elsewhere
+  (a turn onto the line is flown at the speed it started with); a cross-track pull
+  keeps it on the line (PX4's line-following auto mode). Reaching is judged by the
+  caller (acceptance radius).
 - :class:`Orbit`: a circle at a tangential speed the lateral-acceleration and yaw-rate
   limits allow, for a number of turns.
 - :class:`Land`: hold the horizontal position and descend (fast, then
@@ -50,6 +53,9 @@ class Context(Protocol):
     """What a task sees of the autopilot."""
 
     limits: Limits
+
+    @property
+    def velocity(self) -> Vec3: ...
 
     def true_agl_m(self, p: Vec3) -> float: ...
 
@@ -110,10 +116,12 @@ class Line(Task):
     name = "line"
 
     def __init__(self, start: Vec3, target: Vec3, *, end_speed_mps: float = 0.0,
-                 speed_mps: float | None = None, vertical_mps: float | None = None) -> None:
+                 end_at_m: float = 0.0, speed_mps: float | None = None,
+                 vertical_mps: float | None = None) -> None:
         self.start = start
         self.target = target
         self.end_speed = max(0.0, end_speed_mps)
+        self.end_at = max(0.0, end_at_m) if self.end_speed > 0 else 0.0
         self.speed = speed_mps  # None: the cruise speed of the moment
         self.vertical = vertical_mps  # None: the climb / descent limits
         d = (target[0] - start[0], target[1] - start[1], target[2] - start[2])
@@ -135,9 +143,14 @@ class Line(Task):
                                      max(self.end_speed, 1.0))
             return vx, vy, _cap_vertical(k * (t[2] - p[2]), lim)
         a = max(along, 0.0)
-        rem = self.length - a
+        rem = max(self.length - a - self.end_at, 0.0)
         brake = min(lim.brake_mps2, lim.brake_z_mps2) if abs(uz) > 0.7 else lim.brake_mps2
         v = min(speed, math.sqrt(self.end_speed ** 2 + 2.0 * brake * rem))
+        vx0, vy0, _ = ctx.velocity
+        s0 = math.hypot(vx0, vy0)
+        hl = math.hypot(ux, uy)
+        if s0 > 0.5 and hl > 0.3 and (vx0 * ux + vy0 * uy) / (s0 * hl) < 0.97:
+            v = min(v, s0 + 0.2)  # still turning onto the line: no faster yet
         up = self.vertical if self.vertical is not None else lim.climb_mps
         down = self.vertical if self.vertical is not None else lim.descent_mps
         if uz > 1e-9 and v * uz > up:

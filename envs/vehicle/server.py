@@ -183,7 +183,8 @@ class VirtualVehicle:
     def __init__(self, scenario: Scenario, connections: Sequence[str], *, seed: int = 0,
                  speedup: float = 1.0, log_path: str | os.PathLike | None = None,
                  params: dict[str, float] | None = None, sysid: int = 1, compid: int = 1,
-                 step_s: float = 1.0, status: Callable[[str], None] | None = None,
+                 step_s: float | None = None, status: Callable[[str], None] | None = None,
+                 transfer_timeout_s: float = 5.0,
                  wall_clock: Callable[[], float] = time.monotonic) -> None:
         if not connections:
             raise ConnectionURLError("a vehicle needs at least one --connection")
@@ -191,7 +192,10 @@ class VirtualVehicle:
             raise ValueError(f"speedup must be > 0, got {speedup!r}")
         self.scenario = scenario
         self.speedup = float(speedup)
-        self.step_s = step_s
+        # simulated seconds per step: 5 steps per simulated second up to a speed-up of 10
+        # (every 5 Hz stream has its own state), growing to 1 s from 50x (one per loop)
+        self.step_s = step_s if step_s is not None else \
+            max(0.2, min(1.0, self.speedup * self.LOOP_PERIOD_S))
         self.sysid, self.compid = sysid, compid
         self.status = status or (lambda message: None)
         self.clock = wall_clock
@@ -204,7 +208,8 @@ class VirtualVehicle:
                 raise ValueError(why)
         self.telemetry = Telemetry(self.autopilot)
         self.protocol = MissionServer(self._send_to, self._on_commit,
-                                      lambda: self.autopilot.mission.seq, clock=wall_clock)
+                                      lambda: self.autopilot.mission.seq,
+                                      timeout_s=transfer_timeout_s, clock=wall_clock)
         self.ports: list[_Port] = []
         try:
             for url in connections:
@@ -307,8 +312,7 @@ class VirtualVehicle:
             if now >= next_hb:
                 self._broadcast(self.telemetry.heartbeat())
                 next_hb = max(next_hb + 1.0, now + 0.5)
-            for msg_id in self.telemetry.streams.due(self.t_s):
-                self._broadcast(self.telemetry.build(msg_id))
+            self._publish_streams()
             self.protocol.tick()
             self._link_check(now)
             self.autopilot.on_wall_clock(now)
@@ -330,6 +334,11 @@ class VirtualVehicle:
             if self._sink is not None:
                 self._sink.add(emitted, self.t_s)
             self._publish_events()
+            self._publish_streams()
+
+    def _publish_streams(self) -> None:
+        for msg_id in self.telemetry.streams.due(self.t_s):
+            self._broadcast(self.telemetry.build(msg_id))
 
     def _wait(self, timeout_s: float) -> None:
         fds = [p.conn.fd for p in self.ports]

@@ -5,9 +5,10 @@ Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUD
 1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz), on the simulated clock (as PX4 SITL
 with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
 time) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most once per
-loop iteration, so at a large speed-up it is thinned to the loop rate (about 50 per
-wall second). HEARTBEAT goes at 1 Hz of wall time (it keeps ground stations' links
-alive whatever the speed-up) and at once on a change of mode or arming.
+simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
+50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz of wall
+time (it keeps ground stations' links alive whatever the speed-up) and at once on a
+change of mode or arming.
 """
 
 from __future__ import annotations
