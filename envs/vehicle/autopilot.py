@@ -168,6 +168,8 @@ class Autopilot:
         self.vehicle = self.agent.vehicle
         self.world = stepper.world
         self.frame = self.world.frame
+        self._geo_key: Vec3 | None = None
+        self._geo = (0.0, 0.0, 0.0)
         self.cfg = self.agent.spec.vehicle
         search = stepper.realisation.scenario.search
         cruise = min(search.speed_mps if search is not None else 5.0, self.cfg.max_speed_mps)
@@ -190,6 +192,8 @@ class Autopilot:
         self.events: list[tuple] = []
         self.reached_log: list[tuple[int, float, Vec3]] = []  # (seq, t_s, position)
         self.speed_override_mps: float | None = None
+        self._limits_key: tuple | None = None
+        self._limits: Limits | None = None
         self._item: _Item | None = None
         self._rtl: _Rtl | None = None
         self._takeoff_then: str | None = None  # after a take-off: "hold" | "mission"
@@ -212,6 +216,13 @@ class Autopilot:
     # ------------------------------------------------------------------ state
     @property
     def limits(self) -> Limits:
+        key = (self.params.version, self.speed_override_mps)
+        if self._limits_key != key:
+            self._limits = self._make_limits()
+            self._limits_key = key
+        return self._limits
+
+    def _make_limits(self) -> Limits:
         p = self.params
         cfg = self.cfg
         cruise = self.speed_override_mps if self.speed_override_mps is not None \
@@ -240,8 +251,12 @@ class Autopilot:
         return self._vel
 
     def geodetic(self, p: Vec3) -> tuple[float, float, float]:
-        lat, lon, alt = self.frame.to_geodetic(p[0], p[1], p[2])
-        return float(lat), float(lon), float(alt)
+        """(lat, lon, ellipsoidal height) of an ENU point (the last one is cached)."""
+        if self._geo_key != p:
+            lat, lon, alt = self.frame.to_geodetic(p[0], p[1], p[2])
+            self._geo = (float(lat), float(lon), float(alt))
+            self._geo_key = p
+        return self._geo
 
     def _home_here(self) -> Home:
         lat, lon, alt = self.geodetic(self._pos)

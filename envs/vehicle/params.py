@@ -82,6 +82,7 @@ class Params:
         self.specs = _specs(cruise_mps, max_speed_mps, max_up_mps)
         self._index = {s.name: k for k, s in enumerate(self.specs)}
         self.values = {s.name: float(s.default) for s in self.specs}
+        self.version = 0  # bumped on every change (the autopilot caches what it derives)
 
     def __getitem__(self, name: str) -> float:
         return self.values[name]
@@ -103,6 +104,7 @@ class Params:
         if s.kind == MAV_PARAM_TYPE_INT32:
             value = float(round(value))
         self.values[name] = float(value)
+        self.version += 1
         return None
 
     def wire_value(self, name: str) -> tuple[float, int]:
