@@ -64,3 +64,38 @@ def record_replay(
     rec.flush()
     rec.disconnect()
     return Path(path)
+
+
+def record_search(result, path: str | Path) -> Path:
+    """Write a rerun ``.rrd`` recording of a closed-loop search (``osa search --rerun``):
+    ``world/area``, ``world/drone/<agent>`` (the autopilot's position over time),
+    ``world/responders/<bssid>/truth``, and per responder the time series
+    ``plots/<bssid>/sigma_h_m``, ``.../r95_h_m``, ``.../err_h_m`` on ``flight_time``."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("osa-testbed", recording_id="osa-search", send_properties=False)
+    rec.set_log_time_enabled(False)
+    rec.save(str(path))
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    area = np.asarray((*result.area_enu_m, result.area_enu_m[0]), dtype=float)
+    rec.log("world/area", rr.LineStrips3D([np.column_stack([area, np.zeros(len(area))])],
+                                          colors=[(0, 0, 0)]), static=True)
+    for b, p in result.truth_enu_m.items():
+        rec.log(f"world/responders/{b.replace(':', '')}/truth",
+                rr.Points3D([p], colors=[(255, 215, 0)], radii=[1.5], labels=[b]), static=True)
+    for k, trk in enumerate(result.nav_track):
+        for row in trk[::2]:
+            rec.set_time("flight_time", duration=row[0])
+            rec.log(f"world/drone/{k}", rr.Points3D([row[1:4]], radii=[1.0],
+                                                    colors=[(40, 40, 200)]))
+    for b, pts in result.series.items():
+        base = f"plots/{b.replace(':', '')}"
+        for p in pts:
+            rec.set_time("flight_time", duration=p.t_s)
+            for name in ("sigma_h_m", "r95_h_m", "err_h_m"):
+                v = getattr(p, name)
+                if v is not None and math.isfinite(v):
+                    rec.log(f"{base}/{name}", rr.Scalars([v]))
+    rec.flush()
+    rec.disconnect()
+    return Path(path)

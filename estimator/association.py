@@ -21,7 +21,7 @@ from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
-from estimator.records import GnssFix, RangeSample
+from estimator.records import GNSS_FIX_TYPES, GnssFix, RangeSample
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -45,6 +45,7 @@ class GeoRange:
     acc_m: float
     vacc_m: float | None
     interpolated: bool
+    fix: str | None = None  # the fix type (of the worse fix when interpolated)
 
 
 @dataclass
@@ -140,6 +141,7 @@ class Associator:
                 if prev.vacc_m is not None and nxt.vacc_m is not None
                 else None
             )
+            fix = _worse_fix(prev.fix, nxt.fix)
             interp = True
         else:
             best: GnssFix | None = None
@@ -152,6 +154,7 @@ class Associator:
                 return
             lat, lon, alt = best.lat_deg, best.lon_deg, best.alt_m
             acc, vacc = best.acc_m, best.vacc_m
+            fix = best.fix
         if not acc < cfg.max_acc_m:
             self.stats.gnss_quality[s.bssid] += 1
             return
@@ -171,5 +174,15 @@ class Associator:
                 acc_m=acc,
                 vacc_m=vacc,
                 interpolated=interp,
+                fix=fix,
             )
         )
+
+
+def _worse_fix(a: str | None, b: str | None) -> str | None:
+    """The lower-quality of two fix types (GNSS_FIX_TYPES order); None if either is unknown."""
+    if a is None or b is None:
+        return None
+    ra = GNSS_FIX_TYPES.index(a) if a in GNSS_FIX_TYPES else 0
+    rb = GNSS_FIX_TYPES.index(b) if b in GNSS_FIX_TYPES else 0
+    return a if ra <= rb else b

@@ -1,9 +1,9 @@
-"""Two-stage Gauss-Newton bootstrap (sec. Gauss-Newton Bootstrap, eqs. 5-10).
+"""Two-stage Gauss-Newton bootstrap (sec. Gauss-Newton Bootstrap, eqs. 5-11).
 
 Stage 1 solves the linearised 2-D system (eq. 6) by weighted least squares (eq. 7) with
 the AGL correction rho^2 = d^2 - H_AGL^2 (eq. 5, falling back to d^2 when not
 positive), and z0 = median(z_d - H_AGL) (eq. 8). Stage 2 runs 3-D Gauss-Newton (eqs.
-9-10) until |dp| < 1e-4 m or 10 iterations; a solution farther than 2x the maximum
+9-11) until |dp| < 1e-4 m or 10 iterations; a solution farther than 2x the maximum
 range from the drone centroid is rejected as divergent.
 
 Added, as the paper recommends (sec. Discussion): a geometry check refusing kappa_H >=
@@ -106,7 +106,7 @@ def gauss_newton_3d(
     tol_m: float = 1e-4,
     max_iter: int = 10,
 ) -> tuple[np.ndarray, int]:
-    """Eqs. (9)-(10): weighted Gauss-Newton on e_i = |p - u_i| - d_i."""
+    """Eqs. (9)-(11): weighted Gauss-Newton on e_i = |p - u_i| - d_i."""
     p = np.array(p0, dtype=float)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - iteration count is returned
@@ -202,7 +202,7 @@ class RobustBootstrapConfig(BootstrapConfig):
 
     loss: str = "cauchy"  # scipy.optimize.least_squares loss, as the paper's offline fix
     loss_scale_m: float = 2.0  # residual scale where the Cauchy loss starts to flatten
-    ground_sigma_m: float = 5.0  # ground-height prior, same R_z as eq. (16)
+    ground_sigma_m: float = 5.0  # ground-height prior, same R_z as eq. (18)
     max_rms_m: float = 6.0  # accept only if the inlier residual RMS is plausible
     inlier_m: float = 8.0  # |residual| below this counts as inlier
     min_inlier_fraction: float = 0.6

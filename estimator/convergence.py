@@ -5,8 +5,14 @@ n_acc >= 15, the jump from the previous published estimate satisfies
 dxy < max(1, 2 sigma_H) and dz < max(2, 2 sigma_Z), and the streak of consecutive
 accepted updates is >= 3. Once sigma_H has been non-increasing (within 2 %) for 5
 consecutive updates n_acc relaxes to >= 10, after 8 the streak requirement drops to
->= 2. A NIS rejection resets the streak; it does not reset the sigma_H run, which
-counts published updates only.
+>= 2.
+
+Every rejection after the bootstrap resets the streak, whether the MAD gate (eq. 3) or
+the NIS gate (eq. 16) made it (:meth:`estimator.pipeline.Track.process` calls
+:meth:`ConvergenceMonitor.on_rejected` for both); a rejection does not reset the
+sigma_H run, which counts published updates only. The relaxation is not latched: the
+run restarts at the first published sigma_H more than 2 % above the previous one, and
+the relaxed thresholds revert to n_acc >= 15 and a streak >= 3 with it.
 """
 
 from __future__ import annotations
@@ -32,7 +38,8 @@ class ConvergenceConfig:
 
 
 class ConvergenceMonitor:
-    """Feed ``on_rejected()`` for NIS rejections and ``on_published(...)`` per estimate."""
+    """Feed ``on_rejected()`` for every post-bootstrap rejection (MAD or NIS),
+    ``on_accepted()`` per accepted update and ``on_published(...)`` per estimate."""
 
     def __init__(self, cfg: ConvergenceConfig = ConvergenceConfig()) -> None:
         self.cfg = cfg

@@ -5,7 +5,9 @@ Both share one small interface: ``predict()``, ``innovation(anchor, d) -> (nu, h
 ``x`` / covariance ``P``. The maths is written with plain Python floats: for a 3- or
 4-state filter with scalar measurements this is several times faster than NumPy's
 small-matrix calls (benchmarks/bench_estimator.py measures it), and the arithmetic is
-the same as the textbook matrix form (tests check it against NumPy at 1e-9).
+the same as the textbook matrix form (tests check it against NumPy at 1e-9). Every
+covariance update of the IEKF and of the ground prior goes through the Joseph form
+:func:`joseph_cov4` / :func:`joseph_cov3` (eq. 17).
 """
 
 from __future__ import annotations
@@ -22,12 +24,12 @@ RSpec = float | Callable[[float, float], float]
 
 @dataclass(frozen=True, kw_only=True)
 class IekfConfig:
-    """IEKF3D parameters (eqs. 15-20)."""
+    """IEKF3D parameters (eqs. 12-17)."""
 
     q_diag: tuple[float, float, float, float] = (0.01, 0.01, 0.04, 1e-4)  # Q, m^2
     p0_diag: tuple[float, float, float, float] = (25.0, 25.0, 100.0, 4.0)  # P0, m^2
     iterations: int = 3  # M relinearising iterations
-    nis_gate: float = 9.0  # eq. (19)
+    nis_gate: float = 9.0  # eq. (16)
     bias0_m: float = 0.0
 
 
@@ -62,79 +64,53 @@ def _diag(d: Sequence[float]) -> Mat:
     return [[float(d[i]) if i == j else 0.0 for j in range(n)] for i in range(n)]
 
 
-def joseph_scalar_update(
-    x: Vec, P: Mat, H: Vec, K: Vec, innov: float, R: float, PH: Vec | None = None
-) -> tuple[Vec, Mat]:
-    """x + K innov and the Joseph form (I - K H) P (I - K H)^T + K R K^T (eq. 20).
+def joseph_cov4(P: Mat, H: Sequence[float], K: Sequence[float], q: Sequence[float],
+                R: float) -> Mat:
+    """Joseph covariance update of a 4-state filter for one scalar measurement (eq. 17).
 
-    Computed as A P = P - K (P H)^T, then (A P) A^T = A P - (A P H) K^T, upper
-    triangle only (the result is symmetric by construction), plus R K K^T: the product
-    form, not the subtractive identity. ``PH`` (= P H^T) may be passed when known.
+    (I - K H) P (I - K H)^T + R K K^T for *any* gain K (``q`` = P H^T), in the product
+    form: A P = P - K q^T (a_ij), c = A P H - R K, P+ = A P - c K^T, upper triangle
+    mirrored. Equal to the subtractive (I - K H) P only for the optimal gain
+    K = P H^T / (H P H^T + R). Used by :meth:`IEKF3D.update` and the ground prior.
     """
-    n = len(x)
-    rn = range(n)
-    xn = [x[i] + K[i] * innov for i in rn]
-    if PH is None:
-        PH = [sum(P[i][k] * H[k] for k in rn) for i in rn]
-    AP = [[P[i][j] - K[i] * PH[j] for j in rn] for i in rn]
-    APH = [sum(AP[i][k] * H[k] for k in rn) for i in rn]
-    Pn = [[0.0] * n for _ in rn]
-    for i in rn:
-        Ki = K[i]
-        APi = AP[i]
-        a = APH[i]
-        rk = R * Ki
-        row = Pn[i]
-        for j in range(i, n):
-            row[j] = APi[j] - a * K[j] + rk * K[j]
-        for j in range(i):
-            row[j] = Pn[j][i]
-    return xn, Pn
-
-
-def _height_joseph(x: Vec, P: Mat, z_m: float, R: float) -> tuple[Vec, Mat]:
-    """Joseph update for the linear pseudo-measurement z (H = e_z), eq. (16)."""
-    n = len(x)
-    rn = range(n)
-    S = P[2][2] + R
-    K = [P[i][2] / S for i in rn]
-    innov = z_m - x[2]
-    xn = [x[i] + K[i] * innov for i in rn]
-    P2 = P[2]
-    AP = [[P[i][j] - K[i] * P2[j] for j in rn] for i in rn]
-    Pn = [[0.0] * n for _ in rn]
-    for i in rn:
-        APi = AP[i]
-        a = APi[2]
-        rk = R * K[i]
-        row = Pn[i]
-        for j in range(i, n):
-            row[j] = APi[j] - a * K[j] + rk * K[j]
-        for j in range(i):
-            row[j] = Pn[j][i]
-    return xn, Pn
-
-
-def _joseph4(P: Mat, H: Sequence[float], K: Sequence[float], q: Sequence[float], R: float) -> Mat:
-    """Unrolled 4-state :func:`joseph_scalar_update` covariance (q = P H^T)."""
     h0, h1, h2, h3 = H
     k0, k1, k2, k3 = K
     q0, q1, q2, q3 = q
-    rows = []
-    for Pi, ki in zip(P, K, strict=True):
-        a0 = Pi[0] - ki * q0
-        a1 = Pi[1] - ki * q1
-        a2 = Pi[2] - ki * q2
-        a3 = Pi[3] - ki * q3
-        c = a0 * h0 + a1 * h1 + a2 * h2 + a3 * h3 - R * ki
-        rows.append((a0 - c * k0, a1 - c * k1, a2 - c * k2, a3 - c * k3))
-    r0, r1, r2, r3 = rows
+    (p00, p01, p02, p03), (p10, p11, p12, p13), (p20, p21, p22, p23), (
+        p30, p31, p32, p33) = P
+    a00, a01, a02, a03 = p00 - k0 * q0, p01 - k0 * q1, p02 - k0 * q2, p03 - k0 * q3
+    a10, a11, a12, a13 = p10 - k1 * q0, p11 - k1 * q1, p12 - k1 * q2, p13 - k1 * q3
+    a20, a21, a22, a23 = p20 - k2 * q0, p21 - k2 * q1, p22 - k2 * q2, p23 - k2 * q3
+    a30, a31, a32, a33 = p30 - k3 * q0, p31 - k3 * q1, p32 - k3 * q2, p33 - k3 * q3
+    c0 = a00 * h0 + a01 * h1 + a02 * h2 + a03 * h3 - R * k0
+    c1 = a10 * h0 + a11 * h1 + a12 * h2 + a13 * h3 - R * k1
+    c2 = a20 * h0 + a21 * h1 + a22 * h2 + a23 * h3 - R * k2
+    c3 = a30 * h0 + a31 * h1 + a32 * h2 + a33 * h3 - R * k3
+    n01, n02, n03 = a01 - c0 * k1, a02 - c0 * k2, a03 - c0 * k3
+    n12, n13, n23 = a12 - c1 * k2, a13 - c1 * k3, a23 - c2 * k3
     return [
-        [r0[0], r0[1], r0[2], r0[3]],
-        [r0[1], r1[1], r1[2], r1[3]],
-        [r0[2], r1[2], r2[2], r2[3]],
-        [r0[3], r1[3], r2[3], r3[3]],
+        [a00 - c0 * k0, n01, n02, n03],
+        [n01, a11 - c1 * k1, n12, n13],
+        [n02, n12, a22 - c2 * k2, n23],
+        [n03, n13, n23, a33 - c3 * k3],
     ]
+
+
+def joseph_cov3(P: Mat, H: Sequence[float], K: Sequence[float], q: Sequence[float],
+                R: float) -> Mat:
+    """:func:`joseph_cov4` for 3 states (the UKF's ground prior)."""
+    h0, h1, h2 = H
+    k0, k1, k2 = K
+    q0, q1, q2 = q
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P
+    a00, a01, a02 = p00 - k0 * q0, p01 - k0 * q1, p02 - k0 * q2
+    a10, a11, a12 = p10 - k1 * q0, p11 - k1 * q1, p12 - k1 * q2
+    a20, a21, a22 = p20 - k2 * q0, p21 - k2 * q1, p22 - k2 * q2
+    c0 = a00 * h0 + a01 * h1 + a02 * h2 - R * k0
+    c1 = a10 * h0 + a11 * h1 + a12 * h2 - R * k1
+    c2 = a20 * h0 + a21 * h1 + a22 * h2 - R * k2
+    n01, n02, n12 = a01 - c0 * k1, a02 - c0 * k2, a12 - c1 * k2
+    return [[a00 - c0 * k0, n01, n02], [n01, a11 - c1 * k1, n12], [n02, n12, a22 - c2 * k2]]
 
 
 def _check4(x: Vec, P: Mat) -> None:
@@ -152,7 +128,7 @@ def _check(x: Vec, P: Mat) -> None:
 
 
 class IEKF3D:
-    """Iterated EKF on [x, y, z, b] with h(x) = |p - u| + b (eqs. 15-20)."""
+    """Iterated EKF on [x, y, z, b] with h(x) = |p - u| + b (eqs. 12-17)."""
 
     n = 4
     has_bias = True
@@ -177,14 +153,14 @@ class IEKF3D:
         return r + x[3], [dx / r, dy / r, dz / r, 1.0]
 
     def predict(self) -> None:
-        """Eq. (15): static AP, P^- = P + Q."""
+        """Eq. (12): static AP, P^- = P + Q."""
         P = self.P
         q = self._q
         for i in range(4):
             P[i][i] += q[i]
 
     def innovation(self, anchor: Sequence[float], range_m: float) -> tuple[float, float]:
-        """Prior innovation nu = d - h(x^-) and H P^- H^T (eq. 18)."""
+        """Prior innovation nu = d - h(x^-) and H P^- H^T (eq. 15)."""
         h, H = self._h_and_jac(self.x, anchor)
         P = self.P
         hph = 0.0
@@ -199,7 +175,7 @@ class IEKF3D:
 
         ``r_m2`` is R, or a callable ``(nu, H P^- H^T) -> R`` for innovation-based
         noise models (evaluated once, at the prior). The gate uses nu and S at the prior
-        (eqs. 18-19); iteration i relinearises at x_i:
+        (eqs. 15-16); iteration i relinearises at x_i:
         x_{i+1} = x^- + K_i (d - h(x_i) - H_i (x^- - x_i)).
         """
         x0 = self.x
@@ -240,28 +216,9 @@ class IEKF3D:
                 )
             g = innov / Si
             xi0, xi1, xi2, xi3 = X + q0 * g, Y + q1 * g, Z + q2 * g, B + q3 * g
-        k0, k1, k2, k3 = q0 / Si, q1 / Si, q2 / Si, q3 / Si
-        # Joseph form at the last linearisation point (H, K of the final iteration),
-        # unrolled _joseph4: A P = P - K q^T (a_ij), c_i = (A P H)_i - R k_i,
-        # P+_ij = a_ij - c_i k_j (upper triangle, mirrored)
-        (p00, p01, p02, p03), (p10, p11, p12, p13), (p20, p21, p22, p23), (
-            p30, p31, p32, p33) = P
-        a00, a01, a02, a03 = p00 - k0 * q0, p01 - k0 * q1, p02 - k0 * q2, p03 - k0 * q3
-        a10, a11, a12, a13 = p10 - k1 * q0, p11 - k1 * q1, p12 - k1 * q2, p13 - k1 * q3
-        a20, a21, a22, a23 = p20 - k2 * q0, p21 - k2 * q1, p22 - k2 * q2, p23 - k2 * q3
-        a30, a31, a32, a33 = p30 - k3 * q0, p31 - k3 * q1, p32 - k3 * q2, p33 - k3 * q3
-        c0 = a00 * h0 + a01 * h1 + a02 * h2 + a03 - r_m2 * k0
-        c1 = a10 * h0 + a11 * h1 + a12 * h2 + a13 - r_m2 * k1
-        c2 = a20 * h0 + a21 * h1 + a22 * h2 + a23 - r_m2 * k2
-        c3 = a30 * h0 + a31 * h1 + a32 * h2 + a33 - r_m2 * k3
-        n01, n02, n03 = a01 - c0 * k1, a02 - c0 * k2, a03 - c0 * k3
-        n12, n13, n23 = a12 - c1 * k2, a13 - c1 * k3, a23 - c2 * k3
-        Pn = [
-            [a00 - c0 * k0, n01, n02, n03],
-            [n01, a11 - c1 * k1, n12, n13],
-            [n02, n12, a22 - c2 * k2, n23],
-            [n03, n13, n23, a33 - c3 * k3],
-        ]
+        # Joseph form at the last linearisation point (H, K of the final iteration)
+        Pn = joseph_cov4(P, (h0, h1, h2, 1.0), (q0 / Si, q1 / Si, q2 / Si, q3 / Si),
+                         (q0, q1, q2, q3), r_m2)
         xn = [xi0, xi1, xi2, xi3]
         _check4(xn, Pn)
         self.x = xn
@@ -269,7 +226,7 @@ class IEKF3D:
         return UpdateResult(True, nu, S, nis, r_m2)
 
     def update_height(self, z_m: float, r_m2: float) -> None:
-        """Ground-height pseudo-measurement z = z_prior, R_z (eq. 16)."""
+        """Ground-height pseudo-measurement z = z_prior, R_z (eq. 18)."""
         _height_update(self, z_m, r_m2)
 
     @property
@@ -282,56 +239,25 @@ class IEKF3D:
 
 
 def _height_update(f: IEKF3D | UKF3D, z_m: float, r_m2: float) -> None:
+    """Linear pseudo-measurement z = x_2 (H = e_z) with the Joseph form (eqs. 17-18)."""
     P = f.P
     if f.n == 4:
         q0, q1, q2, q3 = P[2]  # P e_z (P symmetric)
         S = q2 + r_m2
-        k0, k1, k2, k3 = q0 / S, q1 / S, q2 / S, q3 / S
         g = (z_m - f.x[2]) / S
         x0, x1, x2, x3 = f.x
         x = [x0 + q0 * g, x1 + q1 * g, x2 + q2 * g, x3 + q3 * g]
-        # Joseph form with H = e_z: P+_ij = a_ij - (a_i2 - R k_i) k_j, a_ij = P_ij - k_i q_j
-        # (upper triangle; a_i2 = P_i2 - k_i q2 = q_i - k_i q2 by symmetry)
-        (p00, p01, p02, p03), (_, p11, p12, p13), _, (_, _, _, p33) = P
-        c0 = q0 - k0 * q2 - r_m2 * k0
-        c1 = q1 - k1 * q2 - r_m2 * k1
-        c2 = q2 - k2 * q2 - r_m2 * k2
-        c3 = q3 - k3 * q2 - r_m2 * k3
-        n00 = p00 - k0 * q0 - c0 * k0
-        n01 = p01 - k0 * q1 - c0 * k1
-        n02 = p02 - k0 * q2 - c0 * k2
-        n03 = p03 - k0 * q3 - c0 * k3
-        n11 = p11 - k1 * q1 - c1 * k1
-        n12 = p12 - k1 * q2 - c1 * k2
-        n13 = p13 - k1 * q3 - c1 * k3
-        n22 = q2 - k2 * q2 - c2 * k2
-        n23 = q3 - k2 * q3 - c2 * k3
-        n33 = p33 - k3 * q3 - c3 * k3
-        Pn = [
-            [n00, n01, n02, n03],
-            [n01, n11, n12, n13],
-            [n02, n12, n22, n23],
-            [n03, n13, n23, n33],
-        ]
+        Pn = joseph_cov4(P, (0.0, 0.0, 1.0, 0.0), (q0 / S, q1 / S, q2 / S, q3 / S),
+                         (q0, q1, q2, q3), r_m2)
         _check4(x, Pn)
-    else:  # 3 states: the same Joseph update, unrolled (q = P e_z = row 2)
-        q0, q1, q2 = P[2]
-        S = q2 + r_m2
-        k0, k1, k2 = q0 / S, q1 / S, q2 / S
+    else:
+        q0, q1, q2 = P[2]  # P e_z; the UKF's P may differ from its transpose in the
+        S = q2 + r_m2  # last bit, so column 2 is taken as row 2 (= q) throughout
         g = (z_m - f.x[2]) / S
         x0, x1, x2 = f.x
         x = [x0 + q0 * g, x1 + q1 * g, x2 + q2 * g]
-        (p00, p01, _), (_, p11, _), _ = P
-        c0 = q0 - k0 * q2 - r_m2 * k0
-        c1 = q1 - k1 * q2 - r_m2 * k1
-        c2 = q2 - k2 * q2 - r_m2 * k2
-        n00 = p00 - k0 * q0 - c0 * k0
-        n01 = p01 - k0 * q1 - c0 * k1
-        n02 = q0 - k0 * q2 - c0 * k2
-        n11 = p11 - k1 * q1 - c1 * k1
-        n12 = q1 - k1 * q2 - c1 * k2
-        n22 = q2 - k2 * q2 - c2 * k2
-        Pn = [[n00, n01, n02], [n01, n11, n12], [n02, n12, n22]]
+        Ps = [[P[0][0], P[0][1], q0], [P[1][0], P[1][1], q1], [q0, q1, q2]]
+        Pn = joseph_cov3(Ps, (0.0, 0.0, 1.0), (q0 / S, q1 / S, q2 / S), (q0, q1, q2), r_m2)
         _check(x, Pn)
     f.x = x
     f.P = Pn

@@ -1,4 +1,4 @@
-"""Flight-log reader and writer: shared/spec/log-format.md, version 1.
+"""Flight-log reader and writer: the format of docs/log-format.md, version 1.
 
 Reading never crashes on a bad line and never drops a good one because of it: every
 rejected line is counted by reason (``RejectCounts``). Plain ``.jsonl`` and gzip
@@ -52,6 +52,10 @@ class LogError(Exception):
 
 class LogVersionError(LogError):
     """The header declares a major version this reader does not understand."""
+
+
+class NotALogError(LogError):
+    """A readable file without a single valid record: not a flight log."""
 
 
 class LogWarning(UserWarning):
@@ -333,8 +337,23 @@ def _open_binary(path: str | os.PathLike) -> IO[bytes]:
         raise LogError(f"{p}: cannot open ({exc.strerror})") from exc
     head = fh.peek(2)[:2] if hasattr(fh, "peek") else b""
     if head == _GZIP_MAGIC:
-        return gzip.GzipFile(fileobj=fh, mode="rb")  # type: ignore[return-value]
+        return _GzipReader(fh)
     return fh
+
+
+class _GzipReader(gzip.GzipFile):
+    """A gzip stream that owns the file under it: closing it closes both (a GzipFile
+    given a ``fileobj`` leaves that file open, and it leaks as a ResourceWarning)."""
+
+    def __init__(self, raw: IO[bytes]) -> None:
+        self._raw = raw
+        super().__init__(fileobj=raw, mode="rb")
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self._raw.close()
 
 
 @dataclass
@@ -347,6 +366,12 @@ class LogStream:
     truth: list[TruthRecord] = field(default_factory=list)
     n_gnss: int = 0
     n_rtt: int = 0
+    n_header: int = 0  # header lines read (0: none yet; a default header is assumed at EOF)
+
+    @property
+    def n_records(self) -> int:
+        """Valid records read so far (header, gnss, rtt, truth)."""
+        return self.n_header + self.n_gnss + self.n_rtt + len(self.truth)
 
 
 def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterator[TimedRecord]:
@@ -361,7 +386,10 @@ def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterat
     header_seen = False
     try:
         for raw in _safe_lines(fh, path):
-            rec = parse_line(raw, st.counts)
+            try:
+                rec = parse_line(raw, st.counts)
+            except LogError as exc:  # a refused header: say which file
+                raise type(exc)(f"{path}: {exc}") from None
             if rec is None:
                 if raw.strip():
                     first = False
@@ -372,6 +400,7 @@ def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterat
                 else:
                     header_seen = True
                     st.header = rec
+                    st.n_header = 1
                     if not first:
                         warnings.warn(
                             f"{path}: header is not the first line", LogWarning, stacklevel=2
@@ -394,6 +423,30 @@ def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterat
             f"{path}: no header line; read as version {LOG_VERSION}", LogWarning, stacklevel=2
         )
         st.header = LogHeader()
+
+
+def probe_log(path: str | os.PathLike) -> LogStream:
+    """Read ``path`` up to its first ``gnss`` or ``rtt`` record (the whole file only when
+    it has none) and return the stream: header, counts, :attr:`LogStream.n_records`.
+
+    Raises :class:`NotALogError` for a file without a single valid record (an empty
+    file, random bytes, a GeoJSON file...), :class:`LogError` for one that cannot be
+    read. Warnings of the reader (no header, ...) are the caller's to show.
+    """
+    st = LogStream(path=str(path))
+    it = iter_log(path, st)
+    try:
+        next(it, None)
+    finally:
+        it.close()
+    if st.n_records == 0:
+        c = st.counts
+        what = [f"{n} {reason}" for reason, n in sorted(c.rejected.items())]
+        what += [f"{n} of unknown type {kind!r}" for kind, n in sorted(c.unknown_types.items())]
+        lines = f"{c.lines} line{'s' if c.lines != 1 else ''}"
+        detail = f"{lines}: " + ", ".join(what) if what else "empty"
+        raise NotALogError(f"{path}: not a flight log (no valid record; {detail})")
+    return st
 
 
 def _safe_lines(fh: IO[bytes], path: str | os.PathLike) -> Iterator[bytes]:

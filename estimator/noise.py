@@ -2,7 +2,7 @@
 
 A noise model gives the range variance of one gated measurement. Filters call
 ``variance(m, nu_m, hph_m2)`` with the prior innovation nu and its predicted part
-H P^- H^T, so innovation-based models (Adaptive-R, eq. 13) share the interface. Models
+H P^- H^T, so innovation-based models (Adaptive-R, eq. 24) share the interface. Models
 hold per-track state, so a :class:`NoiseSpec` builds a fresh one for each track.
 
 The paper's models are reproduced exactly; :class:`GnssInflatedR` is our extension
@@ -36,13 +36,13 @@ class NoiseModel(Protocol):
 
 @dataclass(frozen=True, kw_only=True)
 class NlosConfig:
-    """NLoS detector and inflation, eqs. (10)-(12)."""
+    """NLoS detector and inflation, eqs. (20)-(22)."""
 
     skew_window: int = 20  # N <= 20 samples of the range window
     skew_min_samples: int = 3  # skewness needs at least 3 samples (our choice)
     skew_threshold: float = 1.0  # gamma_th
-    rssi_1m_dbm: float = -35.0  # RSSI_1m, eq. (11)
-    path_loss_exponent: float = 3.0  # eta, eq. (11)
+    rssi_1m_dbm: float = -35.0  # RSSI_1m, eq. (21)
+    path_loss_exponent: float = 3.0  # eta, eq. (21)
     rssi_tolerance_db: float = 15.0  # |RSSI - RSSI_exp| > 15 dB
     kappa_nlos: float = 3.0  # sigma x 3, i.e. R x (1 + 8 I_NLoS)
     min_distance_m: float = 1.0  # log10(d) is evaluated at max(d, 1 m) (our guard)
@@ -50,7 +50,7 @@ class NlosConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class EmpiricalRConfig:
-    """Empirical-R, eq. (13): R = max(sigma_gate^2, sigma0^2 + alpha d^2 + beta q^2)."""
+    """Empirical-R, eq. (23): R = max(sigma_gate^2, sigma0^2 + alpha d^2 + beta q^2)."""
 
     sigma0_m: float = 0.3
     alpha: float = 4e-4
@@ -60,7 +60,7 @@ class EmpiricalRConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class AdaptiveRConfig:
-    """Adaptive-R (Mohamed-Schwarz), eq. (14)."""
+    """Adaptive-R (Mohamed-Schwarz), eq. (24)."""
 
     rate: float = 0.05  # alpha_a
     r_min_m2: float = 0.01
@@ -78,13 +78,13 @@ class ConstantR:
 
 
 def expected_rssi_dbm(range_m: float, cfg: NlosConfig = NlosConfig()) -> float:
-    """Eq. (11): RSSI_exp(d) = RSSI_1m - 10 eta log10(d)."""
+    """Eq. (21): RSSI_exp(d) = RSSI_1m - 10 eta log10(d)."""
     d = max(range_m, cfg.min_distance_m)
     return cfg.rssi_1m_dbm - 10.0 * cfg.path_loss_exponent * math.log10(d)
 
 
 def skewness(values: list[float] | deque[float]) -> float:
-    """Eq. (10): gamma_1 = mean(((d - mean) / s)^3) with the population s (ddof=0).
+    """Eq. (20): gamma_1 = mean(((d - mean) / s)^3) with the population s (ddof=0).
 
     Equals ``scipy.stats.skew(values, bias=True)``; 0 for a constant window.
     """
@@ -107,7 +107,7 @@ def skewness(values: list[float] | deque[float]) -> float:
 
 
 class NlosR:
-    """NLoS mode, eq. (12): R = (1 + 8 I_NLoS) sigma_gate^2.
+    """NLoS mode, eq. (22): R = (1 + 8 I_NLoS) sigma_gate^2.
 
     I_NLoS = [skew of the last <= 20 ranges > 1.0  or  |RSSI - RSSI_exp(d)| > 15 dB].
     A measurement without RSSI is judged by skewness alone.
@@ -144,14 +144,38 @@ class NlosR:
 def empirical_r_m2(
     range_m: float, rssi_dbm: float | None, sigma_gate_m: float, cfg: EmpiricalRConfig
 ) -> float:
-    """Eq. (13); a missing RSSI contributes q = 0."""
+    """Eq. (23); a missing RSSI contributes q = 0."""
     q = 0.0 if rssi_dbm is None else max(0.0, -rssi_dbm - cfg.r_ref_db)
     model = cfg.sigma0_m**2 + cfg.alpha * range_m * range_m + cfg.beta_m2_per_db2 * q * q
     return max(sigma_gate_m * sigma_gate_m, model)
 
 
+def empirical_model_m2(range_m: float, rssi_dbm: float | None, cfg: EmpiricalRConfig) -> float:
+    """The model part of eq. (23), sigma_0^2 + alpha d^2 + beta q^2 (no MAD floor)."""
+    q = 0.0 if rssi_dbm is None else max(0.0, -rssi_dbm - cfg.r_ref_db)
+    return cfg.sigma0_m**2 + cfg.alpha * range_m * range_m + cfg.beta_m2_per_db2 * q * q
+
+
+class CalibratedR:
+    """Mode ``refined``: R = s_a^2 (sigma_0^2 + alpha d^2 + beta q^2) (ours).
+
+    The Empirical-R shape of eq. (23) without its MAD floor (at 3-5 Hz sigma_gate is
+    dominated by the drone's own range rate), scaled by the measuring agent's noise
+    scale ``scales[agent]`` as the batch refinement calibrates it (1 until then).
+    """
+
+    def __init__(self, cfg: EmpiricalRConfig, scales: dict[str, float]) -> None:
+        self.cfg = cfg
+        self.scales = scales
+
+    def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
+        meas = m.meas
+        s = self.scales.get(meas.agent, 1.0)
+        return s * s * empirical_model_m2(meas.range_m, meas.rssi_dbm, self.cfg)
+
+
 class EmpiricalR:
-    """Empirical-R mode, eq. (13): distance- and RSSI-dependent variance."""
+    """Empirical-R mode, eq. (23): distance- and RSSI-dependent variance."""
 
     def __init__(self, cfg: EmpiricalRConfig = EmpiricalRConfig()) -> None:
         self.cfg = cfg
@@ -172,7 +196,7 @@ class EmpiricalR:
 
 
 class AdaptiveR:
-    """Adaptive-R, eq. (14): R_k = clip((1 - a) R_{k-1} + a (nu^2 - H P^- H^T)).
+    """Adaptive-R, eq. (24): R_k = clip((1 - a) R_{k-1} + a (nu^2 - H P^- H^T)).
 
     R_0 is the first measurement's sigma_gate^2 (the paper leaves it open). Called once
     per measurement that reaches the filter, before its NIS gate.

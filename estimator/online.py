@@ -41,14 +41,17 @@ from estimator.pipeline import (
     SharedFront,
     Track,
     TrackObserver,
+    resolve_modes,
 )
 from estimator.records import (
     AssociatedRange,
+    Candidate,
     Estimate,
     GnssFix,
     LogHeader,
     RangeSample,
 )
+from estimator.refined import make_track
 
 _ASSOCIATION_STATS = ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated")
 
@@ -101,6 +104,7 @@ class EstimatorOptions:
     keep_history: bool = False  # published estimates per track (figures); off: O(1) memory
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)}")
@@ -262,7 +266,20 @@ class OnlineEstimator:
                 for g in a.associator.flush():
                     self._queue(a, g)
             a.finished = True
-        return self._release()
+        out = self._release()
+        if all(a.finished for a in self.agents):
+            out.extend(self._finalize())
+        return out
+
+    def _finalize(self) -> list[Published]:
+        """End of every stream: final refinement of the tracks that refine (``refined``)."""
+        out = []
+        for tr in self.tracks.values():
+            fin = getattr(tr, "finalize", None)
+            pub = fin() if fin is not None else None
+            if pub is not None:
+                out.append(pub)
+        return out
 
     def _queue(self, a: Agent, g: GeoRange) -> None:
         heapq.heappush(self._heap, (g.t_ns * 1e-9 + a.offset_s, a.index, a.seq, g, a))
@@ -294,12 +311,13 @@ class OnlineEstimator:
             anchor_vacc_m=g.vacc_m,
             agl_m=a.agl_m,
             agent=a.name,
+            anchor_fix=g.fix,
         )
         if g.bssid not in self.bssids:
             self.bssids.append(g.bssid)
             front = SharedFront(opts.pipeline)
             for mode in opts.modes:
-                self.tracks[(g.bssid, mode)] = Track(
+                self.tracks[(g.bssid, mode)] = make_track(
                     g.bssid,
                     mode,
                     opts.pipeline,
@@ -334,11 +352,12 @@ class OnlineEstimator:
         return seen
 
     def track(self, bssid: str, mode: str | None = None) -> Track | None:
-        return self.tracks.get((bssid, mode or self.options.modes[0]))
+        mode = resolve_modes((mode,))[0] if mode else self.options.modes[0]
+        return self.tracks.get((bssid, mode))
 
     def estimate(self, bssid: str, mode: str | None = None) -> Estimate:
         """The reported estimate of ``bssid`` in ``mode`` (default: the first mode)."""
-        mode = mode or self.options.modes[0]
+        mode = resolve_modes((mode,))[0] if mode else self.options.modes[0]
         tr = self.tracks.get((bssid, mode))
         if tr is None:
             return Estimate(t_s=self.now_s(), bssid=bssid, mode=mode, status="no_data")
@@ -355,7 +374,11 @@ class OnlineEstimator:
 
 
 def track_estimate(tr: Track, frame: EnuFrame | None, t_now_s: float) -> Estimate:
-    """The :class:`Estimate` a track reports (its last stable one, else its latest)."""
+    """The :class:`Estimate` a track reports (its last stable one, else its latest).
+
+    Modes beyond the paper's add ``r95_h_m`` (their published 95 % horizontal radius)
+    and, when ambiguous, the ``candidates`` (WGS84 and ENU, sigma_h, weight).
+    """
     c = tr.counts
     counts = dict(n_meas=c.n_meas, n_bootstrap=c.n_bootstrap, n_acc=c.n_acc, n_gate=c.n_gate)
     boot = tr.bootstrap_result or tr.last_bootstrap
@@ -367,6 +390,11 @@ def track_estimate(tr: Track, frame: EnuFrame | None, t_now_s: float) -> Estimat
             **counts,
         )
     lat, lon, alt = frame.to_geodetic(*pub.enu_m)
+    cands = []
+    for mean, sigma_h, weight in tr.candidates:
+        clat, clon, calt = frame.to_geodetic(*mean)
+        cands.append(Candidate(mean_enu_m=mean, lat_deg=clat, lon_deg=clon, alt_m=calt,
+                               sigma_h_m=sigma_h, weight=weight))
     return Estimate(
         t_s=pub.t_s,
         bssid=tr.bssid,
@@ -377,11 +405,12 @@ def track_estimate(tr: Track, frame: EnuFrame | None, t_now_s: float) -> Estimat
         lat_deg=lat,
         lon_deg=lon,
         alt_m=alt,
-        bias_m=pub.bias_m if tr.run.filter is not None and tr.run.filter.has_bias else None,
+        bias_m=pub.bias_m if tr.reports_bias else None,
         sigma_h_m=pub.sigma_h_m,
         sigma_z_m=pub.sigma_z_m,
-        r95_h_m=getattr(pub, "r95_h_m", None),
+        r95_h_m=pub.r95_h_m,
         stable=pub.stable,
         kappa=kappa,
+        candidates=tuple(cands),
         **counts,
     )

@@ -7,17 +7,22 @@ filter, a noise model and a smoother (:data:`MODES`), not six pipelines. Further
 Counting (Table "Filter comparison on AP_1F"): ``n_meas`` associated measurements enter
 the track; those up to and including the successful bootstrap are ``n_bootstrap``;
 after it every measurement is either rejected (``n_gate`` = MAD ``n_mad`` + NIS
-``n_nis``) or accepted (``n_acc``), so n_meas = n_bootstrap + n_gate + n_acc.
+``n_nis``) or accepted (``n_acc``), so n_meas = n_bootstrap + n_gate + n_acc. When the
+filter state becomes invalid the track restarts: the measurements of the discarded
+filter (and the one that broke it) join ``n_bootstrap``, the post-bootstrap counts
+restart at zero (``n_restarts`` counts restarts), so the identity holds and ``n_acc``
+(which the convergence rules read) counts the running filter's updates only.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
+from estimator.batch import BatchConfig
 from estimator.bootstrap import (
     BootstrapConfig,
     BootstrapResult,
@@ -29,6 +34,7 @@ from estimator.bootstrap import (
 from estimator.convergence import ConvergenceConfig, ConvergenceMonitor
 from estimator.filters import IEKF3D, UKF3D, FilterError, IekfConfig, UkfConfig
 from estimator.gate import MadGate, MadGateConfig, median
+from estimator.geometry import KAPPA_LIMIT
 from estimator.noise import (
     AdaptiveR,
     AdaptiveRConfig,
@@ -45,12 +51,12 @@ from estimator.noise import (
 from estimator.records import AssociatedRange
 from estimator.smoothing import EmaSmoother, EmaSmootherConfig, MedianSmoother, MedianSmootherConfig
 
-DEFAULT_AGL_M = 45.0  # shared/spec/cli.md: header config.agl_m, else 45 m
+DEFAULT_AGL_M = 45.0  # docs/cli.md: header config.agl_m, else 45 m
 
 
 @dataclass(frozen=True, kw_only=True)
 class GroundPriorConfig:
-    """Ground-height pseudo-measurement after each accepted update (eq. 16)."""
+    """Ground-height pseudo-measurement after each accepted update (eq. 18)."""
 
     enabled: bool = True
     window: int = 25  # W_z of the ground prior: last 25 drone altitudes
@@ -68,6 +74,7 @@ class ModeSpec:
     bootstrap: str = "gauss-newton"  # gauss-newton | robust
     gnss_covariance: bool = False
     paper: bool = True
+    refine: bool = False  # sequential front + robust batch refinement (estimator.refined)
 
 
 MODES: dict[str, ModeSpec] = {
@@ -86,8 +93,66 @@ MODES: dict[str, ModeSpec] = {
         gnss_covariance=True,
         paper=False,
     ),
+    # ours (issue 8): a static IEKF front with calibrated R and no per-update ground
+    # prior, refined periodically and at the end by a robust batch over every gated
+    # range with per-agent range and GNSS biases (estimator.batch, estimator.refined)
+    "refined": ModeSpec(
+        "refined",
+        noise="calibrated",
+        smoother="none",
+        paper=False,
+        refine=True,
+    ),
 }
 PAPER_MODES: tuple[str, ...] = tuple(k for k, v in MODES.items() if v.paper)
+# names that stand for a mode; estimates always carry the real name
+MODE_ALIASES: dict[str, str] = {"best": "refined"}
+
+
+def resolve_mode(name: str) -> str:
+    """The real name of a mode or alias (``best`` -> ``refined``); unknown names unchanged."""
+    return MODE_ALIASES.get(name, name)
+
+
+def resolve_modes(names) -> tuple[str, ...]:
+    """Aliases resolved, duplicates dropped (first occurrence kept, order preserved)."""
+    out: list[str] = []
+    for n in names:
+        r = resolve_mode(n)
+        if r not in out:
+            out.append(r)
+    return tuple(out)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefinedConfig:
+    """Mode ``refined``: front, refinement schedule and the verdict (issue 8).
+
+    The front is the IEKF with Q = 0 (a static responder: no artificial random walk)
+    and R = s_a^2 sigma_E^2 (the Empirical-R shape, eq. 23, scaled by the agent's
+    calibrated scale), without the per-update ground prior. The refinement runs once
+    the front bootstraps (or its bootstrap gives up), then whenever the gated ranges
+    have grown by ``growth`` (at least ``min_new`` more), and at the end; the check for
+    other minima runs at the first and the last, whenever the ranges have doubled since
+    the previous check, and while no front runs or the previous check was ambiguous.
+    ``converged`` needs: >= ``min_n`` ranges, kappa_H < ``max_kappa``, every agent's
+    scale <= ``max_scale`` (residuals at most 1.5 x the paper's Empirical-R sigma), an
+    inlier fraction (|e| < 3) >= ``min_inlier_fraction``, no other minimum with weight
+    >= ``min_weight`` and a 95 % circle <= ``max_r95_m``.
+    """
+
+    batch: BatchConfig = field(default_factory=BatchConfig)
+    front: IekfConfig = field(
+        default_factory=lambda: IekfConfig(q_diag=(0.0, 0.0, 0.0, 0.0))
+    )
+    growth: float = 2.0
+    min_new: int = 8
+    min_n: int = 15
+    max_kappa: float = KAPPA_LIMIT
+    max_scale: float = 1.5
+    min_inlier_fraction: float = 0.8
+    min_weight: float = 0.01
+    max_r95_m: float = 10.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -108,10 +173,11 @@ class PipelineConfig:
     median: MedianSmootherConfig = field(default_factory=MedianSmootherConfig)
     ema: EmaSmootherConfig = field(default_factory=EmaSmootherConfig)
     convergence: ConvergenceConfig = field(default_factory=ConvergenceConfig)
+    refined: RefinedConfig = field(default_factory=RefinedConfig)
 
 
 class _EmpiricalNlos:
-    """Empirical-R inflated by the NLoS decision of eq. (12) (mode ``robust``)."""
+    """Empirical-R inflated by the NLoS decision of eq. (22) (mode ``robust``)."""
 
     def __init__(self, cfg: PipelineConfig) -> None:
         self.emp = EmpiricalR(cfg.empirical)
@@ -143,7 +209,8 @@ class Published(NamedTuple):
     """One published (smoothed) estimate in the track's history.
 
     ``cov_m2`` is the filter's 3 x 3 position covariance at publication (row-major
-    tuples); ``sigma_h_m`` = sqrt(P_xx + P_yy) and ``sigma_z_m`` = sqrt(P_zz) (eq. 21).
+    tuples); ``sigma_h_m`` = sqrt(P_xx + P_yy) and ``sigma_z_m`` = sqrt(P_zz) (eq. 19).
+    ``r95_h_m`` (modes beyond the paper's) is the radius of the 95 % horizontal circle.
     """
 
     t_s: float
@@ -154,6 +221,7 @@ class Published(NamedTuple):
     stable: bool
     accepted_index: int
     cov_m2: tuple[tuple[float, float, float], ...] | None = None
+    r95_h_m: float | None = None
 
 
 def position_cov(P) -> tuple[tuple[float, float, float], ...]:
@@ -225,7 +293,7 @@ class SharedFront:
         return gm
 
     def ground_median(self) -> float:
-        """z_prior = median of the last W (z_d - H_AGL), eq. (16)."""
+        """z_prior = median of the last W (z_d - H_AGL), eq. (18)."""
         if self._ground_med is None:
             self._ground_med = median(self.ground)
         return self._ground_med
@@ -253,12 +321,33 @@ BOOT, MAD, NIS, ACC, RESTART = range(5)
 
 
 class FilterRun:
-    """Bootstrap, filter and noise model of one responder (shared by modes that agree)."""
+    """Bootstrap, filter and noise model of one responder (shared by modes that agree).
 
-    def __init__(self, spec: ModeSpec, cfg: PipelineConfig, front: SharedFront) -> None:
+    The keywords serve modes beyond the paper's (their defaults are the paper's
+    pipeline): ``noise_factory`` builds the noise model (at start and at every
+    restart), ``iekf`` replaces the IEKF configuration, ``ground_prior`` switches the
+    per-update ground pseudo-measurement, ``shared_bootstrap`` lets the first bootstrap
+    attempt at a measurement be shared with the other runs of the front.
+    """
+
+    def __init__(
+        self,
+        spec: ModeSpec,
+        cfg: PipelineConfig,
+        front: SharedFront,
+        *,
+        noise_factory: Callable[[], NoiseModel] | None = None,
+        iekf: IekfConfig | None = None,
+        ground_prior: bool = True,
+        shared_bootstrap: bool = True,
+    ) -> None:
         self.spec = spec
         self.cfg = cfg
         self.front = front
+        self._noise_factory = noise_factory or (lambda: make_noise(spec, cfg))
+        self.iekf_cfg = iekf if iekf is not None else cfg.iekf
+        self.ground_prior = ground_prior and cfg.ground.enabled
+        self.shared_bootstrap = shared_bootstrap
         self.counts = TrackCounts()
         self.bootstrapper = (
             RobustBootstrap(cfg.robust_bootstrap)
@@ -270,7 +359,7 @@ class FilterRun:
         self.bootstrap_result: BootstrapResult | None = None
         self.bootstrap_t_s: float | None = None
         self.filter: IEKF3D | UKF3D | None = None
-        self.noise: NoiseModel = make_noise(spec, cfg)
+        self.noise: NoiseModel = self._noise_factory()
         self._innovation_noise = isinstance(self.noise, AdaptiveR) or spec.noise == "adaptive"
         self.generation = 0  # bumped at every restart
         self.diverged = False
@@ -313,9 +402,9 @@ class FilterRun:
                 c.n_gate += 1
                 c.n_nis += 1
                 return NIS
-            c.n_acc += 1
-            if self.cfg.ground.enabled:
+            if self.ground_prior:
                 f.update_height(self.front.ground_median(), self.cfg.ground.r_z_m2)
+            c.n_acc += 1
         except FilterError:
             self._restart()
             return RESTART
@@ -326,7 +415,7 @@ class FilterRun:
         if not ready:
             return
         self.counts.n_bootstrap_attempts += 1
-        if self.generation == 0:
+        if self.generation == 0 and self.shared_bootstrap:
             res = self.front.bootstrap(self.spec.bootstrap, self.bootstrapper, self._boot)
         else:
             res = self.bootstrapper.solve(list(self._boot))
@@ -339,25 +428,45 @@ class FilterRun:
         if self.spec.filter == "ukf":
             self.filter = UKF3D(res.position_enu_m, self.cfg.ukf)
         else:
-            self.filter = IEKF3D(res.position_enu_m, self.cfg.iekf)
+            self.filter = IEKF3D(res.position_enu_m, self.iekf_cfg)
+        self.diverged = False
+
+    def seed(self, x: Sequence[float], P: Sequence[Sequence[float]], t_s: float) -> None:
+        """Start the filter at a given state and covariance (a refinement's, in place
+        of a bootstrap); later measurements count as post-bootstrap."""
+        f = IEKF3D(x[:3], self.iekf_cfg)
+        f.x = [float(v) for v in x]
+        f.P = [[float(v) for v in row] for row in P]
+        self.filter = f
+        self.bootstrap_t_s = t_s
         self.diverged = False
 
     def _restart(self) -> None:
-        """Filter blew up: mark diverged and bootstrap again from new samples."""
+        """Filter blew up: mark diverged and bootstrap again from new samples.
+
+        The current measurement (already in ``n_meas``) and everything the discarded
+        filter counted join ``n_bootstrap``; the post-bootstrap counts restart at zero.
+        """
+        c = self.counts
+        c.n_bootstrap += c.n_gate + c.n_acc + 1
+        c.n_gate = c.n_mad = c.n_nis = c.n_acc = 0
+        c.n_restarts += 1
         self.diverged = True
-        self.counts.n_restarts += 1
         self.generation += 1
         self.filter = None
         self._boot.clear()
-        self.noise = make_noise(self.spec, self.cfg)
+        self.noise = self._noise_factory()
 
 
 class Track:
     """The real-time pipeline for one BSSID in one mode (sec. System Architecture).
 
     A track is a :class:`FilterRun` (possibly shared with other modes) plus its own
-    smoother, convergence monitor and published history.
+    smoother, convergence monitor and published history. Modes with ``refine`` are
+    :class:`estimator.refined.RefinedTrack` (see :func:`estimator.refined.make_track`).
     """
+
+    candidates: tuple = ()  # (mean_enu_m, sigma_h_m, weight) of an ambiguous estimate
 
     def __init__(
         self,
@@ -371,10 +480,12 @@ class Track:
     ) -> None:
         self.bssid = bssid
         self.observers = tuple(observers)
-        self.spec = MODES[mode] if isinstance(mode, str) else mode
+        self.spec = MODES[resolve_mode(mode)] if isinstance(mode, str) else mode
+        if self.spec.refine and type(self) is Track:
+            raise ValueError(f"mode {self.spec.name!r} is a RefinedTrack (estimator.refined)")
         self.cfg = cfg
         self.front = front if front is not None else SharedFront(cfg)
-        self.run = self.front.filter_run(self.spec)
+        self.run = self._make_run()
         self.keep_history = keep_history
         self.smoother = self._make_smoother()
         self.monitor = ConvergenceMonitor(cfg.convergence)
@@ -382,6 +493,9 @@ class Track:
         self.last: Published | None = None
         self.last_stable: Published | None = None
         self._generation = 0
+
+    def _make_run(self) -> FilterRun:
+        return self.front.filter_run(self.spec)
 
     def _make_smoother(self) -> EmaSmoother | MedianSmoother:
         cfg = self.cfg
@@ -413,7 +527,7 @@ class Track:
         f = self.run.filter
         assert f is not None
         P = f.P
-        sigma_h = math.sqrt(P[0][0] + P[1][1])  # eq. (21)
+        sigma_h = math.sqrt(P[0][0] + P[1][1])  # eq. (19)
         sigma_z = math.sqrt(P[2][2])
         pos = self.smoother.push(f.position_enu_m)
         n_acc = self.run.counts.n_acc
@@ -432,6 +546,11 @@ class Track:
     @property
     def counts(self) -> TrackCounts:
         return self.run.counts
+
+    @property
+    def reports_bias(self) -> bool:
+        """Whether the reported estimate carries a range bias (the UKF has none)."""
+        return self.run.filter is not None and self.run.filter.has_bias
 
     @property
     def filter(self) -> IEKF3D | UKF3D | None:

@@ -1,4 +1,4 @@
-"""Record types of the flight log (shared/spec/log-format.md) and of the estimator.
+"""Record types of the flight log (docs/log-format.md) and of the estimator.
 
 Records are small frozen dataclasses with SI units in their names. They never hold
 models or callbacks. Log times are integer nanoseconds of the logging device's
@@ -102,6 +102,7 @@ class AssociatedRange:
     anchor_vacc_m: float | None = None
     agl_m: float | None = None  # H_AGL of the agent that measured it (None: pipeline default)
     agent: str = ""
+    anchor_fix: str | None = None  # GNSS fix type of the anchor (GNSS_FIX_TYPES), if logged
 
 
 EstimateStatus = Literal[

@@ -24,10 +24,12 @@ from estimator.geodesy import EnuFrame
 from estimator.logio import LogStream, RejectCounts, iter_log_sorted
 from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
 from estimator.pipeline import (
+    MODE_ALIASES,
     MODES,
     PAPER_MODES,
     PipelineConfig,
     Published,
+    resolve_modes,
 )
 from estimator.records import Estimate, TruthRecord
 
@@ -45,6 +47,7 @@ class ReplayOptions:
     keep_history: bool = True  # published estimates per track (figures); off: O(1) memory
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)} or 'all'")
@@ -55,13 +58,21 @@ class ReplayOptions:
 
 
 def parse_modes(text: str) -> tuple[str, ...]:
-    """``all`` (the paper's six), one name, or a comma-separated list."""
-    if text == "all":
-        return PAPER_MODES
-    modes = tuple(m.strip() for m in text.split(",") if m.strip())
+    """``all`` (the paper's six), one name, or a list joined by ``,`` or ``+``
+    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped.
+
+    Aliases resolve to the mode's real name (``best`` -> ``refined``, the recommended
+    mode), so the estimates carry it.
+    """
+    names = [m.strip() for m in text.replace("+", ",").split(",") if m.strip()]
+    expanded: list[str] = []
+    for m in names:
+        expanded.extend(PAPER_MODES if m == "all" else (m,))
+    modes = resolve_modes(expanded)
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
-        raise ValueError(f"unknown mode {text!r}; choose from {', '.join(MODES)} or all")
+        choices = ", ".join([*MODES, *MODE_ALIASES])
+        raise ValueError(f"unknown mode {text!r}; choose from {choices} or all")
     return modes
 
 
@@ -91,6 +102,11 @@ class TrackResult:
     def converged(self) -> bool:
         return self.status == "converged"
 
+    @property
+    def has_bias(self) -> bool:
+        """Whether the mode's filter estimates a range bias (the UKF's state has none)."""
+        return MODES[self.mode].filter != "ukf"
+
     def to_json(self) -> dict:
         d: dict = {"bssid": self.bssid, "mode": self.mode, "status": self.status,
                    "converged": self.converged}
@@ -102,8 +118,9 @@ class TrackResult:
                 alt_m=round(self.alt_m, 3),
                 sigma_h_m=round(e.sigma_h_m, 4),
                 sigma_z_m=round(e.sigma_z_m, 4),
-                bias_m=round(e.bias_m, 4),
             )
+            if self.has_bias:  # the UKF has no bias state: no bias_m at all
+                d["bias_m"] = round(e.bias_m, 4)
         d.update({k: self.counts[k] for k in ("n_meas", "n_bootstrap", "n_acc", "n_gate")})
         d.update(n_mad=self.counts["n_mad"], n_nis=self.counts["n_nis"])
         if e is not None and self.err_h_m is not None:
@@ -328,7 +345,7 @@ def format_table(report: ReplayReport) -> str:
                 f"  {t.mode:<12}{t.status:<14}{t.counts['n_gate']:>7}{t.counts['n_acc']:>7}"
                 f"{f(e.sigma_h_m if e else None):>9}{f(e.sigma_z_m if e else None):>9}"
                 f"{f(t.err_h_m):>8}{f(t.twm_h_m):>7}{f(t.err_3d_m):>8}"
-                f"{f(e.bias_m if e else None, 2):>7}"
+                f"{f(e.bias_m if e and t.has_bias else None, 2):>7}"
             )
         lines.append("")
     rj = report.rejected.rejected

@@ -8,7 +8,7 @@ few multipath outliers. Run:  python examples/make_example_log.py examples/examp
 
 from __future__ import annotations
 
-import sys
+import argparse
 
 import numpy as np
 
@@ -71,4 +71,9 @@ def main(path: str, seed: int = 7) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "examples/example_flight.jsonl")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("path", nargs="?", default="examples/example_flight.jsonl",
+                    help="log to write (.jsonl, or .jsonl.gz; default %(default)s)")
+    ap.add_argument("--seed", type=int, default=7, help="random seed (default %(default)s)")
+    a = ap.parse_args()
+    main(a.path, a.seed)

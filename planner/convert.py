@@ -38,6 +38,14 @@ that datum; only the planned-home record and heights derived from it (GeoJSON) d
 The keep-in fence becomes an inclusion polygon, keep-out cylinders exclusion circles
 (mission_type FENCE); rally points (ENU, z above the trajectory origin) are optional and
 get altitudes relative to home like the waypoints.
+
+Precision. Every computed latitude and longitude of the mission (waypoints, fence,
+rally points) is put on the int degE7 grid the vehicle stores (MISSION_ITEM_INT,
+rounded half away from zero as MAVSDK's QGroundControl importer does), altitudes on
+the millimetre, the cruise speed on the cm/s: the files then hold exactly what a
+vehicle reads back (``36.7149``, ``45.0``), not the geodesy's float noise
+(``44.999999999864144``). The planned home and the takeoff item at home keep the
+coordinates given.
 """
 
 from __future__ import annotations
@@ -60,6 +68,7 @@ from planner.mission import (
     FencePolygon,
     Mission,
     MissionItem,
+    deg_to_e7,
 )
 from planner.models import TerrainModel
 from planner.patterns import Geofence, KeepOut
@@ -113,6 +122,16 @@ def polyline_distance_m(q: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     if len(v) == 1:
         return np.linalg.norm(q - v[0], axis=1)
     return np.min([point_segment_distance_m(q, a, b) for a, b in itertools.pairwise(v)], axis=0)
+
+
+def on_e7_grid(deg: float) -> float:
+    """``deg`` on the int degE7 grid a vehicle stores (the value it reads back)."""
+    return deg_to_e7(float(deg)) / 1e7
+
+
+def on_mm(alt_m: float) -> float:
+    """An altitude or length rounded to the millimetre (+0.0, never -0.0)."""
+    return round(float(alt_m), 3) + 0.0
 
 
 def _median_speed_m_s(traj: Trajectory) -> float | None:
@@ -206,18 +225,18 @@ def trajectory_to_mission(
         MissionItem(
             command=MAV_CMD_NAV_TAKEOFF,
             frame=frame,
-            lat_deg=home_lat,
+            lat_deg=home_lat,  # at home, exactly as given
             lon_deg=home_lon,
-            alt_m=t_alt,
+            alt_m=on_mm(t_alt),
         )
     ]
     items += [
         MissionItem(
             command=MAV_CMD_NAV_WAYPOINT,
             frame=frame,
-            lat_deg=float(la),
-            lon_deg=float(lo),
-            alt_m=float(al),
+            lat_deg=on_e7_grid(la),
+            lon_deg=on_e7_grid(lo),
+            alt_m=on_mm(al),
         )
         for la, lo, al in zip(lat, lon, alts, strict=True)
     ]
@@ -238,7 +257,7 @@ def trajectory_to_mission(
         polygons = (
             FencePolygon(
                 vertices_deg=tuple(
-                    (float(a), float(b))
+                    (on_e7_grid(a), on_e7_grid(b))
                     for a, b in zip(np.atleast_1d(flat), np.atleast_1d(flon), strict=True)
                 ),
                 inclusion=True,
@@ -249,18 +268,19 @@ def trajectory_to_mission(
         clat, clon, _ = frame_enu.to_geodetic(ko.east_m, ko.north_m, 0.0)
         circles.append(
             FenceCircle(
-                lat_deg=float(clat), lon_deg=float(clon), radius_m=ko.radius_m, inclusion=False
+                lat_deg=on_e7_grid(clat), lon_deg=on_e7_grid(clon), radius_m=ko.radius_m,
+                inclusion=False,
             )
         )
     rally = []
     for r in rally_enu_m:
         rlat, rlon, rh = frame_enu.to_geodetic(float(r[0]), float(r[1]), float(r[2]))
-        rally.append((float(rlat), float(rlon), float(rh) - home_h))  # relative to home
+        rally.append((on_e7_grid(rlat), on_e7_grid(rlon), on_mm(float(rh) - home_h)))
     speed = cruise_speed_m_s if cruise_speed_m_s is not None else _median_speed_m_s(traj)
     extra = (
         {}
         if speed is None or not math.isfinite(speed) or speed <= 0
-        else {"cruise_speed_m_s": speed}
+        else {"cruise_speed_m_s": round(speed, 2)}
     )
     return Mission(
         items=tuple(items),

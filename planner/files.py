@@ -1,6 +1,6 @@
 """Mission files: QGroundControl ``.plan`` (JSON) and "QGC WPL 110" text.
 
-Formats (shared/guide/mavlink.md, docs/mavlink.md):
+Formats (docs/mavlink.md):
 
 - ``.plan``: ``fileType "Plan"``, ``version 1``; ``mission`` (version 2) holds
   ``SimpleItem`` entries whose ``params`` are the seven MAVLink params, with

@@ -28,7 +28,7 @@ not compare it. Fence and rally lists are numbered from 0 for every autopilot.
 :func:`upload_mission` uploads fence, rally points and mission, downloads them
 back and compares item by item; it returns an :class:`UploadReport` only when the
 vehicle holds exactly what was sent, and raises an :class:`UploadError` otherwise.
-MAVLINK20=1 is set before pymavlink is imported (shared/guide/mavlink.md).
+MAVLINK20=1 is set before pymavlink is imported (docs/mavlink.md).
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ import dataclasses
 import math
 import os
 import socket
+import stat
 import struct
 import threading
 import time
@@ -89,6 +90,7 @@ __all__ = [
     "VerifyMismatchError",
     "WireItem",
     "ardupilot_stored",
+    "check_connection_url",
     "compare_wire",
     "connected",
     "detected_autopilot",
@@ -493,8 +495,62 @@ def is_mavsdk_url(url: str) -> bool:
     return "://" in url
 
 
+# pymavlink's network and socket forms (mavutil.mavlink_connection); anything else
+# without a colon is a serial device path, optionally with ",BAUD"
+PYMAVLINK_PREFIXES = ("tcp:", "tcpin:", "udpin:", "udpout:", "udpbcast:", "udp:", "mcast:",
+                      "ws:", "wss:", "wsserver:", "uds:", "unix:")
+URL_EXAMPLES = ("udpout:127.0.0.1:14550, udpin:0.0.0.0:14550, tcp:HOST:PORT, a serial device "
+                "such as /dev/ttyUSB0 or /dev/ttyUSB0,57600, or a MAVSDK URL such as "
+                "udpin://0.0.0.0:14540 or serial:///dev/ttyUSB0:57600")
+
+
+def _check_serial_device(device: str, url: str) -> None:
+    if os.name == "nt":  # COM ports are not paths
+        return
+    if not os.path.exists(device):
+        if "/" not in device:
+            raise InvalidConnectionError(
+                f"{url!r} is not a connection URL nor a serial device; use {URL_EXAMPLES}")
+        raise InvalidConnectionError(
+            f"no serial device {device} (is the telemetry radio plugged in?)")
+    if not stat.S_ISCHR(os.stat(device).st_mode):
+        raise InvalidConnectionError(
+            f"{url!r} is not a serial device nor a connection URL; use {URL_EXAMPLES}")
+
+
+def check_connection_url(url: str) -> None:
+    """Refuse, before any I/O, a URL that cannot reach a vehicle: empty, an unknown
+    scheme, an absent serial device or a plain file (pymavlink would replay a log file
+    or even execute it). Raises :class:`InvalidConnectionError` with one line."""
+    if not url.strip():
+        raise InvalidConnectionError(f"empty connection URL; use {URL_EXAMPLES}")
+    if is_mavsdk_url(url):
+        scheme = url.split("://", 1)[0] + "://"
+        if scheme not in MAVSDK_SCHEMES:
+            raise InvalidConnectionError(
+                f"unknown connection scheme {scheme!r} in {url!r}; use {URL_EXAMPLES}")
+        if scheme == "serial://":
+            device, _, baud = url[len(scheme):].rpartition(":")
+            _check_serial_device(device if baud.isdigit() else url[len(scheme):], url)
+        return
+    if url.startswith(PYMAVLINK_PREFIXES) or ":" in url:  # ":": pymavlink's legacy UDP
+        return
+    device = url
+    if "," in url and not os.path.exists(url):
+        device, _, baud = url.rpartition(",")
+        if not baud.isdigit() or int(baud) <= 0:
+            raise InvalidConnectionError(f"bad baud rate {baud!r} in {url!r}")
+    _check_serial_device(device, url)
+    try:
+        import serial  # noqa: F401 - pymavlink imports it inside its serial class
+    except ModuleNotFoundError:
+        raise InvalidConnectionError(
+            f"{device}: serial connections need pyserial (pip install pyserial)") from None
+
+
 def open_link(url: str, config: TransferConfig | None = None) -> MavsdkLink | PymavlinkLink:
     """Connect to the vehicle at ``url`` and wait for it (:class:`NoVehicleError`)."""
+    check_connection_url(url)
     config = config or TransferConfig()
     if is_mavsdk_url(url):
         return MavsdkLink(url, config)

@@ -1,6 +1,6 @@
 """Mission data types: what the planner exports and what a MAVLink vehicle holds.
 
-Items are MAVLink mission items in the ``_INT`` form (shared/guide/mavlink.md):
+Items are MAVLink mission items in the ``_INT`` form (docs/mavlink.md):
 latitude and longitude are kept in degrees here and converted to int degE7 with
 :func:`deg_to_e7` (round half away from zero, as MAVSDK does) on the wire and in
 comparisons. The default frame is MAV_FRAME_GLOBAL_RELATIVE_ALT_INT (6): altitude

@@ -255,11 +255,31 @@ def lawnmower(
     hl = hw if half_length_m is None else _positive("half_length_m", half_length_m)
     if spacing_m is None:
         spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, link), overlap)
+
+    segs = lawnmower_segments((cx, cy), hw, spacing_m, half_length_m=hl,
+                              heading_deg=heading_deg, alt_m=flight.alt_m)
+    return segments_to_trajectory(segs, flight, "lawnmower", start_enu_m)
+
+
+def lawnmower_segments(
+    center_enu_m: Sequence[float],
+    half_width_m: float,
+    spacing_m: float,
+    *,
+    half_length_m: float | None = None,
+    heading_deg: float = 0.0,
+    alt_m: float = 45.0,
+) -> list[Segment]:
+    """The lines of :func:`lawnmower` for a given track spacing (two per track, nothing
+    sampled: cheap for any size)."""
+    cx, cy = _xy(center_enu_m)
+    hw = _positive("half_width_m", half_width_m)
+    hl = hw if half_length_m is None else _positive("half_length_m", half_length_m)
     sp = _positive("spacing_m", spacing_m)
     n_tracks = max(1, math.ceil(2.0 * hw / sp - 1e-9))
     along, right = _heading_axes(heading_deg)
     c = np.array([cx, cy])
-    z = flight.alt_m
+    z = float(alt_m)
     pts: list[tuple[float, float, float]] = []
     for i in range(n_tracks):
         off = (i - (n_tracks - 1) / 2.0) * sp
@@ -267,8 +287,7 @@ def lawnmower(
         for end in (-sign, sign):
             xy = c + off * right + end * hl * along
             pts.append((float(xy[0]), float(xy[1]), z))
-    segs = [Line(a, b) for a, b in itertools.pairwise(pts)] or [Line(pts[0], pts[0])]
-    return segments_to_trajectory(segs, flight, "lawnmower", start_enu_m)
+    return [Line(a, b) for a, b in itertools.pairwise(pts)] or [Line(pts[0], pts[0])]
 
 
 def expanding_square(
@@ -293,6 +312,24 @@ def expanding_square(
     hw = _positive("half_width_m", half_width_m)
     if spacing_m is None:
         spacing_m = lawnmower_spacing_m(detection_range_m(flight.alt_m, link), overlap)
+
+    segs = expanding_square_segments((cx, cy), hw, spacing_m, heading_deg=heading_deg,
+                                     clockwise=clockwise, alt_m=flight.alt_m)
+    return segments_to_trajectory(segs, flight, "expanding-square", start_enu_m)
+
+
+def expanding_square_segments(
+    center_enu_m: Sequence[float],
+    half_width_m: float,
+    spacing_m: float,
+    *,
+    heading_deg: float = 0.0,
+    clockwise: bool = True,
+    alt_m: float = 45.0,
+) -> list[Segment]:
+    """The legs of :func:`expanding_square` for a given spacing (nothing sampled)."""
+    cx, cy = _xy(center_enu_m)
+    hw = _positive("half_width_m", half_width_m)
     sp = _positive("spacing_m", spacing_m)
     along, right = _heading_axes(heading_deg)
     turn = right if clockwise else -right
@@ -300,13 +337,12 @@ def expanding_square(
     m_max = max(1, math.ceil(2.0 * hw / sp - 1e-9))
     lengths = [sp * (k // 2 + 1) for k in range(2 * m_max)] + [sp * m_max]
     p = np.array([cx, cy])
-    z = flight.alt_m
+    z = float(alt_m)
     pts = [(cx, cy, z)]
     for k, L in enumerate(lengths):
         p = p + L * dirs[k % 4]
         pts.append((float(p[0]), float(p[1]), z))
-    segs = [Line(a, b) for a, b in itertools.pairwise(pts)]
-    return segments_to_trajectory(segs, flight, "expanding-square", start_enu_m)
+    return [Line(a, b) for a, b in itertools.pairwise(pts)]
 
 
 def orbit(
@@ -348,6 +384,24 @@ def helix(
     name: str = "helix",
 ) -> Trajectory:
     """Climbing (alt_end > alt_start) or descending orbit of ``turns`` turns."""
+    segs = helix_segments(center_enu_m, radius_m, alt_start_m=alt_start_m,
+                          alt_end_m=alt_end_m, turns=turns, clockwise=clockwise,
+                          start_angle_rad=start_angle_rad, start_enu_m=start_enu_m)
+    return segments_to_trajectory(segs, flight, name, start_enu_m)
+
+
+def helix_segments(
+    center_enu_m: Sequence[float],
+    radius_m: float,
+    *,
+    alt_start_m: float,
+    alt_end_m: float,
+    turns: float = 3.0,
+    clockwise: bool = False,
+    start_angle_rad: float | None = None,
+    start_enu_m: Sequence[float] | None = None,
+) -> list[Segment]:
+    """The one arc of :func:`helix` (entered on the side facing ``start_enu_m``)."""
     cx, cy = _xy(center_enu_m)
     r = _positive("radius_m", radius_m)
     t = _positive("turns", turns)
@@ -355,8 +409,7 @@ def helix(
         raise ValueError("altitudes must be finite")
     th0 = start_angle_rad if start_angle_rad is not None else _entry_angle(cx, cy, start_enu_m, 0.0)
     sweep = (-1.0 if clockwise else 1.0) * 2.0 * math.pi * t
-    arc = Arc(cx, cy, r, th0, sweep, float(alt_start_m), float(alt_end_m))
-    return segments_to_trajectory([arc], flight, name, start_enu_m)
+    return [Arc(cx, cy, r, th0, sweep, float(alt_start_m), float(alt_end_m))]
 
 
 def concentric_circles(
@@ -374,6 +427,23 @@ def concentric_circles(
     Altitudes default to ``flight.alt_m + k * alt_step_m`` for ring k; the drone moves
     between rings radially, changing altitude on the way.
     """
+    segs = concentric_circles_segments(center_enu_m, radii_m, alts_m=alts_m,
+                                       alt_step_m=alt_step_m, clockwise=clockwise,
+                                       flight=flight, start_enu_m=start_enu_m)
+    return segments_to_trajectory(segs, flight, "circles", start_enu_m)
+
+
+def concentric_circles_segments(
+    center_enu_m: Sequence[float],
+    radii_m: Sequence[float],
+    *,
+    alts_m: Sequence[float] | None = None,
+    alt_step_m: float = 10.0,
+    clockwise: bool = False,
+    flight: FlightConfig = FlightConfig(),
+    start_enu_m: Sequence[float] | None = None,
+) -> list[Segment]:
+    """The arcs and radial transitions of :func:`concentric_circles`."""
     cx, cy = _xy(center_enu_m)
     radii = [_positive("radius", float(r)) for r in radii_m]
     if not radii:
@@ -392,7 +462,7 @@ def concentric_circles(
         if k:
             segs.append(Line(segs[-1].point(1.0), arc.point(0.0)))  # type: ignore[union-attr]
         segs.append(arc)
-    return segments_to_trajectory(segs, flight, "circles", start_enu_m)
+    return segs
 
 
 def close_pass(
@@ -408,6 +478,20 @@ def close_pass(
     ``offset_m`` (horizontal, to the right of the track; negative: left) from the prior
     AP, centred on the closest approach. The paper's AP_1F fix came from such a pass at
     about 11 m (sec. Results)."""
+    segs = close_pass_segments(prior_enu_m, offset_m, leg_length_m=leg_length_m,
+                               heading_deg=heading_deg, flight=flight)
+    return segments_to_trajectory(segs, flight, "close-pass", start_enu_m)
+
+
+def close_pass_segments(
+    prior_enu_m: Sequence[float],
+    offset_m: float,
+    *,
+    leg_length_m: float = 200.0,
+    heading_deg: float = 0.0,
+    flight: FlightConfig = FlightConfig(),
+) -> list[Segment]:
+    """The one straight leg of :func:`close_pass`."""
     px, py = _xy(prior_enu_m)
     if not math.isfinite(offset_m):
         raise ValueError("offset_m must be finite")
@@ -417,8 +501,51 @@ def close_pass(
     a = mid - 0.5 * L * along
     b = mid + 0.5 * L * along
     z = flight.alt_m
-    seg = Line((float(a[0]), float(a[1]), z), (float(b[0]), float(b[1]), z))
-    return segments_to_trajectory([seg], flight, "close-pass", start_enu_m)
+    return [Line((float(a[0]), float(a[1]), z), (float(b[0]), float(b[1]), z))]
+
+
+@dataclass(frozen=True)
+class PathEstimate:
+    """What flying some segments costs, known before any sample is computed."""
+
+    length_m: float  # from the start point (if any), through the segments, home (if any)
+    duration_s: float  # at the commanded speed (no acceleration or wind)
+    n_waypoints: int  # a lower bound of the waypoints kept by decimation
+
+
+def estimate_path(
+    segments: Sequence[Segment],
+    flight: FlightConfig,
+    *,
+    start_enu_m: Sequence[float] | None = None,
+    end_enu_m: Sequence[float] | None = None,
+    tolerance_m: float = 1.0,
+) -> PathEstimate:
+    """Length, flight time and waypoint count of flying ``segments`` from
+    ``start_enu_m`` and back to ``end_enu_m`` (e.g. home for a return to launch), in
+    O(segments): the check a planner runs before sampling a path of any size.
+
+    Waypoints, a lower bound of what Douglas-Peucker keeps: the start, one per line end
+    and, per arc of radius r, the chords whose sagitta is ``tolerance_m`` (angle
+    2 acos(1 - tol / r) each). Sampling misses exact corners, so a mission often holds
+    up to about 1.5 times as many.
+    """
+    length = sum(s.length_m for s in segments)
+    n = 1
+    for seg in segments:
+        if isinstance(seg, Arc):
+            r = max(seg.radius, 1e-9)
+            chord = 2.0 * math.acos(max(-1.0, 1.0 - tolerance_m / r)) if tolerance_m > 0 else 0
+            n += max(1, math.ceil(abs(seg.sweep) / chord)) if chord > 0 else 10**9
+        else:
+            n += 1
+    if segments and start_enu_m is not None:
+        length += math.dist(tuple(float(v) for v in start_enu_m), _start_point(segments[0]))
+    if segments and end_enu_m is not None:
+        last = segments[-1]
+        end = last.b if isinstance(last, Line) else last.point(1.0)
+        length += math.dist(end, tuple(float(v) for v in end_enu_m))
+    return PathEstimate(length_m=length, duration_s=length / flight.speed_m_s, n_waypoints=n)
 
 
 def to_geodetic(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

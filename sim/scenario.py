@@ -89,6 +89,7 @@ class SearchSpec:
     speed_mps: float = 8.0
     random_responders: int = 0
     random_concealment: tuple[str, ...] = ("open",)
+    expected_responders: int | None = None  # how many people are sought (None: unknown)
 
     def __post_init__(self) -> None:
         poly = self.area_enu_m
@@ -120,6 +121,8 @@ class SearchSpec:
             raise ValueError("random_responders must be in [0, 100]")
         if not self.random_concealment:
             raise ValueError("random_concealment must not be empty")
+        if self.expected_responders is not None and not 1 <= self.expected_responders <= 100:
+            raise ValueError("expected_responders must be in [1, 100]")
         for c in self.random_concealment:
             if c not in CONCEALMENTS:
                 known = ", ".join(CONCEALMENTS)

@@ -26,13 +26,15 @@ class LossyUdpProxy:
     forwards to ``target_port`` (a vehicle listening with ``udpin``) from its own
     socket and relays the answers back to the last ground-station address. Each
     direction draws its drops from its own stream of ``seed`` (``drop`` in [0, 1));
-    setting :attr:`cut` drops everything from then on.
+    setting :attr:`cut` drops everything from then on, :attr:`cut_after_up` = N does so
+    once N more datagrams went up.
     """
 
     def __init__(self, target_port: int, drop: float = 0.0, seed: int = 0) -> None:
         self.target = (LOOPBACK, target_port)
         self.drop = drop
         self.cut = False  # True: drop everything from now on (a link that dies)
+        self.cut_after_up: int | None = None  # cut once this many more go up
         rng = np.random.default_rng(seed)
         self._rng_up, self._rng_down = (np.random.default_rng(s) for s in
                                         rng.bit_generator.seed_seq.spawn(2))
@@ -64,6 +66,10 @@ class LossyUdpProxy:
                     self.dropped[k] += 1
                     continue
                 self.passed[k] += 1
+                if up and self.cut_after_up is not None:
+                    self.cut_after_up -= 1
+                    if self.cut_after_up <= 0:
+                        self.cut = True
                 with contextlib.suppress(OSError):
                     if up:
                         self.back.sendto(data, self.target)

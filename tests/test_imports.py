@@ -1,4 +1,4 @@
-"""Imports flow one way (shared/guide/architecture.md): estimator <- sim, planner <- envs."""
+"""Imports flow one way (docs/architecture.md): estimator <- sim, planner <- envs."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``osa plan PATTERN -o FILE [options]`` (shared/spec/cli.md): write a mission.
+"""``osa plan PATTERN -o FILE [options]`` (docs/cli.md): write a mission.
 
 The ENU frame is centred on home (``--home``, default: the centre), so the mission's
 relative altitudes are the trajectory's z (exactly: the height above home through the
@@ -20,9 +20,17 @@ expanding-square), the orbit radius (helix, orbit), the outer ring radius (circl
 half the leg length (close-pass) and the half-width of the keep-in square geofence
 (optimal).
 
+Mission size, before anything is sampled: the pattern's segments give the flight
+length and time (home -> pattern -> home at ``--speed``) and the waypoint count
+(:func:`planner.patterns.estimate_path`). Above ``--warn-flight-time`` (default 30
+min, one multirotor battery) a warning goes to stderr and the plan is written; beyond
+:data:`MAX_FLIGHT_S` (2 h: no multirotor battery, and a lawnmower of 1 km radius is
+6.4 h) or ``--max-items`` (default 500: what PX4 stores on a flight controller,
+``NUM_MISSIONS_SUPPORTED``) the plan is refused with the numbers (exit 2).
+
 Exit status: 0 written; 1 the plan is not flyable (a pattern crosses a keep-out, the
-optimiser found nothing feasible); 2 bad input or an unwritable file, with one line on
-stderr.
+optimiser found nothing feasible); 2 bad input, a mission too long or too big, or an
+unwritable file, with one line on stderr.
 """
 
 from __future__ import annotations
@@ -38,6 +46,16 @@ from envs.commands._args import finite_float, positive_float
 
 PATTERNS = ("lawnmower", "expanding-square", "helix", "circles", "close-pass", "orbit", "optimal")
 MISSION_SUFFIXES = (".plan", ".waypoints", ".txt")
+MAX_FLIGHT_S = 2 * 3600.0  # hard limit: beyond any multirotor battery
+DEFAULT_WARN_FLIGHT_MIN = 30.0  # one battery of a survey multirotor
+DEFAULT_MAX_ITEMS = 500  # PX4 on a flight controller (NUM_MISSIONS_SUPPORTED)
+MAX_RINGS = 100
+RADIUS_HELP = (
+    "size in metres, per pattern: half-width of the search square (lawnmower, "
+    "expanding-square; default 150), orbit radius (helix, orbit; default 50), outer ring "
+    "radius (circles; default 60), half the pass length (close-pass; default 100), "
+    "half-width of the keep-in square (optimal; default 200)"
+)
 DEFAULT_RADIUS_M = {
     "lawnmower": 150.0,
     "expanding-square": 150.0,
@@ -83,7 +101,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description=(
             "Plan a flight pattern (or the CasADi information-optimal path) around a centre "
             "and write it as a QGroundControl .plan or a QGC WPL 110 .waypoints mission. "
-            "Negative coordinates need '=': --center=-33.86,151.21."
+            "Southern and western coordinates are negative: --center -33.86,151.21."
         ),
     )
     p.add_argument("pattern", metavar="PATTERN", choices=PATTERNS, help=" | ".join(PATTERNS))
@@ -92,7 +110,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--center", required=True, type=_latlon, metavar="LAT,LON",
         help="centre of the search area / prior AP estimate (degrees)",
     )  # fmt: skip
-    p.add_argument("--radius", type=positive_float, metavar="M", help="see the module doc (m)")
+    p.add_argument("--radius", type=positive_float, metavar="M", help=RADIUS_HELP)
     p.add_argument(
         "--alt",
         type=positive_float,
@@ -189,6 +207,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         metavar="M",
         help="waypoint decimation tolerance (default 1)",
     )
+    p.add_argument(
+        "--warn-flight-time",
+        type=positive_float,
+        default=DEFAULT_WARN_FLIGHT_MIN,
+        metavar="MIN",
+        help=f"warn when the flight (home to home) is longer (default {DEFAULT_WARN_FLIGHT_MIN:g}"
+        f" min); beyond {MAX_FLIGHT_S / 3600:g} h the plan is refused",
+    )
+    p.add_argument(
+        "--max-items",
+        type=int,
+        default=DEFAULT_MAX_ITEMS,
+        metavar="N",
+        help=f"refuse a mission of more items than the vehicle holds (default "
+        f"{DEFAULT_MAX_ITEMS}, PX4 on a flight controller)",
+    )
     p.add_argument("--no-rtl", action="store_true", help="no RETURN_TO_LAUNCH item at the end")
     p.add_argument("--geojson", metavar="PATH", help="also write the plan as GeoJSON")
     p.set_defaults(func=run)
@@ -211,6 +245,7 @@ class PlanOutput:
     mission: Any  # planner.mission.Mission
     prior_enu_m: Any  # numpy array (3,)
     note: str = ""
+    warnings: tuple[str, ...] = ()  # for stderr: the plan is written anyway
 
 
 def _fail(message: str, status: int = 2) -> int:
@@ -222,49 +257,62 @@ def _fmt(v: float, unit: str = " m") -> str:
     return f"{v:.2f}{unit}" if math.isfinite(v) else "inf"
 
 
-def _pattern(args: argparse.Namespace, pat: Any, radius: float, center, prior, start, home):
-    flight = pat.FlightConfig(speed_m_s=args.speed, alt_m=args.alt, origin=home)
+def _pattern_segments(args: argparse.Namespace, pat: Any, radius: float, center, prior,
+                      start, flight) -> list:
+    """The pattern's exact segments (cheap: nothing sampled yet)."""
     name = args.pattern
     if name in ("lawnmower", "expanding-square"):
-        area_pattern = pat.lawnmower if name == "lawnmower" else pat.expanding_square
-        return area_pattern(
-            center,
-            radius,
-            spacing_m=args.spacing,
-            heading_deg=args.heading,
-            overlap=args.overlap,
-            flight=flight,
-            start_enu_m=start,
-            link=_scoring().link,
-        )
+        spacing = args.spacing
+        if spacing is None:  # the patterns' default: from the detection range at --alt
+            r_det = pat.detection_range_m(args.alt, _scoring().link)
+            spacing = pat.lawnmower_spacing_m(r_det, args.overlap)
+        if name == "lawnmower":
+            return pat.lawnmower_segments(center, radius, spacing, heading_deg=args.heading,
+                                          alt_m=args.alt)
+        return pat.expanding_square_segments(center, radius, spacing,
+                                             heading_deg=args.heading, alt_m=args.alt)
     if name == "helix":
         if args.alt + args.climb <= 0:
             raise PlanError(f"--alt {args.alt:g} with --climb {args.climb:g} goes below home")
-        return pat.helix(
-            center,
-            radius,
-            alt_start_m=args.alt,
-            alt_end_m=args.alt + args.climb,
-            turns=args.turns or 3.0,
-            flight=flight,
-            start_enu_m=start,
-        )
+        return pat.helix_segments(center, radius, alt_start_m=args.alt,
+                                  alt_end_m=args.alt + args.climb, turns=args.turns or 3.0,
+                                  start_enu_m=start)
     if name == "circles":
         radii = [radius * (k + 1) / args.rings for k in range(args.rings)]
         alts = [args.alt + k * args.alt_step for k in range(args.rings)]
         if min(alts) <= 0:
             raise PlanError("--alt-step takes a ring below home")
-        return pat.concentric_circles(center, radii, alts_m=alts, flight=flight, start_enu_m=start)
+        return pat.concentric_circles_segments(center, radii, alts_m=alts, flight=flight,
+                                               start_enu_m=start)
     if name == "close-pass":
-        return pat.close_pass(
-            prior,
-            args.offset,
-            leg_length_m=2.0 * radius,
-            heading_deg=args.heading,
-            flight=flight,
-            start_enu_m=start,
-        )
-    return pat.orbit(center, radius, turns=args.turns or 1.0, flight=flight, start_enu_m=start)
+        return pat.close_pass_segments(prior, args.offset, leg_length_m=2.0 * radius,
+                                       heading_deg=args.heading, flight=flight)
+    return pat.helix_segments(center, radius, alt_start_m=args.alt, alt_end_m=args.alt,
+                              turns=args.turns or 1.0, start_enu_m=start)
+
+
+def _fmt_duration(s: float) -> str:
+    return f"{s / 3600:.1f} h" if s >= 5400 else f"{s / 60:.0f} min"
+
+
+def check_mission_size(args: argparse.Namespace, duration_s: float, length_m: float,
+                       n_items: int | None, what: str,
+                       hint: str = "reduce --radius, widen --spacing or split the area",
+                       ) -> list[str]:
+    """Refuse (:class:`PlanError`) a mission beyond the hard limits; return the warnings."""
+    size = (f"{_fmt_duration(duration_s)} of flight ({length_m / 1000:.1f} km at "
+            f"{args.speed:g} m/s, home to home)"
+            + (f", at least {n_items} items" if n_items is not None else ""))
+    if duration_s > MAX_FLIGHT_S:
+        raise PlanError(f"{what} is {size}: beyond the {MAX_FLIGHT_S / 3600:g} h limit of one "
+                        f"flight; {hint}")
+    if n_items is not None and n_items > args.max_items:
+        raise PlanError(f"{what} is {size}: more than the {args.max_items} items a vehicle "
+                        "holds (--max-items); raise --tolerance or reduce the pattern")
+    if duration_s > args.warn_flight_time * 60.0:
+        return [f"{what} is {size}: longer than --warn-flight-time "
+                f"{args.warn_flight_time:g} min (more than one battery?)"]
+    return []
 
 
 def build_plan(args: argparse.Namespace) -> PlanOutput:
@@ -273,8 +321,11 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
         raise PlanError(f"{args.output}: unknown mission type (use .plan, .waypoints or .txt)")
     if not 0.0 <= args.overlap < 1.0:
         raise PlanError(f"--overlap must be in [0, 1), got {args.overlap:g}")
-    if args.rings < 1:
-        raise PlanError(f"--rings must be >= 1, got {args.rings}")
+    if not 1 <= args.rings <= MAX_RINGS:
+        raise PlanError(f"--rings must be in 1..{MAX_RINGS}, got {args.rings}")
+    if args.max_items < 3:
+        raise PlanError(f"--max-items must be >= 3 (takeoff, a waypoint, RTL), got "
+                        f"{args.max_items}")
 
     import numpy as np
 
@@ -297,11 +348,24 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
     start = (0.0, 0.0, args.alt)  # airborne above home after the takeoff item
     fence = None
     note = ""
+    what = f"{name} --radius {radius:g}"
+    extra_items = 1 + (0 if args.no_rtl else 1)  # takeoff, RTL
     try:
         if name == "optimal":
+            warnings = check_mission_size(args, args.time_budget,
+                                          args.time_budget * args.speed, None,
+                                          f"optimal --time-budget {args.time_budget:g}",
+                                          hint="reduce --time-budget")
             traj, note, fence = _optimal(args, radius, center, prior, start, keep_outs, home)
         else:
-            traj = _pattern(args, pat, radius, center, prior, start, home)
+            flight = pat.FlightConfig(speed_m_s=args.speed, alt_m=args.alt, origin=home)
+            segs = _pattern_segments(args, pat, radius, center, prior, start, flight)
+            est = pat.estimate_path(segs, flight, start_enu_m=start,
+                                    end_enu_m=None if args.no_rtl else start,
+                                    tolerance_m=args.tolerance)
+            warnings = check_mission_size(args, est.duration_s, est.length_m,
+                                          est.n_waypoints + extra_items, what)
+            traj = pat.segments_to_trajectory(segs, flight, name, start)
     except ValueError as exc:
         raise PlanError(str(exc)) from None
     if name != "optimal":
@@ -317,7 +381,11 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
         home=home,  # the ENU origin: relative altitudes are the trajectory's z
         name=f"osa plan {name}",
     )
-    return PlanOutput(trajectory=traj, mission=mission, prior_enu_m=prior, note=note)
+    if len(mission.items) > args.max_items:
+        raise PlanError(f"{what}: {len(mission.items)} mission items, more than the "
+                        f"{args.max_items} a vehicle holds (--max-items); raise --tolerance")
+    return PlanOutput(trajectory=traj, mission=mission, prior_enu_m=prior, note=note,
+                      warnings=tuple(warnings))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -325,6 +393,8 @@ def run(args: argparse.Namespace) -> int:
         plan = build_plan(args)
     except PlanError as exc:
         return _fail(str(exc), exc.status)
+    for w in plan.warnings:
+        print(f"osa plan: warning: {w}", file=sys.stderr)
 
     import dataclasses
 

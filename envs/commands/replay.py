@@ -1,9 +1,18 @@
-"""``osa replay LOG [LOG ...]``: the estimator over flight logs (shared/spec/cli.md)."""
+"""``osa replay LOG [LOG ...]``: the estimator over flight logs (docs/cli.md).
+
+Before anything is estimated every LOG is probed (:func:`estimator.logio.probe_log`):
+a file without a single valid record is not a flight log (exit 2, one line naming
+it), and so is a log named twice (fusing a log with itself would count every range
+twice and shrink the covariance by sqrt 2). Two different files whose headers name
+the same agent are fused as given, with a warning: they may be two flights of one
+drone, or a copy of one flight.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import warnings
 
@@ -22,7 +31,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--mode",
         default="baseline",
         help="baseline, nlos, empirical-r, ukf, ema, adaptive-r, all (the paper's six), "
-        "robust (ours), or a comma-separated list (default: baseline)",
+        "robust (ours), or a list joined by ',' or '+', e.g. all+robust (default: baseline)",
     )
     p.add_argument("--agl", type=non_negative_float, default=None, metavar="M",
                    help="configured flight height above ground (m); default: header, else 45")
@@ -33,6 +42,34 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON report only")
     p.add_argument("--quiet", action="store_true", help="do not print log warnings")
     p.set_defaults(func=run)
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.abspath(a) == os.path.abspath(b)
+
+
+def check_logs(paths: list[str]) -> None:
+    """Probe every log; raise ``LogError`` (one line, naming the file) for a file that
+    is not a flight log or a log given twice; warn about agents named twice."""
+    from estimator.logio import LogError, LogWarning, probe_log
+
+    agents: dict[str, str] = {}
+    for i, path in enumerate(paths):
+        for earlier in paths[:i]:
+            if _same_file(path, earlier):
+                raise LogError(f"{path}: given twice (a log fused with itself counts every "
+                               "range twice)")
+        stream = probe_log(path)
+        if stream.n_header and stream.header is not None:
+            agent = stream.header.agent
+            if agent in agents:
+                warnings.warn(f"{path} and {agents[agent]} name the same agent {agent!r}: fused "
+                              "as two logs (if one is a copy of the other, every range counts "
+                              "twice)", LogWarning, stacklevel=2)
+            agents.setdefault(agent, path)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,13 +91,22 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
+            check_logs(args.logs)
+            probed = len(caught)  # the probe's reader warnings come again from the replay
             report = replay_logs(args.logs, opts)
         except LogError as exc:
             print(f"osa replay: {exc}", file=sys.stderr)
             return 2
     if not args.quiet:
-        for w in caught:
-            print(f"osa replay: warning: {w.message}", file=sys.stderr)
+        seen: set[str] = set()
+        for k, w in enumerate(caught):
+            if issubclass(w.category, ResourceWarning):
+                continue  # the interpreter's housekeeping, not the user's
+            text = str(w.message)
+            if text in seen and k >= probed:
+                continue
+            seen.add(text)
+            print(f"osa replay: warning: {text}", file=sys.stderr)
     if args.json:
         print(json.dumps(report.to_json(), allow_nan=False))
     else:

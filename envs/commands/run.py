@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
+from typing import TextIO
+
+from envs.commands._args import non_negative_int
 
 DEFAULT_SCENARIO = "three-aps"
 
@@ -26,7 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scenario", nargs="?", default=DEFAULT_SCENARIO,
                    help=f"scenario preset or TOML file (default: {DEFAULT_SCENARIO})")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
+                   help="random seed, >= 0 (default 0)")
     p.add_argument("-o", "--out", default="osa-run", help="output folder (default ./osa-run)")
     p.add_argument("--mode", default="all",
                    help="modes to replay: all (the paper's six, default), all+robust, or a list")
@@ -36,58 +41,106 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+class StepProgress:
+    """Progress over a few named steps on ``stream``: a tqdm bar on a terminal, one
+    plain line per step otherwise (a file or a pipe gets no carriage returns)."""
 
+    def __init__(self, desc: str, total: int, *, enabled: bool = True,
+                 stream: TextIO | None = None) -> None:
+        self.desc, self.total, self.n = desc, total, 0
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled
+        self.bar = None
+        if enabled and self.stream.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=desc, unit="step", file=self.stream,
+                            bar_format="{desc}: {n}/{total}{postfix}")
+
+    def step(self, text: str) -> None:
+        """Start the next step."""
+        if self.n:
+            self._advance()
+        self.n += 1
+        if self.bar is not None:
+            self.bar.set_postfix_str(text)
+        elif self.enabled:
+            print(f"{self.desc}: {self.n}/{self.total} {text}", file=self.stream, flush=True)
+
+    def _advance(self) -> None:
+        if self.bar is not None:
+            self.bar.update()
+
+    def close(self) -> None:
+        """All steps done."""
+        if self.n:
+            self._advance()
+        if self.bar is not None:
+            self.bar.set_postfix_str("done")
+            self.bar.close()
+        elif self.enabled:
+            print(f"{self.desc}: done", file=self.stream, flush=True)
+
+
+def _fail(message: object) -> int:
+    print(f"osa run: {message}", file=sys.stderr)
+    return 2
+
+
+def writable_file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be written (checked before a long job), or None."""
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        return f"cannot write {p}: is a directory"
+    if not parent.is_dir():
+        return f"cannot write {p}: no such directory {parent}"
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        return f"cannot write {p}: permission denied"
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
     import sim
     from envs.plots import plot_convergence, plot_trajectory
     from estimator.replay import ReplayOptions, format_table, parse_modes, replay_logs
 
-    mode_text = args.mode
+    # everything a user can get wrong is checked before the output folder exists
     try:
-        if mode_text == "all+robust":
-            modes = (*parse_modes("all"), "robust")
-        else:
-            modes = parse_modes(mode_text)
+        modes = parse_modes(args.mode)
     except ValueError as exc:
-        print(f"osa run: {exc}", file=sys.stderr)
-        return 2
+        return _fail(exc)
     try:
         scenario = sim.load_scenario(args.scenario)
     except (KeyError, ValueError, OSError) as exc:
-        msg = exc.args[0] if exc.args else exc
-        print(f"osa run: {msg}", file=sys.stderr)
-        return 2
+        return _fail(exc.args[0] if exc.args else exc)
+    if scenario.flight is None:
+        return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
+    if args.rerun and (problem := writable_file_problem(args.rerun)):
+        return _fail(problem)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        print(f"osa run: cannot create {out}: {exc.strerror}", file=sys.stderr)
-        return 2
+        return _fail(f"cannot create {out}: {exc.strerror}")
     log_path = out / "flight.jsonl"
-    steps = ["simulate", "replay", "figures"] + (["rerun"] if args.rerun else [])
-    bar = tqdm(total=len(steps), desc="osa run", unit="step", disable=args.no_progress,
-               file=sys.stderr, bar_format="{desc}: {n}/{total} {postfix}")
-    bar.set_postfix_str(f"simulating {args.scenario} (seed {args.seed})")
+    steps = 3 + bool(args.rerun)
+    progress = StepProgress("osa run", steps, enabled=not args.no_progress)
+    progress.step(f"simulating {args.scenario} (seed {args.seed})")
     sim.simulate(scenario, args.seed, log_path)
-    bar.update()
-    bar.set_postfix_str(f"replaying {len(modes)} modes")
+    progress.step(f"replaying {len(modes)} modes")
     report = replay_logs([log_path], ReplayOptions(modes=modes))
     (out / "report.json").write_text(json.dumps(report.to_json(), indent=1, allow_nan=False))
-    bar.update()
-    bar.set_postfix_str("drawing figures")
+    progress.step("drawing figures")
     title = f"{args.scenario}, seed {args.seed}"
     traj = plot_trajectory(report, [log_path], out / "trajectory.png", title=title)
     conv = plot_convergence(report, out / "convergence.png")
-    bar.update()
     if args.rerun:
         from envs.viz import record_replay
 
-        bar.set_postfix_str("writing rerun recording")
+        progress.step("writing rerun recording")
         record_replay(report, [log_path], args.rerun)
-        bar.update()
-    bar.set_postfix_str("done")
-    bar.close()
+    progress.close()
     print(f"scenario {args.scenario}, seed {args.seed}\n")
     print(format_table(report))
     print(f"\nwrote {log_path}, {out / 'report.json'}, {traj}, {conv}"

@@ -1,4 +1,4 @@
-"""``osa simulate SCENARIO -o LOG [--seed N]`` and ``osa simulate --list`` (shared/spec/cli.md)."""
+"""``osa simulate SCENARIO -o LOG [--seed N]`` and ``osa simulate --list`` (docs/cli.md)."""
 
 from __future__ import annotations
 
@@ -47,6 +47,8 @@ def run(args: argparse.Namespace) -> int:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
         return _fail(str(exc))
+    if scenario.flight is None:
+        return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
 
     from sim.simulate import run_scenario, write_log
 

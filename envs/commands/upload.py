@@ -3,7 +3,7 @@
 Exit status 0 only when the vehicle holds exactly the mission in FILE (items, and
 fence and rally points unless ``--no-fence``); 2 for an unreadable file or a bad
 URL; 1 for any vehicle error (no heartbeat, timeout, NACK, read-back mismatch).
-Errors are one line on stderr (shared/spec/cli.md, docs/mavlink.md).
+Errors are one line on stderr (docs/cli.md, docs/mavlink.md).
 """
 
 from __future__ import annotations

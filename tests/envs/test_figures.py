@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -76,3 +77,148 @@ def test_figures_of_a_flight_without_usable_ranges(tmp_path):
     assert np.hypot(*path[0, :2]) < 1e-9
     assert plot_trajectory(rep, [log], tmp_path / "t.png").stat().st_size > 10_000
     assert plot_convergence(rep, tmp_path / "c.png").stat().st_size > 10_000
+
+
+# --------------------------------------------------------------- readability, rendered
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """What ``osa run`` replays: three-aps, seed 0, the paper's six modes."""
+    import sim
+
+    log = tmp_path_factory.mktemp("three") / "flight.jsonl"
+    sim.simulate("three-aps", 0, log)
+    return log, replay_logs([log], ReplayOptions(modes=parse_modes("all")))
+
+
+@pytest.fixture(scope="module")
+def no_estimate_run(tmp_path_factory):
+    """paper-apaa: the responder never answers, so there is not a single estimate."""
+    import sim
+
+    log = tmp_path_factory.mktemp("apaa") / "flight.jsonl"
+    sim.simulate("paper-apaa", 0, log)
+    return log, replay_logs([log], ReplayOptions(modes=parse_modes("all")))
+
+
+def _boxes(fig, artists):
+    """Display boxes; of a text its letters only (an annotation's box holds its arrow)."""
+    from matplotlib.text import Text
+
+    r = fig.canvas.get_renderer()
+    return [Text.get_window_extent(a, r) if isinstance(a, Text) else a.get_window_extent(r)
+            for a in artists]
+
+
+def _disjoint(boxes) -> bool:
+    return all(not a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1:])
+
+
+def _all_text(fig) -> list[str]:
+    from matplotlib.text import Text
+
+    return [t.get_text() for t in fig.findobj(Text)]
+
+
+def _labels(ax) -> list:
+    from envs.plots import LABEL_GID
+
+    return [t for t in ax.texts if t.get_gid() == LABEL_GID]
+
+
+def _legend_outside_axes(fig) -> None:
+    assert len(fig.legends) == 1
+    assert all(ax.get_legend() is None for ax in fig.axes)  # no legend over data
+    (leg,) = _boxes(fig, fig.legends)
+    for box in _boxes(fig, [ax for ax in fig.axes if ax.axison]):
+        assert not leg.overlaps(box)
+
+
+def test_trajectory_of_the_default_run_reads_well(default_run):
+    from envs.plots import RESPONDER_GID, trajectory_figure
+
+    log, rep = default_run
+    assert len(rep.truth) == 3
+    assert rep.get("a4:77:33:0f:3c:7e", "baseline").status == "no_data"  # AP_AA: no data
+    fig = trajectory_figure(rep, [log], "three-aps, seed 0")
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    drawn = sorted(ln.get_gid().split(":", 1)[1] for ln in ax.lines
+                   if (ln.get_gid() or "").startswith(RESPONDER_GID))
+    assert drawn == sorted(rep.truth)  # every responder, also the one without data
+    labels = _labels(ax)
+    assert len(labels) == 3 and _disjoint(_boxes(fig, labels))
+    assert any("3c:7e" in t.get_text() and "no_data" in t.get_text() for t in labels)
+    ax_box = ax.get_window_extent(fig.canvas.get_renderer())
+    assert all(ax_box.x0 <= b.x0 and b.x1 <= ax_box.x1 for b in _boxes(fig, labels))
+    _legend_outside_axes(fig)
+    assert not any("None" in t for t in _all_text(fig))
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_convergence_of_the_default_run_reads_well(default_run):
+    from envs.plots import convergence_figure
+
+    _, rep = default_run
+    fig = convergence_figure(rep)
+    fig.canvas.draw()
+    a2 = fig.axes[1]
+    curves = {ln.get_label(): ln for ln in a2.lines if not ln.get_label().startswith("_")}
+    assert sorted(curves) == sorted(parse_modes("all"))
+    looks = {(ln.get_color(), ln.get_linestyle(), ln.get_marker()) for ln in curves.values()}
+    assert len(looks) == 6  # colour, style and marker: each mode its own
+    base, ema = curves["baseline"], curves["ema"]
+    assert base.get_linestyle() != ema.get_linestyle() and base.get_marker() != ema.get_marker()
+    assert base.get_linewidth() > 1.5 * ema.get_linewidth()  # EMA drawn on a wider Baseline
+    labels = _labels(a2)
+    assert len(labels) == 6 and _disjoint(_boxes(fig, labels))
+    finals = {t.mode: f"{t.mode} {t.err_h_m:.1f} m" for t in rep.tracks
+              if t.bssid == "a4:77:33:0f:1e:02"}
+    assert sorted(t.get_text() for t in labels) == sorted(finals.values())
+    _legend_outside_axes(fig)
+    assert not any("None" in t for t in _all_text(fig))
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_figures_without_estimates_say_so(no_estimate_run):
+    import matplotlib.pyplot as plt
+
+    from envs.plots import RESPONDER_GID, convergence_figure, trajectory_figure
+
+    log, rep = no_estimate_run
+    assert all(t.estimate is None for t in rep.tracks)
+    fig = convergence_figure(rep)
+    fig.canvas.draw()
+    texts = _all_text(fig)
+    assert not any("None" in t for t in texts)
+    for ax in fig.axes:
+        assert "no estimates" in ax.get_title()
+        assert list(ax.get_xticks()) == [] and list(ax.get_yticks()) == []  # no 0-1 axis
+        assert not ax.lines
+    plt.close(fig)
+    fig = trajectory_figure(rep, [log])
+    fig.canvas.draw()
+    ax, ins = fig.axes
+    markers = [ln for ln in ax.lines if (ln.get_gid() or "").startswith(RESPONDER_GID)]
+    assert len(markers) == 1 and markers[0].get_markerfacecolor() == "white"
+    assert not ins.axison and any("no estimates" in t.get_text() for t in ins.texts)
+    assert not any("None" in t for t in _all_text(fig))
+    _legend_outside_axes(fig)
+    plt.close(fig)
+
+
+def test_spread_positions_keeps_order_and_gap():
+    from envs.plots import spread_positions
+
+    y = [0.50, 0.51, 0.49, 0.95, 0.97, 0.0]
+    pos = spread_positions(y, 0.05)
+    order = sorted(range(len(y)), key=lambda i: y[i])
+    got = [pos[i] for i in order]
+    assert all(b - a >= 0.05 - 1e-12 for a, b in itertools.pairwise(got))
+    assert 0.0 <= min(pos) and max(pos) <= 1.0
+    assert spread_positions([0.2, 0.6], 0.05) == [0.2, 0.6]  # far apart: unchanged

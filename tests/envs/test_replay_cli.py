@@ -1,4 +1,4 @@
-"""``osa replay`` against shared/spec/cli.md: JSON shape, table, fusion, exit statuses."""
+"""``osa replay`` against docs/cli.md: JSON shape, table, fusion, exit statuses."""
 
 from __future__ import annotations
 

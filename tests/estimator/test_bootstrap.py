@@ -126,3 +126,53 @@ def test_robust_bootstrap_resists_nlos_outliers():
     assert e_rb < 2.0
     if gn.ok:
         assert e_rb < np.linalg.norm(np.array(gn.position_enu_m)[:2] - AP[:2])
+
+
+def _stage1_by_hand(u, d, w, agl):
+    """Eqs. (5)-(7) written out: rho^2 with its fallback, differences to sample 1, WLS."""
+    rho2 = np.array([di * di - a * a if di * di - a * a > 0 else di * di
+                     for di, a in zip(d, agl, strict=True)])
+    rows, rhs, wts = [], [], []
+    for i in range(1, len(d)):
+        rows.append([2 * (u[i, 0] - u[0, 0]), 2 * (u[i, 1] - u[0, 1])])
+        rhs.append(rho2[0] - rho2[i] + u[i, 0] ** 2 - u[0, 0] ** 2 + u[i, 1] ** 2
+                   - u[0, 1] ** 2)
+        wts.append(w[i])
+    A, c, W = np.array(rows), np.array(rhs), np.diag(wts)
+    return np.linalg.solve(A.T @ W @ A, A.T @ W @ c)
+
+
+def test_stage1_weights_are_the_mad_scales_of_the_differenced_rows():
+    """W = diag(1 / sigma_i^2) of samples 2..N (eq. 7): reweighting changes the answer
+    exactly as the hand-written WLS says, and sample 1 (the reference) has no weight."""
+    rng = np.random.default_rng(2)
+    u = orbit(n=16)
+    d = np.linalg.norm(u - AP, axis=1) + rng.normal(0, 1.0, 16)
+    agl = np.full(16, 45.0)
+    w1 = np.ones(16)
+    w2 = np.linspace(0.2, 5.0, 16)
+    p1 = stage1_linear_xy(u, d, w1, agl)
+    p2 = stage1_linear_xy(u, d, w2, agl)
+    np.testing.assert_allclose(p1, _stage1_by_hand(u, d, w1, agl), atol=1e-9)
+    np.testing.assert_allclose(p2, _stage1_by_hand(u, d, w2, agl), atol=1e-9)
+    assert np.linalg.norm(p1 - p2) > 0.05
+    w3 = w2.copy()
+    w3[0] = 1e6  # the reference sample's weight is not used
+    np.testing.assert_allclose(stage1_linear_xy(u, d, w3, agl), p2, atol=1e-9)
+
+
+def test_stage1_rho2_falls_back_to_d2_when_not_positive():
+    """Eq. (5): rho^2 = d^2 - H_AGL^2, or d^2 where that is not positive."""
+    rng = np.random.default_rng(3)
+    u = orbit(n=12)
+    d = np.linalg.norm(u - AP, axis=1) + rng.normal(0, 0.5, 12)
+    agl = np.full(12, 45.0)
+    agl[[2, 5, 9]] = d[[2, 5, 9]] + 1.0  # H_AGL above the range: d^2 - H^2 < 0
+    got = stage1_linear_xy(u, d, np.ones(12), agl)
+    np.testing.assert_allclose(got, _stage1_by_hand(u, d, np.ones(12), agl), atol=1e-9)
+    # the fallback matters: with the negative rho^2 kept the answer moves
+    rho2 = d * d - agl * agl
+    A = np.column_stack((2 * (u[1:, 0] - u[0, 0]), 2 * (u[1:, 1] - u[0, 1])))
+    c = rho2[0] - rho2[1:] + u[1:, 0] ** 2 - u[0, 0] ** 2 + u[1:, 1] ** 2 - u[0, 1] ** 2
+    no_fallback = np.linalg.solve(A.T @ A, A.T @ c)
+    assert np.linalg.norm(no_fallback - got) > 1.0

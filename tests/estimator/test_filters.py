@@ -1,4 +1,4 @@
-"""IEKF3D and UKF3D updates against hand computations in matrix form (eqs. 15-20)."""
+"""IEKF3D and UKF3D updates against hand computations in matrix form (eqs. 12-18)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ from estimator.filters import (
     MerweWeights,
     UkfConfig,
     cholesky,
-    joseph_scalar_update,
+    joseph_cov3,
+    joseph_cov4,
     sigma_points,
     unscented_transform_scalar,
 )
@@ -96,16 +97,90 @@ def test_iekf_nis_gate_rejects_and_leaves_state():
     assert f.update(u, d, 1.0).accepted
 
 
-def test_joseph_matches_numpy_for_general_gain():
+def _joseph(P, H, K, R):
+    A = np.eye(len(H)) - np.outer(K, H)
+    return A @ P @ A.T + R * np.outer(K, K)
+
+
+@pytest.mark.parametrize("n, fn", [(4, joseph_cov4), (3, joseph_cov3)])
+def test_joseph_product_form_with_a_non_optimal_gain(n, fn):
+    """The covariance update the filters run, with a gain that is not P H^T / S: the
+    product (Joseph) form stays exact, the subtractive (I - K H) P does not."""
     rng = np.random.default_rng(3)
-    A = rng.normal(size=(4, 4))
-    P = A @ A.T + 4 * np.eye(4)
-    H = rng.normal(size=4)
-    K = rng.normal(size=4)  # a non-optimal gain: Joseph stays exact
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + 4 * np.eye(n)
+    H = rng.normal(size=n)
+    K = rng.normal(size=n)  # a non-optimal gain
     R = 0.7
-    _, Pn = joseph_scalar_update([0.0] * 4, P.tolist(), H.tolist(), K.tolist(), 0.0, R)
-    I_KH = np.eye(4) - np.outer(K, H)
-    np.testing.assert_allclose(np.array(Pn), I_KH @ P @ I_KH.T + R * np.outer(K, K), atol=1e-9)
+    Pn = np.array(fn(P.tolist(), H.tolist(), K.tolist(), (P @ H).tolist(), R))
+    np.testing.assert_allclose(Pn, _joseph(P, H, K, R), atol=1e-9)
+    assert np.array_equal(Pn, Pn.T)
+    subtractive = (np.eye(n) - np.outer(K, H)) @ P
+    assert np.abs(subtractive - _joseph(P, H, K, R)).max() > 1.0
+    # with the optimal gain both forms agree
+    Ko = P @ H / (H @ P @ H + R)
+    Po = np.array(fn(P.tolist(), H.tolist(), Ko.tolist(), (P @ H).tolist(), R))
+    np.testing.assert_allclose(Po, (np.eye(n) - np.outer(Ko, H)) @ P, atol=1e-9)
+
+
+def test_filters_update_their_covariance_through_the_joseph_helpers(monkeypatch):
+    """IEKF3D.update and both ground priors call joseph_cov4 / joseph_cov3 (the helpers
+    tested above are the code that runs) and keep exactly what they return."""
+    import estimator.filters as filters_mod
+
+    calls = []
+
+    def spy(name):
+        real = getattr(filters_mod, name)
+
+        def wrapped(P, H, K, q, R):
+            out = real(P, H, K, q, R)
+            calls.append((name, tuple(H), out))
+            return out
+
+        return wrapped
+
+    monkeypatch.setattr(filters_mod, "joseph_cov4", spy("joseph_cov4"))
+    monkeypatch.setattr(filters_mod, "joseph_cov3", spy("joseph_cov3"))
+    f = IEKF3D((12.0, 7.0, -40.0))
+    f.predict()
+    assert f.update(ANCHOR, 97.0, 0.8).accepted
+    name, H, out = calls[-1]
+    assert name == "joseph_cov4" and H[3] == 1.0 and f.P == out
+    f.update_height(-44.0, 25.0)
+    assert calls[-1][0] == "joseph_cov4" and calls[-1][1] == (0.0, 0.0, 1.0, 0.0)
+    assert f.P == calls[-1][2]
+    u = UKF3D((12.0, 7.0, -40.0))
+    u.update_height(-44.0, 25.0)
+    assert calls[-1][0] == "joseph_cov3" and u.P == calls[-1][2]
+    assert len(calls) == 3
+
+
+@pytest.mark.parametrize("kind", ["iekf", "ukf"])
+def test_innovation_noise_models_see_nu_and_hph_at_the_prior(kind):
+    """A callable R (Adaptive-R, eq. 24) is evaluated once, with the innovation and its
+    predicted variance at the prior, and the R it returns is the R of the update."""
+    f = IEKF3D((12.0, 7.0, -40.0)) if kind == "iekf" else UKF3D((12.0, 7.0, -40.0))
+    f.predict()
+    nu0, hph0 = f.innovation(ANCHOR, 97.0)
+    seen = []
+
+    def r_of(nu, hph):
+        seen.append((nu, hph))
+        return 0.5 + 0.1 * nu * nu
+
+    res = f.update(ANCHOR, 97.0, r_of)
+    assert len(seen) == 1
+    assert seen[0][0] == pytest.approx(nu0, abs=1e-12)
+    assert seen[0][1] == pytest.approx(hph0, abs=1e-9)
+    assert res.r_m2 == pytest.approx(0.5 + 0.1 * nu0 * nu0, abs=1e-12)
+    assert res.s_m2 == pytest.approx(hph0 + res.r_m2, abs=1e-9)
+    # the same update with that R as a number
+    g = IEKF3D((12.0, 7.0, -40.0)) if kind == "iekf" else UKF3D((12.0, 7.0, -40.0))
+    g.predict()
+    g.update(ANCHOR, 97.0, res.r_m2)
+    np.testing.assert_allclose(np.array(f.P), np.array(g.P), atol=1e-12)
+    np.testing.assert_allclose(f.x, g.x, atol=1e-12)
 
 
 def test_height_pseudo_measurement_matches_linear_kf():

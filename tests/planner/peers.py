@@ -136,7 +136,7 @@ class MavsdkVehiclePeer:
         for _ in range(1 if fixed else attempts):
             port = self.port if fixed else free_udp_port(self.host)
             cfg = Configuration.create_with_component_type(ComponentType.AUTOPILOT)
-            # heartbeat MAV_TYPE: not wrapped in Python (shared/guide/mavlink.md)
+            # heartbeat MAV_TYPE: MAVSDK's Python package does not wrap it, so call the C API
             _cmavsdk_lib.mavsdk_configuration_set_mav_type.argtypes = [ctypes.c_void_p,
                                                                        ctypes.c_uint8]
             _cmavsdk_lib.mavsdk_configuration_set_mav_type.restype = None

@@ -100,11 +100,12 @@ def test_home_away_from_the_trajectory_origin() -> None:
     assert (take.lat_deg, take.lon_deg) == (home_lat, home_lon)
     wps = [it for it in m.items if it.command == MAV_CMD_NAV_WAYPOINT]
     assert len(wps) == 2
-    assert wps[0].alt_m == pytest.approx(145.0 - 90.0, abs=1e-9)  # (0, 0, 45): h = 145
+    # altitudes are written to the millimetre (planner.convert: "Precision")
+    assert wps[0].alt_m == pytest.approx(145.0 - 90.0, abs=5e-4)  # (0, 0, 45): h = 145
     _, _, h_end = pymap3d.enu2geodetic(100.0, 0.0, 45.0, *origin)
-    assert wps[1].alt_m == pytest.approx(h_end - 90.0, abs=1e-9)
-    assert take.alt_m == pytest.approx(55.0, abs=1e-9)
-    assert m.rally_deg[0][2] == pytest.approx(40.0, abs=1e-9)
+    assert wps[1].alt_m == pytest.approx(h_end - 90.0, abs=5e-4)
+    assert take.alt_m == pytest.approx(55.0, abs=5e-4)
+    assert m.rally_deg[0][2] == pytest.approx(40.0, abs=5e-4)
     # the waypoints in the home-centred frame: the same points, seen from home
     back = mission_waypoints_enu_m(m)
     e, n, u = ExactENU(*home).to_enu(*pymap3d.enu2geodetic(100.0, 0.0, 45.0, *origin))

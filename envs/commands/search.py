@@ -1,0 +1,144 @@
+"""``osa search SCENARIO``: a search flown in closed loop, in simulated time (docs/cli.md).
+
+Simulator -> estimator -> policy -> vehicle until the policy judges every responder it
+heard localised (from the estimator alone) or the budget is spent. Writes into the
+output folder the flight log (``flight.jsonl``; one more per extra agent), the report
+(``report.json``, the ``--json`` object), ``trajectory.png`` and ``errors.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from envs.commands._args import non_negative_int
+
+POLICY_HELP = ("lawnmower (the QGroundControl-style survey), expanding-square, adaptive "
+               "(default: search until heard, then plan around the estimate), or ppo:PATH "
+               "(a policy trained by osa train)")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "search",
+        help="fly a search in closed loop (simulator -> estimator -> policy -> vehicle)",
+        description="Fly the [search] of SCENARIO in closed loop in simulated time, until "
+        "the policy judges every responder it heard localised or the budget is spent; "
+        "write the flight log, report.json and figures into -o DIR.",
+    )
+    p.add_argument("scenario", metavar="SCENARIO",
+                   help="a search preset (osa simulate --list) or a .toml with a [search] table")
+    p.add_argument("--policy", default="adaptive", metavar="P", help=POLICY_HELP)
+    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
+                   help="world seed (default 0): the same seed, the same world for every policy")
+    p.add_argument("-o", "--out", default="osa-search", metavar="DIR",
+                   help="output folder (default ./osa-search)")
+    p.add_argument("--json", action="store_true", help="print the JSON report on stdout only")
+    p.add_argument("--mode", default=None, metavar="M",
+                   help="estimator mode the loop runs (default: the project's recommended mode)")
+    p.add_argument("--decision-period", type=float, default=5.0, metavar="S",
+                   help="seconds of flight between two decisions of the policy (default 5)")
+    p.add_argument("--rerun", metavar="RRD", default=None,
+                   help="also write a rerun recording (.rrd) of the loop")
+    p.add_argument("--no-figures", action="store_true", help="do not draw the figures")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _fail(message: object) -> int:
+    print(f"osa search: {message}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    import math
+
+    from envs.commands._progress import QuantityProgress
+    from envs.commands.run import writable_file_problem
+    from envs.loop import DEFAULT_MODE, LoopConfig, run_search
+    from envs.policies import load_policy
+    from sim.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(args.scenario)
+    except ScenarioError as exc:
+        return _fail(exc)
+    if scenario.search is None:
+        return _fail(f"{args.scenario}: not a search scenario (no [search] table); "
+                     "osa simulate flies fixed flights")
+    if not (math.isfinite(args.decision_period) and 0.5 <= args.decision_period <= 600):
+        return _fail(f"--decision-period must be in [0.5, 600] s, got {args.decision_period}")
+    try:
+        config = LoopConfig(mode=args.mode or DEFAULT_MODE,
+                            decision_period_s=args.decision_period)
+    except ValueError as exc:
+        return _fail(f"--mode: {exc}")
+    try:
+        policy = load_policy(args.policy, scenario)
+    except ValueError as exc:
+        return _fail(f"--policy: {exc}")
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return _fail(f"cannot create {out}: {exc.strerror}")
+    if args.rerun and (problem := writable_file_problem(args.rerun)):
+        return _fail(f"--rerun: {problem}")
+    agents = scenario.agents
+    logs = [out / ("flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl")
+            for i, a in enumerate(agents)]
+    budget = scenario.search.budget_s
+    bar = QuantityProgress(f"osa search {policy.name}", budget, "s",
+                           enabled=not args.no_progress, every=60.0)
+    try:
+        result = run_search(scenario, policy, args.seed, config=config, log_paths=logs,
+                            progress=bar.update)
+    finally:
+        bar.close()
+    report = result.to_json()
+    (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False))
+    figures: list[Path] = []
+    if not args.no_figures:
+        from envs.search_plots import plot_search
+
+        figures = list(plot_search(result, out))
+    if args.rerun:
+        from envs.viz import record_search
+
+        record_search(result, args.rerun)
+    if args.json:
+        print(json.dumps(report, allow_nan=False))
+        return 0
+    print(summary(result))
+    wrote = [str(p) for p in (*logs, out / "report.json", *figures)]
+    if args.rerun:
+        wrote.append(args.rerun)
+    print("wrote " + ", ".join(wrote))
+    return 0
+
+
+def summary(result) -> str:
+    """A readable report: how the search ended, then one line per responder."""
+    lines = [
+        f"{result.scenario}, seed {result.seed}: {result.policy} ({result.mode}) ended "
+        f"{result.ended} after {result.flight_time_s / 60:.1f} min, "
+        f"{result.path_length_m / 1000:.2f} km, {result.replans} re-plans",
+        f"  {'responder':<18}{'class':<19}{'heard':>8}{'localised':>11}{'status':>15}"
+        f"{'sigma_H':>9}{'err_2D':>8}",
+    ]
+
+    def t(v):
+        return "-" if v is None else f"{v / 60:.1f} min"
+
+    def m(v):
+        return "-" if v is None else f"{v:.2f}"
+
+    for r in result.responders:
+        lines.append(
+            f"  {r['bssid']:<18}{r.get('concealment', '-'):<19}{t(r.get('detected_at_s')):>8}"
+            f"{t(r.get('localised_at_s')):>11}{r['status']:>15}{m(r.get('sigma_h_m')):>9}"
+            f"{m(r.get('err_h_m')):>8}"
+        )
+    return "\n".join(lines)

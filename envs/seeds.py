@@ -1,0 +1,48 @@
+"""Seed sets: which world seeds train, validate and test policies (never mixed).
+
+A world seed fixes a scenario's world (responders drawn in the area, sensor noise):
+``sim.realise(scenario, seed)``. Training, validation during training, and the final
+comparison of policies use disjoint ranges, so a trained policy is never scored on a
+world it trained on:
+
+==========  ======================  ==============================================
+split       seeds                   used by
+==========  ======================  ==============================================
+train       0 ... 999 999           ``osa train`` episodes (drawn from the env's
+                                    ``np_random`` within this range)
+validation  1 000 000 ... 1 000 999 ``osa train`` evaluation during training
+test        2 000 000 ... 2 000 999 ``osa evaluate --split test`` (the default),
+                                    the benchmarks comparing policies
+==========  ======================  ==============================================
+
+``osa evaluate --first-seed K`` picks seeds explicitly instead (for reproducing one
+world, or for the scenario presets' own examples, which use small seeds).
+"""
+
+from __future__ import annotations
+
+SPLITS: dict[str, tuple[int, int]] = {
+    "train": (0, 1_000_000),
+    "validation": (1_000_000, 1_001_000),
+    "test": (2_000_000, 2_001_000),
+}
+
+
+def split_seeds(split: str, n: int, offset: int = 0) -> list[int]:
+    """The first ``n`` seeds of a split (after ``offset``); raises past its end."""
+    try:
+        lo, hi = SPLITS[split]
+    except KeyError:
+        raise ValueError(f"unknown seed split {split!r}; choose from {', '.join(SPLITS)}") from None
+    if n < 0 or offset < 0 or lo + offset + n > hi:
+        raise ValueError(f"the {split} split holds seeds {lo}..{hi - 1}: cannot take {n} "
+                         f"from offset {offset}")
+    return list(range(lo + offset, lo + offset + n))
+
+
+def split_of(seed: int) -> str | None:
+    """The split a seed belongs to (None outside every split)."""
+    for name, (lo, hi) in SPLITS.items():
+        if lo <= seed < hi:
+            return name
+    return None

@@ -1,0 +1,345 @@
+"""Search areas: keep-in polygons (convex or not) in a local ENU frame.
+
+:class:`SearchArea` covers what the search policies need of the ``[search]`` area:
+
+- containment with a margin (:meth:`SearchArea.contains`, checked densely along legs
+  by :meth:`SearchArea.path_inside`);
+- a boustrophedon over the polygon (:meth:`SearchArea.sweep`): sweep lines
+  ``spacing_m`` apart along a heading, clipped to the polygon and shortened by the
+  margin; consecutive waypoints are joined straight when the leg stays inside, else
+  along the shortest path through the polygon's inset corners (a visibility graph,
+  so a concave area is covered without leaving it);
+- the expanding square of IAMSAR from a datum, clipped to the polygon the same way;
+- a convex keep-in for the CasADi planner (:meth:`SearchArea.local_fence`): the area
+  itself when convex with few edges, else the largest square around a point that lies
+  inside it.
+
+The track spacing of a search comes from detection while passing
+(:func:`pass_detection_range_m`): the horizontal offset at which a straight pass at
+the search height and speed still hears a responder with probability ``p`` (at least
+one ``ok`` among the attempts made along the pass), which is much wider than the 50 %
+reach of a single attempt.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.geometry import (
+    point_in_polygon,
+    polygon_area_m2,
+    polygon_is_convex,
+    signed_distance_to_polygon_m,
+)
+from planner.models import LinkModel
+from planner.patterns import Geofence
+
+XY = tuple[float, float]
+
+
+def pass_detection_range_m(
+    link: LinkModel,
+    height_m: float,
+    speed_mps: float,
+    probability: float = 0.9,
+    concealment: str = "open",
+    pass_length_m: float = 500.0,
+    max_m: float = 2000.0,
+) -> float:
+    """Horizontal offset at which one straight pass hears a responder with ``probability``.
+
+    Expected ``ok`` count of a pass ``pass_length_m`` long at offset x, abeam its middle:
+    rate / v * integral of P(sqrt(x^2 + s^2 + h^2)) ds over the pass (attempts at the
+    link's rate); P(heard) = 1 - exp(-count).
+    """
+    if not 0.0 < probability < 1.0:
+        raise ValueError("probability must be in (0, 1)")
+    need = -math.log(1.0 - probability)
+    s = np.linspace(-0.5 * pass_length_m, 0.5 * pass_length_m, 2001)
+    ds = s[1] - s[0]
+
+    def count(x: float) -> float:
+        d = np.sqrt(x * x + s * s + height_m * height_m)
+        p = np.asarray(link.response_probability(d, concealment), dtype=float)
+        return float(link.ranging_rate_hz / speed_mps * p.sum() * ds)
+
+    if count(0.0) < need:
+        return 0.0
+    lo, hi = 0.0, max_m
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if count(mid) >= need else (lo, mid)
+    return lo
+
+
+@dataclass(frozen=True, eq=False)
+class SearchArea:
+    """A keep-in polygon (ENU metres) and the margin kept from its edges."""
+
+    polygon_m: tuple[XY, ...]
+    margin_m: float = 10.0
+    _ccw: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.polygon_m, dtype=float).reshape(-1, 2)
+        if len(p) < 3 or not np.all(np.isfinite(p)):
+            raise ValueError("a search area needs >= 3 finite vertices")
+        if abs(polygon_area_m2(p)) < 1.0:
+            raise ValueError("the search area encloses no area")
+        if polygon_area_m2(p) < 0:
+            p = p[::-1]
+        object.__setattr__(self, "_ccw", p)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """Counter-clockwise vertices (N, 2)."""
+        return self._ccw
+
+    @property
+    def convex(self) -> bool:
+        return polygon_is_convex(self._ccw)
+
+    @property
+    def centroid_m(self) -> XY:
+        p = self._ccw
+        x, y = p[:, 0], p[:, 1]
+        x1, y1 = np.roll(x, -1), np.roll(y, -1)
+        c = x * y1 - x1 * y
+        a = 0.5 * c.sum()
+        return float(((x + x1) * c).sum() / (6 * a)), float(((y + y1) * c).sum() / (6 * a))
+
+    def signed_distance_m(self, xy: np.ndarray) -> np.ndarray:
+        return signed_distance_to_polygon_m(self._ccw, np.asarray(xy, dtype=float).reshape(-1, 2))
+
+    def contains(self, xy: np.ndarray, margin_m: float | None = None) -> np.ndarray:
+        """Points at least ``margin_m`` (default: none) inside the polygon."""
+        m = 0.0 if margin_m is None else margin_m
+        return self.signed_distance_m(xy) <= -m + 1e-9
+
+    def path_inside(self, points_m: np.ndarray, margin_m: float = 0.0, step_m: float = 1.0) -> bool:
+        """Does the polyline (straight between points) stay ``margin_m`` inside?"""
+        p = np.asarray(points_m, dtype=float)[:, :2]
+        if len(p) == 1:
+            return bool(self.contains(p, margin_m)[0])
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        pts = [p[:1]]
+        for a, b, L in zip(p[:-1], p[1:], seg, strict=True):
+            n = max(1, math.ceil(L / step_m))
+            f = (np.arange(1, n + 1) / n)[:, None]
+            pts.append(a + f * (b - a))
+        return bool(np.all(self.contains(np.vstack(pts), margin_m)))
+
+    # ------------------------------------------------------------------ paths inside
+    def _corners(self, margin_m: float) -> list[XY]:
+        """Polygon corners moved inwards along their bisectors (visibility-graph nodes)."""
+        v = self._ccw
+        out = []
+        n = len(v)
+        for i in range(n):
+            a, b, c = v[i - 1], v[i], v[(i + 1) % n]
+            e1, e2 = b - a, c - b
+            n1 = np.array([-e1[1], e1[0]]) / max(np.linalg.norm(e1), 1e-12)  # inward (CCW)
+            n2 = np.array([-e2[1], e2[0]]) / max(np.linalg.norm(e2), 1e-12)
+            bis = n1 + n2
+            nb = np.linalg.norm(bis)
+            if nb < 1e-9:
+                continue
+            bis /= nb
+            cos_half = max(float(bis @ n1), 0.2)
+            q = b + bis * (1.5 * margin_m + 1.0) / cos_half
+            if self.contains(q[None, :], margin_m)[0]:
+                out.append((float(q[0]), float(q[1])))
+        return out
+
+    def route(self, a: Sequence[float], b: Sequence[float], margin_m: float | None = None
+              ) -> list[XY]:
+        """Shortest path from a to b that stays inside (a, b included); straight if it can."""
+        m = self.margin_m if margin_m is None else margin_m
+        pa = (float(a[0]), float(a[1]))
+        pb = (float(b[0]), float(b[1]))
+        # the ends may sit on the margin: check the legs with a little slack
+        slack = 0.5 * m
+        if self.path_inside(np.array([pa, pb]), slack):
+            return [pa, pb]
+        nodes = [pa, pb, *self._corners(m)]
+        k = len(nodes)
+        best = {0: 0.0}
+        prev: dict[int, int] = {}
+        heap = [(0.0, 0)]
+        seen: set[int] = set()
+        while heap:
+            d, i = heapq.heappop(heap)
+            if i in seen:
+                continue
+            seen.add(i)
+            if i == 1:
+                break
+            for j in range(k):
+                if j in seen or j == i:
+                    continue
+                if not self.path_inside(np.array([nodes[i], nodes[j]]), slack, step_m=2.0):
+                    continue
+                nd = d + math.dist(nodes[i], nodes[j])
+                if nd < best.get(j, math.inf):
+                    best[j] = nd
+                    prev[j] = i
+                    heapq.heappush(heap, (nd, j))
+        if 1 not in prev:
+            return [pa, pb]  # no inside route (a or b outside): the caller checks
+        path = [1]
+        while path[-1] != 0:
+            path.append(prev[path[-1]])
+        return [nodes[i] for i in reversed(path)]
+
+    def join(self, waypoints: Sequence[Sequence[float]]) -> list[XY]:
+        """Waypoints joined pairwise by :meth:`route` (duplicates dropped)."""
+        out: list[XY] = []
+        for w in waypoints:
+            w2 = (float(w[0]), float(w[1]))
+            if not out:
+                out.append(w2)
+                continue
+            leg = self.route(out[-1], w2)
+            out.extend(leg[1:])
+        return out
+
+    # ------------------------------------------------------------------ patterns
+    def sweep(self, spacing_m: float, heading_deg: float = 0.0,
+              start: Sequence[float] | None = None) -> list[XY]:
+        """Boustrophedon waypoints: tracks along ``heading_deg`` (compass) ``spacing_m``
+        apart, the outer ones half a spacing in from the edges, clipped to the polygon
+        and its margin; begun at the end nearest ``start``."""
+        if not spacing_m > 0:
+            raise ValueError("spacing_m must be > 0")
+        h = math.radians(heading_deg)
+        along = np.array([math.sin(h), math.cos(h)])  # compass heading -> ENU
+        across = np.array([along[1], -along[0]])
+        v = self._ccw
+        a = v @ along
+        c = v @ across
+        width = c.max() - c.min()
+        n = max(1, math.ceil(width / spacing_m - 1e-9))
+        offsets = c.min() + (np.arange(n) + 0.5) * (width / n)
+        lines: list[list[tuple[float, float]]] = []
+        for off in offsets:
+            ivs = _clip_line(v, along, across, float(off), a.min() - 1.0, a.max() + 1.0)
+            ivs = [(lo + self.margin_m, hi - self.margin_m) for lo, hi in ivs
+                   if hi - lo > 2 * self.margin_m]
+            if ivs:
+                lines.append([(float(off), lo, hi) for lo, hi in ivs])  # type: ignore[misc]
+        if not lines:
+            return [self.centroid_m]
+
+        def pt(off: float, s: float) -> XY:
+            p = off * across + s * along
+            return float(p[0]), float(p[1])
+
+        def order(lines_in, flip_first: bool) -> list[XY]:
+            wps: list[XY] = []
+            forward = not flip_first
+            for line in lines_in:
+                segs = line if forward else [(o, hi, lo) for o, lo, hi in reversed(line)]
+                for off, s0, s1 in segs:
+                    wps += [pt(off, s0), pt(off, s1)]
+                forward = not forward
+            return wps
+
+        candidates = [order(lines, False), order(lines, True),
+                      order(lines[::-1], False), order(lines[::-1], True)]
+        if start is not None:
+            s0 = (float(start[0]), float(start[1]))
+            candidates.sort(key=lambda w: math.dist(s0, w[0]))
+        return self.join(candidates[0])
+
+    def expanding_square(self, datum: Sequence[float], spacing_m: float,
+                         heading_deg: float = 0.0) -> list[XY]:
+        """The IAMSAR expanding square from ``datum`` (legs S, S, 2S, 2S, ...), its
+        corners clipped into the area (a corner outside is moved to the nearest point
+        inside), until the squares cover the area."""
+        if not spacing_m > 0:
+            raise ValueError("spacing_m must be > 0")
+        h = math.radians(heading_deg)
+        dirs = [np.array([math.sin(h + k * math.pi / 2), math.cos(h + k * math.pi / 2)])
+                for k in range(4)]
+        p = np.array([float(datum[0]), float(datum[1])])
+        reach = float(np.max(np.linalg.norm(self._ccw - p, axis=1)))
+        wps = [p.copy()]
+        k = 0
+        while True:
+            length = spacing_m * (k // 2 + 1)
+            p = p + length * dirs[k % 4]
+            wps.append(p.copy())
+            k += 1
+            if length > 2.0 * reach + spacing_m:
+                break
+        inside: list[XY] = []
+        for w in wps:
+            q = self._pull_inside(w)
+            if not inside or math.dist(inside[-1], q) > 1.0:
+                inside.append(q)
+        return self.join(inside)
+
+    def _pull_inside(self, p: np.ndarray) -> XY:
+        if self.contains(p[None, :], self.margin_m)[0]:
+            return float(p[0]), float(p[1])
+        # nearest point on the inset boundary: sample the polygon edges moved in
+        v = self._ccw
+        best, best_d = None, math.inf
+        for i in range(len(v)):
+            a, b = v[i], v[(i + 1) % len(v)]
+            e = b - a
+            L = float(np.linalg.norm(e))
+            inward = np.array([-e[1], e[0]]) / max(L, 1e-12)
+            for f in np.linspace(0.0, 1.0, max(2, int(L / 2.0))):
+                q = a + f * e + inward * (self.margin_m + 0.5)
+                d = float(np.linalg.norm(q - p))
+                if d < best_d and self.contains(q[None, :], self.margin_m)[0]:
+                    best, best_d = q, d
+        if best is None:
+            return self.centroid_m
+        return float(best[0]), float(best[1])
+
+    # ------------------------------------------------------------------ planner fence
+    def local_fence(self, center: Sequence[float], max_edges: int = 8,
+                    max_half_width_m: float = 400.0) -> Geofence:
+        """A convex keep-in for the CasADi planner around ``center``: the area itself
+        when convex with at most ``max_edges`` edges, else the largest square (up to
+        ``max_half_width_m``) centred at ``center`` that lies inside the area."""
+        if self.convex and len(self._ccw) <= max_edges:
+            return Geofence(vertices_m=tuple(map(tuple, self._ccw.tolist())))
+        cx, cy = float(center[0]), float(center[1])
+        lo, hi = 1.0, max_half_width_m
+        if not self._square_inside(cx, cy, lo):
+            raise ValueError("the point is not inside the search area")
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self._square_inside(cx, cy, mid) else (lo, mid)
+        return Geofence.square((cx, cy), lo)
+
+    def _square_inside(self, cx: float, cy: float, h: float) -> bool:
+        sq = np.array([(cx - h, cy - h), (cx + h, cy - h), (cx + h, cy + h), (cx - h, cy + h),
+                       (cx - h, cy - h)])
+        # inside when its boundary is, and no corner of the area pokes into it
+        return self.path_inside(sq, 0.0, step_m=max(1.0, h / 50.0)) and not bool(
+            np.any(point_in_polygon(sq[:4], self._ccw))
+        )
+
+
+def _clip_line(poly: np.ndarray, along: np.ndarray, across: np.ndarray, off: float,
+               s_min: float, s_max: float) -> list[tuple[float, float]]:
+    """Intervals (in the along coordinate) of the line {across = off} inside the polygon."""
+    ss = []
+    n = len(poly)
+    for i in range(n):
+        a, b = poly[i], poly[(i + 1) % n]
+        ca, cb = float(a @ across), float(b @ across)
+        if (ca > off) != (cb > off):
+            t = (off - ca) / (cb - ca)
+            ss.append(float((a + t * (b - a)) @ along))
+    ss.sort()
+    return [(ss[i], ss[i + 1]) for i in range(0, len(ss) - 1, 2)]

@@ -1,0 +1,196 @@
+"""The closed loop: the online estimator equals a replay of the loop's own log; the same
+seed gives the same bytes; the vehicle stays inside the area; policies see no truth;
+the adaptive policy localises a line-of-sight responder."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import sim
+from envs.cli import main
+from envs.loop import ClosedLoop, LoopConfig, run_search
+from estimator.replay import ReplayOptions, replay_logs
+from planner.policy import AdaptivePolicy, Decision, Observation, PatternPolicy
+
+RTK = "search-random-los-rtk"
+
+
+def _short(name: str, budget_s: float, **search):
+    sc = sim.load_scenario(name)
+    return dataclasses.replace(sc, search=dataclasses.replace(sc.search, budget_s=budget_s,
+                                                              **search))
+
+
+@pytest.fixture(scope="module")
+def adaptive_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("adaptive")
+    sc = sim.load_scenario(RTK)
+    res = run_search(sc, AdaptivePolicy(), 2, log_paths=[d / "flight.jsonl"])
+    return sc, res, d / "flight.jsonl"
+
+
+def test_online_estimates_equal_a_replay_of_the_loops_log(adaptive_run):
+    _sc, res, log = adaptive_run
+    rep = replay_logs([log], ReplayOptions(modes=(res.mode,)))
+    assert len(res.responders) == 1 and rep.tracks[0].bssid == res.responders[0]["bssid"]
+    r, t = res.responders[0], rep.tracks[0].to_json()
+    for key in ("status", "lat", "lon", "alt_m", "sigma_h_m", "sigma_z_m", "err_h_m",
+                "err_3d_m"):
+        assert r[key] == t[key], key
+    assert rep.rejected.n_rejected == 0
+
+
+def test_adaptive_localises_the_line_of_sight_responder(adaptive_run):
+    """Detected, localised by the estimator's own judgement well within the budget; the
+    final horizontal error is stated here and checked (RTK, seed 2)."""
+    _sc, res, _log = adaptive_run
+    r = res.responders[0]
+    assert res.ended == "localised" and r["status"] == "converged"
+    assert r["detected_at_s"] < r["localised_at_s"] <= res.flight_time_s < 900.0
+    assert r["err_h_m"] < 8.0
+    assert res.replans >= 1 and res.refused_plans == 0
+
+
+@pytest.mark.parametrize("policy", ["lawnmower", "adaptive"])
+def test_the_vehicle_never_leaves_the_area(policy, adaptive_run):
+    from envs.policies import load_policy
+    from estimator.geometry import signed_distance_to_polygon_m
+
+    sc = _short(RTK, 400.0)
+    res = adaptive_run[1] if policy == "adaptive" else run_search(sc, load_policy(policy), 2)
+    area = res.area_enu_m
+    for trk in res.true_track:  # the vehicle's true path, every half second
+        assert signed_distance_to_polygon_m(area, trk[:, :2]).max() < -1.0
+    nav = np.asarray(res.nav_track[0])[:, 1:3]
+    assert signed_distance_to_polygon_m(area, nav).max() < 0.0
+
+
+def test_same_seed_same_log_bytes(tmp_path):
+    sc = _short(RTK, 150.0)
+    for k in (1, 2):
+        run_search(sc, PatternPolicy("lawnmower"), 5, log_paths=[tmp_path / f"{k}.jsonl"])
+    a, b = (tmp_path / "1.jsonl").read_bytes(), (tmp_path / "2.jsonl").read_bytes()
+    assert a == b and a.count(b"\n") > 1000
+    run_search(sc, PatternPolicy("lawnmower"), 6, log_paths=[tmp_path / "3.jsonl"])
+    assert (tmp_path / "3.jsonl").read_bytes() != a
+
+
+class _Recorder:
+    """A test's policy: records what it observes and flies a fixed square about a point
+    (the test aims it near the responder; the point is not an observation)."""
+
+    name = "recorder"
+
+    def __init__(self, center):
+        self.seen: list[Observation] = []
+        self.center = center
+
+    def reset(self, mission, rng):
+        self.mission = mission
+
+    def decide(self, obs):
+        self.seen.append(obs)
+        if obs.t_s == 0.0:
+            from planner.policy import polyline_trajectory
+
+            m = self.mission
+            cx, cy = self.center
+            sq = [(cx - 50, cy - 50), (cx + 50, cy - 50), (cx + 50, cy + 50), (cx - 50, cy + 50)]
+            sq = [(min(max(x, -230), 230), min(max(y, -230), 230)) for x, y in sq]
+            return Decision(plans={0: polyline_trajectory(
+                m.area.join([m.start_enu_m, *sq, sq[0], *sq]), m.height_m, m.speed_mps,
+                m.origin, "square")})
+        return Decision()
+
+
+def test_policies_see_no_truth():
+    """Everything the loop knows of the truth (realisation, world, truth records) is
+    swapped for a world whose responder lies 50 m away, while the stepper keeps
+    measuring the original: the observations are identical; only the evaluation moves."""
+    sc = _short(RTK, 150.0)
+    real = sim.realise(sc, 3)
+    r0 = real.world.responders[0]
+    moved_world = dataclasses.replace(real.world, responders=(dataclasses.replace(
+        r0, e_m=r0.e_m + 50.0),))
+    moved = dataclasses.replace(real, world=moved_world)
+
+    def run(swap: bool):
+        loop = ClosedLoop(sc, 3, realisation=real)
+        if swap:
+            loop.realisation, loop.world = moved, moved_world
+            loop.truth = {t.bssid: t for t in moved.truth_records()}
+        p = _Recorder((r0.e_m, r0.n_m))
+        p.reset(loop.mission, np.random.default_rng(0))
+        while loop.t_s < 150.0:
+            loop.apply(p.decide(loop.observe()))
+            loop.advance(5.0)
+        return p.seen, loop
+
+    seen_a, loop_a = run(False)
+    seen_b, loop_b = run(True)
+    assert any(o.responders and o.responders[0].has_estimate for o in seen_a)
+    assert seen_a == seen_b
+    err_a = loop_a.series[r0.bssid][-1].err_h_m
+    err_b = loop_b.series[r0.bssid][-1].err_h_m
+    assert err_a is not None and abs(err_b - err_a) > 30.0  # only the evaluation moved
+
+
+@pytest.mark.parametrize("command", ["simulate", "run"])
+def test_fixed_flight_commands_refuse_a_search(command, tmp_path, capsys):
+    assert main([command, RTK, "-o", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "fly it with osa search" in err
+
+
+def test_loop_config_and_scenario_errors():
+    with pytest.raises(ValueError, match="one estimator mode"):
+        LoopConfig(mode="all")
+    with pytest.raises(ValueError, match="no \\[search\\]"):
+        ClosedLoop(sim.load_scenario("paper-ap1f"), 0)
+
+
+def test_osa_search_cli_writes_log_report_and_figures(tmp_path, capsys):
+    out = tmp_path / "s"
+    sc_path = tmp_path / "short.toml"
+    sc_path.write_text('extends = "search-random-los-rtk"\n[search]\nbudget_s = 120.0\n')
+    status = main(["search", str(sc_path), "--policy", "lawnmower", "--seed", "1", "-o",
+                   str(out), "--json", "--no-progress"])
+    assert status == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["policy"] == "lawnmower" and rep["seed"] == 1 and rep["ended"] == "budget"
+    assert rep["flight_time_s"] == pytest.approx(120.0) and rep["log"].endswith("flight.jsonl")
+    assert {"bssid", "status"} <= set(rep["responders"][0])
+    for f in ("flight.jsonl", "report.json", "trajectory.png", "errors.png"):
+        assert (out / f).stat().st_size > 0
+    assert json.loads((out / "report.json").read_text()) == rep
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["search", "paper-ap1f"], "not a search scenario"),
+        (["search", "nope"], "unknown scenario"),
+        (["search", RTK, "--policy", "magic"], "--policy: unknown policy"),
+        (["search", RTK, "--mode", "all"], "--mode"),
+        (["search", RTK, "--seed", "-1"], "--seed"),
+        (["search", RTK, "--decision-period", "0"], "--decision-period"),
+    ],
+)
+def test_osa_search_errors_are_one_line(argv, match, capsys, tmp_path):
+    with pytest.raises(SystemExit) if "--seed" in argv else _NoRaise():
+        status = main([*argv, "-o", str(tmp_path / "o"), "--no-progress"])
+        assert status == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and match in err
+
+
+class _NoRaise:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
