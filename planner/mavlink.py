@@ -618,6 +618,12 @@ class PymavlinkLink:
         except OSError as exc:
             raise InvalidConnectionError(f"cannot open {url}: {exc}") from None
 
+    @property
+    def connection(self) -> Any:
+        """The pymavlink connection, for a caller that also reads telemetry or sends
+        commands on the same link (a vehicle answers one ground-station address)."""
+        return self._conn
+
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self._conn.close()

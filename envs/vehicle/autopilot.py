@@ -191,6 +191,7 @@ class Autopilot:
         self.task: Task = Idle()
         self.events: list[tuple] = []
         self.reached_log: list[tuple[int, float, Vec3]] = []  # (seq, t_s, position)
+        self.mission_set_at: list[float] = []  # simulated times of mission changes
         self.speed_override_mps: float | None = None
         self._limits_key: tuple | None = None
         self._limits: Limits | None = None
@@ -640,6 +641,7 @@ class Autopilot:
         """A complete, validated mission upload: it replaces the held one at once; a
         mission being flown switches to it from where the vehicle is."""
         n = len(items)
+        self.mission_set_at.append(self.t_s)
         flying = self.mode is Mode.MISSION and self.armed and not self.landed \
             and self._takeoff_then is None
         self.mission = MissionProgress(items=list(items), seq=current if 0 <= current < n else 0)

@@ -201,7 +201,9 @@ class VirtualVehicle:
         self.status = status or (lambda message: None)
         self.clock = wall_clock
         self.realisation = realise(scenario, seed)
-        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1])
+        # the configured H_AGL of a search is its height (as in osa search)
+        agl = scenario.search.height_m if scenario.search is not None else None
+        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
         self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock)
         for name, value in (params or {}).items():
             why = self.autopilot.params.set(name, value)

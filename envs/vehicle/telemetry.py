@@ -13,6 +13,7 @@ change of mode or arming.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, field
 
@@ -27,6 +28,7 @@ from envs.vehicle.px4 import (
 )
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
+from sim.realisation import Realisation
 
 mavlink = mavutil.mavlink
 
@@ -66,6 +68,18 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
 )
 FLIGHT_SW_VERSION = (1 << 24) | (14 << 16) | (0 << 8) | 255  # "PX4 1.14.0, official"
+VEHICLE_TAG = b"osa-veh"  # AUTOPILOT_VERSION.flight_custom_version of this vehicle
+
+
+def world_fingerprint(realisation: Realisation) -> int:
+    """A 64-bit fingerprint of a realised world (scenario, seed, responders), sent as
+    AUTOPILOT_VERSION.uid, so a loop can check it flies the world it simulates."""
+    sc = realisation.scenario
+    truth = ";".join(f"{t.bssid},{t.lat_deg:.7f},{t.lon_deg:.7f}"
+                     for t in realisation.truth_records())
+    seq = realisation.seed
+    text = f"{sc.name}|{seq.entropy}|{tuple(seq.spawn_key)}|{truth}"
+    return int.from_bytes(hashlib.blake2b(text.encode(), digest_size=8).digest(), "little")
 # sensors a PX4 quadrotor reports present, enabled and healthy
 _SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -133,6 +147,7 @@ class Telemetry:
         self.ap = autopilot
         self.last_fix: GnssFix | None = None
         self.streams = Streams()
+        self.fingerprint = world_fingerprint(autopilot.stepper.realisation)
 
     def _time_ms(self) -> int:
         return int(self.ap.t_s * 1000.0) & 0xFFFFFFFF
@@ -199,8 +214,8 @@ class Telemetry:
                 0, 1, 3, 32767, cells, round(amps * 100), -1, -1, left, 0, 0)
         if msg_id == MSG_AUTOPILOT_VERSION:
             return mavlink.MAVLink_autopilot_version_message(
-                CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(b"osa-veh\0"), [0] * 8,
-                [0] * 8, 0, 0, 1, [0] * 18)
+                CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
+                [0] * 8, [0] * 8, 0, 0, self.fingerprint, [0] * 18)
         return None
 
     def _heading_deg(self) -> float:
