@@ -9,10 +9,12 @@ vehicle thread in the benchmark's process would share its interpreter lock):
    issue's criterion: well under a minute of wall time) and at ``--speedup max``:
    wall time from MISSION_START to the disarm after landing, simulated time (from
    the vehicle's time_boot_ms), and the simulated/real ratio;
-3. the closed loop (``osa search``) in process and over MAVLink against ``osa vehicle``
-   on the same scenario and seed: wall time and final horizontal error.
+3. the closed loop (``osa search``, adaptive on search-random-los-rtk, seeds 0-2) in
+   process and over MAVLink against ``osa vehicle --speedup 50`` on the same scenario
+   and seed: wall time, final horizontal error, distance between the two estimates.
 
     python benchmarks/bench_vehicle.py [--items 100] [--runs 20] [--skip-loop]
+        [--loop-scenario S] [--loop-policy P] [--loop-seeds N] [--loop-speedup X]
 
 Prints medians and ratios; never asserts timings.
 """
@@ -21,11 +23,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
+import math
 import os
 import socket
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -43,10 +48,10 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def vehicle_process(*args: str) -> Iterator[int]:
+def vehicle_process(*args: str, scenario: str = SCENARIO) -> Iterator[int]:
     """``osa vehicle SCENARIO`` listening on a free port (yields the port)."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "envs.cli", "vehicle", SCENARIO,
+    proc = subprocess.Popen([sys.executable, "-m", "envs.cli", "vehicle", scenario,
                              "--connection", f"udpin:127.0.0.1:{port}", *args],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
@@ -184,16 +189,48 @@ def bench_fly(minutes: float) -> None:
               f"wall, simulated/real {sim_s / wall:6.1f}x")
 
 
-def bench_loop() -> None:
-    print("3. closed loop: osa search in process vs over MAVLink against osa vehicle")
-    try:
-        from envs.commands import search  # noqa: F401
-    except ImportError:
-        print("   (osa search is not available)")
-        return
-    from bench_vehicle_loop import run_loop_comparison  # type: ignore[import-not-found]
+def _search(args: list[str]) -> tuple[dict, float]:
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "envs.cli", "search", *args, "--json",
+                           "--no-figures", "--no-progress"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=3600)
+    if proc.returncode:
+        raise SystemExit(f"osa search failed: {proc.stderr.strip()}")
+    return json.loads(proc.stdout), time.perf_counter() - t0
 
-    run_loop_comparison(SCENARIO)
+
+def _distance_m(a: dict, b: dict) -> float:
+    dn = (a["lat"] - b["lat"]) * 111_320.0
+    de = (a["lon"] - b["lon"]) * 111_320.0 * math.cos(math.radians(a["lat"]))
+    return math.hypot(de, dn)
+
+
+def bench_loop(scenario: str, policy: str, seeds: int, speedup: str) -> None:
+    print(f"3. closed loop {policy} on {scenario}: in process vs over MAVLink "
+          f"(osa vehicle --speedup {speedup})")
+    walls: dict[str, list[float]] = {"in": [], "mav": []}
+    for seed in range(seeds):
+        with tempfile.TemporaryDirectory() as tmp:
+            inp, w_in = _search([scenario, "--policy", policy, "--seed", str(seed), "-o",
+                                 f"{tmp}/in"])
+            vlog = f"{tmp}/vehicle.jsonl"
+            with vehicle_process("--speedup", speedup, "--seed", str(seed), "--log", vlog,
+                                 scenario=scenario) as port:
+                mav, w_mav = _search([scenario, "--policy", policy, "--seed", str(seed),
+                                      "-o", f"{tmp}/mav", "--connection",
+                                      f"udpout:127.0.0.1:{port}", "--vehicle-log", vlog])
+        walls["in"].append(w_in)
+        walls["mav"].append(w_mav)
+        for a, b in zip(inp["responders"], mav["responders"], strict=True):
+            d = f"{_distance_m(a, b):5.2f} m" if "lat" in a and "lat" in b else "  -    "
+            print(f"   seed {seed}: in process {inp['ended']:>9s} {inp['flight_time_s']:6.0f} s "
+                  f"{a['status']:>13s} err {a.get('err_h_m', float('nan')):5.2f} m, wall "
+                  f"{w_in:5.1f} s | MAVLink {mav['ended']:>9s} {mav['flight_time_s']:6.0f} s "
+                  f"{b['status']:>13s} err {b.get('err_h_m', float('nan')):5.2f} m, wall "
+                  f"{w_mav:5.1f} s | estimates {d} apart")
+    m_in, m_mav = statistics.median(walls["in"]), statistics.median(walls["mav"])
+    print(f"   median wall: in process {m_in:.1f} s, over MAVLink {m_mav:.1f} s "
+          f"(ratio {m_mav / m_in:.1f})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -202,11 +239,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--minutes", type=float, default=20.0)
     parser.add_argument("--skip-loop", action="store_true")
+    parser.add_argument("--loop-scenario", default="search-random-los-rtk")
+    parser.add_argument("--loop-policy", default="adaptive")
+    parser.add_argument("--loop-seeds", type=int, default=3)
+    parser.add_argument("--loop-speedup", default="50")
     args = parser.parse_args(argv)
     bench_upload(args.items, args.runs)
     bench_fly(args.minutes)
     if not args.skip_loop:
-        bench_loop()
+        bench_loop(args.loop_scenario, args.loop_policy, args.loop_seeds, args.loop_speedup)
     return 0
 
 
