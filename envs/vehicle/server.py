@@ -180,6 +180,7 @@ class VirtualVehicle:
 
     LOOP_PERIOD_S = 0.02
     BEHIND_WALL_S = 1.0  # later than this (wall seconds): cannot keep up
+    STEP_WALL_S = 0.1  # wall time one loop iteration may spend stepping
 
     def __init__(self, scenario: Scenario, connections: Sequence[str], *, seed: int = 0,
                  speedup: float = 1.0, log_path: str | os.PathLike | None = None,
@@ -329,9 +330,12 @@ class VirtualVehicle:
             self._wait(0.0 if not math.isfinite(self.speedup) else self.LOOP_PERIOD_S)
 
     def _advance_to(self, target_s: float) -> None:
+        """Step towards ``target_s``, for at most STEP_WALL_S of wall time (the ports
+        are read again after that; a target not reached shows as lag)."""
         ap = self.autopilot
         dt = ap.dt
-        while math.floor(target_s / dt + 1e-9) > ap.vehicle.k:
+        until = self.clock() + self.STEP_WALL_S
+        while math.floor(target_s / dt + 1e-9) > ap.vehicle.k and self.clock() < until:
             t = min(target_s, self.t_s + self.step_s)
             emitted = ap.step_to(t)
             self.stats.steps += 1

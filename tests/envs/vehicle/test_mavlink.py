@@ -205,3 +205,28 @@ def test_osa_plan_and_upload_to_the_vehicle(tmp_path: Path, capsys) -> None:
         assert "uploaded and verified" in out and "mission from seq 0" in out
         n = int(out.split("mission items ")[1].split(",")[0])
         assert len(rv.held()) == n > 10
+
+
+def test_a_speedup_it_cannot_keep_up_with_is_reported() -> None:
+    """Asked for more than the loop can do, the vehicle says so and runs as fast as it
+    can (it re-bases its clock instead of trying to catch up)."""
+    import time
+
+    from envs.vehicle import VirtualVehicle
+    from sim import load_scenario
+    from tests.net import free_udp_port
+
+    said: list[str] = []
+    v = VirtualVehicle(load_scenario(SEARCH_SCENARIO), [f"udpin:127.0.0.1:{free_udp_port()}"],
+                       speedup=1e6, status=said.append)
+    with v:
+        deadline = time.monotonic() + 10.0
+        while not said and time.monotonic() < deadline:
+            time.sleep(0.05)
+        t0, w0 = v.t_s, time.monotonic()
+        time.sleep(0.5)
+        rate = (v.t_s - t0) / (time.monotonic() - w0)
+    assert said and said[0].startswith("cannot keep up with --speedup 1e+06: simulated time ran")
+    assert "it runs as fast as it can" in said[0]
+    assert v.stats.behind_events > 0
+    assert 20.0 < rate < 1e6  # as fast as it can: far above real time, far below the ask
