@@ -47,7 +47,7 @@ from sim.realisation import Realisation, realise
 from sim.scenario import Scenario
 from sim.stepper import Emitted, LogSink, Stepper
 
-DEFAULT_MODE = "robust"  # the estimator mode the loop runs unless told otherwise
+DEFAULT_MODE = "best"  # the recommended estimator mode (its real name: refined)
 
 
 @dataclass(frozen=True, kw_only=True)

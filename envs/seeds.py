@@ -11,12 +11,14 @@ split       seeds                   used by
 train       0 ... 999 999           ``osa train`` episodes (drawn from the env's
                                     ``np_random`` within this range)
 validation  1 000 000 ... 1 000 999 ``osa train`` evaluation during training
-test        2 000 000 ... 2 000 999 ``osa evaluate --split test`` (the default),
-                                    the benchmarks comparing policies
+test        2 000 000 ... 2 000 999 ``osa evaluate --split test``, the
+                                    benchmarks comparing policies
 ==========  ======================  ==============================================
 
-``osa evaluate --first-seed K`` picks seeds explicitly instead (for reproducing one
-world, or for the scenario presets' own examples, which use small seeds).
+Without ``--split``, ``osa evaluate`` takes seeds K, K+1, ... from ``--first-seed K``
+(default 0, the command-line contract's default and the numbers ``osa search --seed``
+takes: for reproducing one world, or for the presets' own examples, which use small
+seeds); comparisons that a trained policy enters belong on ``--split test``.
 """
 
 from __future__ import annotations

@@ -30,12 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.geometry import (
-    point_in_polygon,
-    polygon_area_m2,
-    polygon_is_convex,
-    signed_distance_to_polygon_m,
-)
+from estimator.geometry import point_in_polygon, polygon_area_m2, polygon_is_convex
 from planner.models import LinkModel
 from planner.patterns import Geofence
 
@@ -94,6 +89,9 @@ class SearchArea:
         if polygon_area_m2(p) < 0:
             p = p[::-1]
         object.__setattr__(self, "_ccw", p)
+        object.__setattr__(self, "_edge_a", p)
+        object.__setattr__(self, "_edge_b", np.roll(p, -1, axis=0))
+        object.__setattr__(self, "_inset_cache", {})
 
     @property
     def vertices(self) -> np.ndarray:
@@ -114,7 +112,20 @@ class SearchArea:
         return float(((x + x1) * c).sum() / (6 * a)), float(((y + y1) * c).sum() / (6 * a))
 
     def signed_distance_m(self, xy: np.ndarray) -> np.ndarray:
-        return signed_distance_to_polygon_m(self._ccw, np.asarray(xy, dtype=float).reshape(-1, 2))
+        """Distance to the boundary, negative inside (even-odd rule), positive outside."""
+        q = np.asarray(xy, dtype=float).reshape(-1, 2)
+        a, b = self._edge_a, self._edge_b
+        ab = b - a
+        ap = q[:, None, :] - a[None, :, :]
+        t = np.clip((ap * ab[None]).sum(axis=2) / np.maximum((ab * ab).sum(axis=1), 1e-300),
+                    0.0, 1.0)
+        d = np.linalg.norm(ap - t[:, :, None] * ab[None], axis=2).min(axis=1)
+        y = q[:, 1:2]
+        crosses = (a[None, :, 1] > y) != (b[None, :, 1] > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_at = a[None, :, 0] + (y - a[None, :, 1]) * ab[None, :, 0] / ab[None, :, 1]
+        inside = (np.count_nonzero(crosses & (q[:, 0:1] < x_at), axis=1) % 2) == 1
+        return np.where(inside, -d, d)
 
     def contains(self, xy: np.ndarray, margin_m: float | None = None) -> np.ndarray:
         """Points at least ``margin_m`` (default: none) inside the polygon."""
@@ -284,25 +295,36 @@ class SearchArea:
                 inside.append(q)
         return self.join(inside)
 
+    def _inset_points(self, margin_m: float) -> np.ndarray:
+        """Points every ~2 m along the edges moved half a metre past the margin inwards,
+        those that are inside (cached per margin)."""
+        pts = self._inset_cache.get(margin_m)
+        if pts is None:
+            v = self._ccw
+            parts = []
+            for i in range(len(v)):
+                a, b = v[i], v[(i + 1) % len(v)]
+                e = b - a
+                L = float(np.linalg.norm(e))
+                inward = np.array([-e[1], e[0]]) / max(L, 1e-12)
+                f = np.linspace(0.0, 1.0, max(2, int(L / 2.0)))[:, None]
+                parts.append(a + f * e + inward * (margin_m + 0.5))
+            pts = np.vstack(parts)
+            pts = pts[self.contains(pts, margin_m)]
+            self._inset_cache[margin_m] = pts
+        return pts
+
     def _pull_inside(self, p: np.ndarray) -> XY:
+        """``p`` if it lies ``margin_m`` inside, else the nearest point of the inset
+        boundary (the centroid if there is none)."""
+        p = np.asarray(p, dtype=float).reshape(2)
         if self.contains(p[None, :], self.margin_m)[0]:
             return float(p[0]), float(p[1])
-        # nearest point on the inset boundary: sample the polygon edges moved in
-        v = self._ccw
-        best, best_d = None, math.inf
-        for i in range(len(v)):
-            a, b = v[i], v[(i + 1) % len(v)]
-            e = b - a
-            L = float(np.linalg.norm(e))
-            inward = np.array([-e[1], e[0]]) / max(L, 1e-12)
-            for f in np.linspace(0.0, 1.0, max(2, int(L / 2.0))):
-                q = a + f * e + inward * (self.margin_m + 0.5)
-                d = float(np.linalg.norm(q - p))
-                if d < best_d and self.contains(q[None, :], self.margin_m)[0]:
-                    best, best_d = q, d
-        if best is None:
+        pts = self._inset_points(self.margin_m)
+        if len(pts) == 0:
             return self.centroid_m
-        return float(best[0]), float(best[1])
+        q = pts[int(np.argmin(((pts - p) ** 2).sum(axis=1)))]
+        return float(q[0]), float(q[1])
 
     # ------------------------------------------------------------------ planner fence
     def local_fence(self, center: Sequence[float], max_edges: int = 8,

@@ -31,7 +31,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--mode",
         default="baseline",
         help="baseline, nlos, empirical-r, ukf, ema, adaptive-r, all (the paper's six), "
-        "robust (ours), or a list joined by ',' or '+', e.g. all+robust (default: baseline)",
+        "robust or refined (ours), best (the recommended mode: refined), or a list joined "
+        "by ',' or '+', e.g. all+refined (default: baseline)",
     )
     p.add_argument("--agl", type=non_negative_float, default=None, metavar="M",
                    help="configured flight height above ground (m); default: header, else 45")

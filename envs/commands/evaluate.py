@@ -1,0 +1,252 @@
+"""``osa evaluate SCENARIO --policies P[,P...] --seeds N``: a Monte Carlo of search
+policies (docs/cli.md, docs/evaluate.md).
+
+Every policy flies the same seeds (the same worlds), serially, in local processes or on
+a Dask scheduler; one row per policy, seed and responder goes to ``-o FILE`` (``.csv``
+or ``.parquet``), a summary per policy to stdout (``--json``: the rows instead), and
+the figures (time to localise, error and sigma against flight time, example
+trajectories) into ``--figures DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from envs.commands._args import non_negative_int, positive_float
+from envs.seeds import SPLITS
+
+DEFAULT_OUT = "osa-evaluate/rows.csv"
+MAX_SEED = 2**63 - 1  # seeds are int64 columns
+
+
+def positive_int(text: str) -> int:
+    v = non_negative_int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1: {text!r}")
+    return v
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="Monte Carlo of search policies over seeds (local processes or Dask)",
+        description="Fly every policy of --policies on the same N seeds (worlds) of the "
+        "search SCENARIO; write one row per policy, seed and responder to -o FILE (.csv or "
+        ".parquet), print a summary per policy and draw figures.",
+    )
+    p.add_argument("scenario", metavar="SCENARIO",
+                   help="a search preset (osa simulate --list) or a .toml with a [search] table")
+    p.add_argument("--policies", required=True, metavar="P[,P...]",
+                   help="comma-separated: lawnmower, expanding-square, adaptive, ppo:PATH")
+    p.add_argument("--seeds", required=True, type=positive_int, metavar="N",
+                   help="number of seeds (worlds)")
+    p.add_argument("--first-seed", type=non_negative_int, default=None, metavar="K",
+                   help="first seed (default 0, or the start of --split)")
+    p.add_argument("--split", choices=tuple(SPLITS), default=None,
+                   help="take the seeds from this documented seed split (envs/seeds.py); "
+                   "compare policies on test")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=positive_int, default=None, metavar="N",
+                       help="local processes (default: the CPUs available; 1: in this process)")
+    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="run on an existing Dask scheduler, e.g. tcp://127.0.0.1:8786")
+    p.add_argument("--connect-timeout", type=positive_float, default=10.0, metavar="S",
+                   help="seconds to wait for the scheduler (default 10)")
+    p.add_argument("--task-timeout", type=positive_float, default=3600.0, metavar="S",
+                   help="stop if no task finishes for this many seconds (default 3600)")
+    p.add_argument("--task-size", type=positive_int, default=None, metavar="N",
+                   help="episodes per task (default: about four tasks per worker, at most 16)")
+    p.add_argument("-o", "--out", default=DEFAULT_OUT, metavar="FILE",
+                   help=f"rows as .csv or .parquet (default {DEFAULT_OUT})")
+    p.add_argument("--figures", default=None, metavar="DIR",
+                   help="folder for the figures (default: the folder of -o FILE)")
+    p.add_argument("--examples", type=non_negative_int, default=3, metavar="K",
+                   help="example seeds drawn in trajectories.png (default 3)")
+    p.add_argument("--no-figures", action="store_true", help="do not draw the figures")
+    p.add_argument("--mode", default=None, metavar="M",
+                   help="estimator mode the loop runs (default: the project's recommended mode)")
+    p.add_argument("--decision-period", type=float, default=5.0, metavar="S",
+                   help="seconds of flight between two decisions of the policy (default 5)")
+    p.add_argument("--json", action="store_true",
+                   help="print the rows as a JSON array on stdout instead of the summary")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _fail(message: object) -> int:
+    print(f"osa evaluate: {message}", file=sys.stderr)
+    return 2
+
+
+def seeds_of(n: int, first: int | None, split: str | None) -> list[int]:
+    """The seeds to fly (raises ValueError with a one-line reason)."""
+    if split is None:
+        k = 0 if first is None else first
+        if k + n - 1 > MAX_SEED:
+            raise ValueError(f"seeds {k}..{k + n - 1} pass the largest seed {MAX_SEED}")
+        return list(range(k, k + n))
+    lo, hi = SPLITS[split]
+    k = lo if first is None else first
+    if not (lo <= k and k + n <= hi):
+        raise ValueError(f"seeds {k}..{k + n - 1} are not all in the {split} split "
+                         f"({lo}..{hi - 1})")
+    return list(range(k, k + n))
+
+
+def parse_policies(text: str) -> list[str]:
+    names = [p.strip() for p in text.split(",")]
+    if not text.strip() or any(not p for p in names):
+        raise ValueError(f"--policies: empty policy name in {text!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"--policies: a policy is named twice in {text!r}")
+    return names
+
+
+def _check_policy(spec: str, scenario) -> str | None:
+    from envs.policies import load_policy
+
+    try:
+        load_policy(spec, scenario)
+    except ValueError as exc:
+        return str(exc)
+    except ModuleNotFoundError as exc:
+        return (f"{spec}: trained policies need {exc.name}, which is not available here "
+                "(install the 'rl' extra)")
+    except (OSError, ImportError) as exc:
+        return f"{spec}: cannot load: {exc}"
+    return None
+
+
+def connect(address: str, timeout_s: float):
+    """A Dask client of the scheduler at ``address`` (ValueError if unreachable)."""
+    try:
+        from distributed import Client
+    except ModuleNotFoundError:
+        raise ValueError("--scheduler needs Dask distributed: pip install "
+                         "'osa-testbed[dist]'") from None
+    if "://" not in address:
+        raise ValueError(f"--scheduler: {address!r} is not an address like "
+                         "tcp://127.0.0.1:8786")
+    try:
+        return Client(address, timeout=timeout_s, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"cannot reach the Dask scheduler at {address} within "
+                         f"{timeout_s:g} s ({reason})") from None
+    except ValueError as exc:
+        raise ValueError(f"--scheduler: {exc}") from None
+
+
+def _output_problem(out: Path) -> str | None:
+    from envs.commands.run import writable_file_problem
+
+    if out.suffix.lower() not in (".csv", ".parquet"):
+        return f"-o {out}: write .csv or .parquet, not {out.suffix or 'a name without a suffix'}"
+    if out.suffix.lower() == ".parquet":
+        try:
+            import pyarrow.parquet  # noqa: F401
+        except ModuleNotFoundError:
+            return f"-o {out}: Parquet needs pyarrow (pip install pyarrow), or write .csv"
+    blocker = next((a for a in out.parents if a.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        return f"cannot write {out}: {blocker} is not a folder"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot write {out}: {exc.strerror or exc}"
+    return writable_file_problem(out)
+
+
+def run(args: argparse.Namespace) -> int:
+    from envs.commands._progress import QuantityProgress
+    from envs.evaluate import EpisodeError, EvaluationTimeoutError, evaluate, local_workers
+    from envs.loop import DEFAULT_MODE, LoopConfig
+    from sim.scenario import ScenarioError, load_scenario
+
+    # every mistake is reported before any work starts
+    try:
+        scenario = load_scenario(args.scenario)
+    except ScenarioError as exc:
+        return _fail(exc)
+    if scenario.search is None:
+        return _fail(f"{args.scenario}: not a search scenario (no [search] table); "
+                     "osa simulate flies fixed flights")
+    try:
+        policies = parse_policies(args.policies)
+        seeds = seeds_of(args.seeds, args.first_seed, args.split)
+    except ValueError as exc:
+        return _fail(exc)
+    for spec in policies:
+        if problem := _check_policy(spec, scenario):
+            return _fail(f"--policies: {problem}")
+    if not (math.isfinite(args.decision_period) and 0.5 <= args.decision_period <= 600):
+        return _fail(f"--decision-period must be in [0.5, 600] s, got {args.decision_period}")
+    try:
+        config = LoopConfig(mode=args.mode or DEFAULT_MODE,
+                            decision_period_s=args.decision_period)
+    except ValueError as exc:
+        return _fail(f"--mode: {exc}")
+    out = Path(args.out)
+    if problem := _output_problem(out):
+        return _fail(problem)
+    fig_dir = Path(args.figures) if args.figures else out.parent
+    if not args.no_figures:
+        try:
+            fig_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            return _fail(f"--figures: cannot create {fig_dir}: {exc.strerror or exc}")
+    train = SPLITS["train"]
+    if any(p.startswith("ppo:") for p in policies) and seeds[0] < train[1]:
+        print("osa evaluate: note: seeds below 1000000 are training seeds (envs/seeds.py); "
+              "score trained policies with --split test", file=sys.stderr)
+
+    client = None
+    if args.scheduler is not None:
+        try:
+            client = connect(args.scheduler, args.connect_timeout)
+        except ValueError as exc:
+            return _fail(exc)
+    workers = args.workers if args.workers is not None else local_workers()
+    n = len(policies) * len(seeds)
+    bar = QuantityProgress("osa evaluate", n, "episodes", enabled=not args.no_progress,
+                           every=max(1.0, n / 10))
+    try:
+        ev = evaluate(scenario, policies, seeds, config=config, workers=workers,
+                      client=client, task_size=args.task_size,
+                      example_seeds=seeds[:args.examples], task_timeout_s=args.task_timeout,
+                      progress=lambda k, note: bar.update(k, note))
+    except (EpisodeError, EvaluationTimeoutError) as exc:
+        bar.close("failed")
+        print(f"osa evaluate: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if client is not None:
+            client.close(timeout=args.connect_timeout)
+    bar.close()
+    return _report(args, ev, out, fig_dir)
+
+
+def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path) -> int:
+    from envs.evaluate import format_summary, summarise, write_rows
+
+    rows = ev.rows
+    write_rows(rows, out)
+    figures: list[Path] = []
+    if not args.no_figures:
+        from envs.evaluate_plots import plot_evaluation
+
+        figures = plot_evaluation(ev, fig_dir)
+    if args.json:
+        print(json.dumps(rows, allow_nan=False))
+        return 0
+    s = ev.seeds
+    print(f"{ev.scenario}: {len(ev.policies)} polic{'ies' if len(ev.policies) > 1 else 'y'} "
+          f"x {len(s)} seeds ({s[0]}..{s[-1]}), budget {ev.budget_s / 60:.1f} min; times in "
+          "min (>= : censored at the budget), errors in m")
+    print(format_summary(summarise(rows, ev.policies, ev.budget_s)))
+    print("wrote " + ", ".join(str(p) for p in (out, *figures)))
+    return 0
