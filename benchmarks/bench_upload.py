@@ -1,9 +1,10 @@
 """Benchmark: upload 100 mission items and read them back on loopback.
 
 Target (issue 4): median <= 50 ms for upload + download of 100 items, for both the
-pymavlink and the MAVSDK path, against MAVSDK's autopilot-side MissionRawServer on
-127.0.0.1. The connection (heartbeat discovery, up to 1 s) is made once and not
-timed. Every run's read-back is compared with what was sent.
+pymavlink and the MAVSDK path, against ``osa vehicle``'s autopilot
+(:class:`envs.vehicle.VirtualVehicle`, landed, speed-up 1) on 127.0.0.1. The
+connection (heartbeat discovery, up to 1 s) is made once and not timed. Every run's
+read-back is compared with what was sent.
 
     python benchmarks/bench_upload.py [--items 100] [--runs 30]
 
@@ -13,6 +14,7 @@ Exit status 1 if a median misses the target.
 from __future__ import annotations
 
 import argparse
+import socket
 import statistics
 import sys
 import time
@@ -25,7 +27,7 @@ from planner.mavlink import (
     mission_to_wire,
 )
 from planner.mission import Mission, MissionItem
-from planner.vehicle_peer import MavsdkVehiclePeer
+from sim import load_scenario
 
 TARGET_S = 0.050
 
@@ -65,10 +67,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs < 10:
         parser.error("--runs must be >= 10")
     ok = True
-    with MavsdkVehiclePeer() as peer:
-        print(f"upload + read-back of {args.items} items on loopback, {args.runs} runs, "
-              f"target median {TARGET_S * 1e3:.0f} ms")
-        for backend, url in (("pymavlink", peer.pymavlink_url), ("mavsdk", peer.mavsdk_url)):
+    from envs.vehicle import VirtualVehicle
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    with VirtualVehicle(load_scenario("three-aps"), [f"udpin:127.0.0.1:{port}"]):
+        print(f"upload + read-back of {args.items} items to osa vehicle on loopback, "
+              f"{args.runs} runs, target median {TARGET_S * 1e3:.0f} ms")
+        for backend, url in (("pymavlink", f"udpout:127.0.0.1:{port}"),
+                             ("mavsdk", f"udpout://127.0.0.1:{port}")):
             times = bench(url, args.items, args.runs)
             med = statistics.median(times)
             ok &= med <= TARGET_S

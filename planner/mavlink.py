@@ -89,6 +89,7 @@ __all__ = [
     "UploadTimeoutError",
     "VerifyMismatchError",
     "WireItem",
+    "ardupilot_stored",
     "check_connection_url",
     "compare_wire",
     "connected",
@@ -365,6 +366,18 @@ def _frame_class(frame: int) -> int:
     return _SAME_FRAME.get(frame, frame)
 
 
+def ardupilot_stored(item: WireItem) -> WireItem:
+    """``item`` as ArduPilot's AP_Mission gives it back on download
+    (``mission_cmd_to_mavlink_int``): the float frame twin of an INT frame, the
+    altitude in whole centimetres, commands without a position (RTL, CONDITION_*,
+    DO_*) with frame 0 and x = y = z = 0. :func:`compare_wire` accepts exactly
+    these changes; seq 0 (home) is the vehicle's own and not derived from the item."""
+    if item.command in _POSITIONLESS:
+        return dataclasses.replace(item, frame=MAV_FRAME_GLOBAL, x=0, y=0, z=0.0)
+    return dataclasses.replace(item, frame=_frame_class(item.frame),
+                               z=round(item.z * 100.0) / 100.0)
+
+
 def compare_wire(sent: Sequence[WireItem], held: Sequence[WireItem], *,
                  skip_seq0: bool = False) -> list[str]:
     """Differences between items sent and items read back (empty = identical).
@@ -604,6 +617,12 @@ class PymavlinkLink:
             raise InvalidConnectionError(f"bad connection URL {url!r}: {exc}") from None
         except OSError as exc:
             raise InvalidConnectionError(f"cannot open {url}: {exc}") from None
+
+    @property
+    def connection(self) -> Any:
+        """The pymavlink connection, for a caller that also reads telemetry or sends
+        commands on the same link (a vehicle answers one ground-station address)."""
+        return self._conn
 
     def close(self) -> None:
         with contextlib.suppress(OSError):

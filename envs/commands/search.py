@@ -44,6 +44,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also write a rerun recording (.rrd) of the loop")
     p.add_argument("--no-figures", action="store_true", help="do not draw the figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--connection", "-c", metavar="URL", default=None,
+                   help="fly a MAVLink vehicle instead of the in-process simulator, e.g. "
+                   "osa vehicle on the same scenario and seed (udpout:127.0.0.1:14540)")
+    p.add_argument("--vehicle-log", metavar="FILE", default=None,
+                   help="with --connection: the phone's log the vehicle writes as it flies "
+                   "(osa vehicle --log FILE), read as it grows")
     p.set_defaults(func=run)
 
 
@@ -79,6 +85,10 @@ def run(args: argparse.Namespace) -> int:
         policy = load_policy(args.policy, scenario)
     except ValueError as exc:
         return _fail(f"--policy: {exc}")
+    if args.connection is not None or args.vehicle_log is not None:
+        problem = _link_problem(args, scenario)
+        if problem:
+            return _fail(problem)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -93,8 +103,22 @@ def run(args: argparse.Namespace) -> int:
     bar = QuantityProgress(f"osa search {policy.name}", budget, "s",
                            enabled=not args.no_progress, every=60.0)
     try:
-        result = run_search(scenario, policy, args.seed, config=config, log_paths=logs,
-                            progress=bar.update)
+        if args.connection is not None:
+            from envs.mavlink_loop import VehicleLinkError, run_search_mavlink
+            from planner.mavlink import UploadError
+
+            try:
+                result = run_search_mavlink(scenario, policy, args.connection,
+                                            args.vehicle_log, args.seed, config=config,
+                                            log_paths=logs[:1], progress=bar.update)
+            except (VehicleLinkError, UploadError) as exc:
+                bar.close()
+                print(f"osa search: {type(exc).__name__}: {' '.join(str(exc).split())}",
+                      file=sys.stderr)
+                return 1
+        else:
+            result = run_search(scenario, policy, args.seed, config=config, log_paths=logs,
+                                progress=bar.update)
     finally:
         bar.close()
     report = result.to_json()
@@ -117,6 +141,28 @@ def run(args: argparse.Namespace) -> int:
         wrote.append(args.rerun)
     print("wrote " + ", ".join(wrote))
     return 0
+
+
+def _link_problem(args: argparse.Namespace, scenario) -> str | None:
+    """Why ``--connection`` / ``--vehicle-log`` cannot be used (None: they can)."""
+    from envs.mavlink_loop import pymavlink_url
+    from planner.mavlink import InvalidConnectionError, check_connection_url
+
+    if args.connection is None:
+        return "--vehicle-log needs --connection"
+    if args.vehicle_log is None:
+        return ("--connection needs --vehicle-log FILE: the phone's records come from the log "
+                "the vehicle writes (osa vehicle --log FILE)")
+    if len(scenario.agents) != 1:
+        return (f"{scenario.name} has {len(scenario.agents)} agents: --connection flies one "
+                "vehicle")
+    try:
+        check_connection_url(pymavlink_url(args.connection))
+    except InvalidConnectionError as exc:
+        return f"--connection: {exc}"
+    if str(args.vehicle_log).endswith(".gz"):
+        return "--vehicle-log: a gzip log cannot be read while it is written"
+    return None
 
 
 def summary(result) -> str:

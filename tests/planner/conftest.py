@@ -1,4 +1,6 @@
-"""Fixtures: real MAVLink peers on 127.0.0.1 (free ports picked at runtime)."""
+"""Fixtures: real MAVLink peers on 127.0.0.1 (free ports picked at runtime): the
+virtual vehicle of ``osa vehicle`` for the happy paths, MAVSDK's MissionRawServer
+and scripted pymavlink vehicles where they add something (tests/planner/peers.py)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from planner.mission import (
     Mission,
     MissionItem,
 )
-from planner.vehicle_peer import MavsdkVehiclePeer, ScriptedMavlinkVehicle, VehicleScript
+from tests.planner.peers import MavsdkVehiclePeer, ScriptedMavlinkVehicle, VehicleScript
+from tests.vehicles import RunningVehicle, running_vehicle
 
 
 def gaussian_hills(*hills: tuple[float, float, float, float]):
@@ -35,6 +38,13 @@ def gaussian_hills(*hills: tuple[float, float, float, float]):
 
 # fast but safe on loopback: a dead transfer is detected in (3 + 1) * 0.1 s
 FAST = TransferConfig(connect_timeout_s=3.0, message_timeout_s=0.1, retries=3)
+
+
+@pytest.fixture(scope="module")
+def px4_vehicle() -> Iterator[RunningVehicle]:
+    """``osa vehicle``'s autopilot (three-aps, landed), listening on udpin 127.0.0.1."""
+    with running_vehicle("three-aps") as v:
+        yield v
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,9 @@
 """ArduPilot numbering: home in seq 0, the mission from seq 1.
 
 Against :class:`ArduPilotLikeVehicle` (heartbeat autopilot 3, overwrites seq 0 with
-its own home) and, for the PX4-style side, MAVSDK's MissionRawServer (heartbeat
-autopilot 0), both on 127.0.0.1 with free ports."""
+its own home) and, for the PX4-style side, ``osa vehicle``'s autopilot (heartbeat
+autopilot 12) and MAVSDK's MissionRawServer (heartbeat autopilot 0), all on 127.0.0.1
+with free ports."""
 
 from __future__ import annotations
 
@@ -42,8 +43,9 @@ from planner.mission import (
     MissionItem,
     deg_to_e7,
 )
-from planner.vehicle_peer import ArduPilotLikeVehicle, MavsdkVehiclePeer, VehicleScript
 from tests.planner.conftest import CLI_FAST, FAST, sample_mission, write_mission_file
+from tests.planner.peers import ArduPilotLikeVehicle, MavsdkVehiclePeer, VehicleScript
+from tests.vehicles import RunningVehicle
 
 BACKENDS = ["pymavlink", "mavsdk"]
 VEHICLE_HOME = (36.7201234, -4.4702345, 121.5)  # the vehicle's own home: not the plan's
@@ -244,7 +246,7 @@ def test_cli_autopilot_choices(tmp_path: Path) -> None:
     assert info.value.code == 2
 
 
-# ---------------------------------------------------------------- PX4-style MAVSDK server
+# ---------------------------------------------------------------- PX4-style vehicles
 
 
 @pytest.fixture(scope="module")
@@ -254,8 +256,21 @@ def px4_peer() -> Iterator[MavsdkVehiclePeer]:
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_px4_vehicle_is_not_ardupilot(px4_vehicle: RunningVehicle, backend: str) -> None:
+    """``osa vehicle`` says autopilot 12 (PX4): "auto" keeps the mission from seq 0."""
+    m = sample_mission(3)
+    with connected(url_of(px4_vehicle, backend), FAST) as link:
+        assert link.autopilot == 12
+        assert resolve_autopilot("auto", link) == "px4"
+        assert upload_on_link(link, m, fence=False) == (7, 0, 0)
+    held = px4_vehicle.held()
+    assert len(held) == 7 and held[0].command == MAV_CMD_NAV_TAKEOFF
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_mavsdk_server_is_not_ardupilot(px4_peer: MavsdkVehiclePeer, backend: str) -> None:
-    """MAVSDK's server says autopilot 0 (generic): "auto" keeps the mission from seq 0."""
+    """MAVSDK's server says autopilot 0 (generic): "auto" keeps the mission from seq 0
+    too (any autopilot but ArduPilot numbers from seq 0)."""
     m = sample_mission(3)
     with connected(url_of(px4_peer, backend), FAST) as link:
         assert link.autopilot == 0
@@ -265,14 +280,14 @@ def test_mavsdk_server_is_not_ardupilot(px4_peer: MavsdkVehiclePeer, backend: st
     assert len(held) == 7 and held[0].command == MAV_CMD_NAV_TAKEOFF
 
 
-def test_forced_ardupilot_on_px4_sends_home_item(px4_peer: MavsdkVehiclePeer) -> None:
-    """Forcing ArduPilot numbering on a PX4-style vehicle stores the home item as seq 0:
+def test_forced_ardupilot_on_px4_sends_home_item(px4_vehicle: RunningVehicle) -> None:
+    """Forcing ArduPilot numbering on a PX4 vehicle stores the home item as seq 0:
     a real waypoint there (documented; the verify cannot tell)."""
     m = sample_mission(3)
-    report = upload_mission(m, px4_peer.pymavlink_url, config=FAST, fence=False,
+    report = upload_mission(m, px4_vehicle.pymavlink_url, config=FAST, fence=False,
                             autopilot="ardupilot")
     assert report.autopilot == "ardupilot" and report.items == 7
-    held = px4_peer.held()
+    held = px4_vehicle.held()
     assert len(held) == 8
     assert (held[0].frame, held[0].command, held[0].x) == (0, 16, 367149123)
     assert held[1].command == MAV_CMD_NAV_TAKEOFF

@@ -1,5 +1,6 @@
-"""Uploads to real loopback peers: MAVSDK's MissionRawServer (happy paths) and a
-scripted pymavlink vehicle (NACKs, silence, legacy requests, corrupted read-back)."""
+"""Uploads to real loopback peers: ``osa vehicle``'s autopilot (happy paths),
+MAVSDK's MissionRawServer (its count-0 trap) and a scripted pymavlink vehicle (NACKs,
+silence, legacy requests, corrupted read-back)."""
 
 from __future__ import annotations
 
@@ -36,8 +37,10 @@ from planner.mission import (
     Mission,
     deg_to_e7,
 )
-from planner.vehicle_peer import MavsdkVehiclePeer, VehicleScript, free_udp_port
+from tests.net import free_udp_port
 from tests.planner.conftest import CLI_FAST, FAST, sample_mission, write_mission_file
+from tests.planner.peers import MavsdkVehiclePeer, VehicleScript
+from tests.vehicles import RunningVehicle
 
 BACKENDS = ["pymavlink", "mavsdk"]
 
@@ -83,25 +86,31 @@ def test_wire_form() -> None:
     assert compare_wire(wire, wire[:-1])[0].startswith("vehicle holds")
 
 
-# ---------------------------------------------------------------- happy paths (MAVSDK server)
+# ---------------------------------------------------------------- happy paths (osa vehicle)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_upload_to_mavsdk_server(mavsdk_peer: MavsdkVehiclePeer, backend: str) -> None:
+def test_upload_to_vehicle(px4_vehicle: RunningVehicle, backend: str) -> None:
     m = sample_mission(40)
-    before = {t: mavsdk_peer.upload_count(t) for t in (0, 1, 2)}
-    report = upload_mission(m, url_of(mavsdk_peer, backend), config=FAST)
+    before = {t: px4_vehicle.upload_count(t) for t in (0, 1, 2)}
+    report = upload_mission(m, url_of(px4_vehicle, backend), config=FAST)
     assert (report.items, report.fence_items, report.rally_items) == (len(m.items), 9, 2)
     assert report.backend == backend and report.vehicle == (1, 1)
-    held = mavsdk_peer.wait_for_upload(MAV_MISSION_TYPE_MISSION, after=before[0])
+    assert report.autopilot == "px4"  # the heartbeat says MAV_AUTOPILOT_PX4
+    # one accepted list per type, held before the ACK
+    assert {t: px4_vehicle.upload_count(t) - before[t] for t in (0, 1, 2)} == {0: 1, 1: 1, 2: 1}
+    held = px4_vehicle.held(MAV_MISSION_TYPE_MISSION)
     assert_holds(held, m)
     assert compare_wire(mission_to_wire(m), held) == []
-    fence = mavsdk_peer.wait_for_upload(MAV_MISSION_TYPE_FENCE, after=before[1])
-    assert compare_wire(fence_to_wire(m), fence) == []
-    rally = mavsdk_peer.wait_for_upload(MAV_MISSION_TYPE_RALLY, after=before[2])
-    assert compare_wire(rally_to_wire(m), rally) == []
+    assert compare_wire(fence_to_wire(m), px4_vehicle.held(MAV_MISSION_TYPE_FENCE)) == []
+    assert compare_wire(rally_to_wire(m), px4_vehicle.held(MAV_MISSION_TYPE_RALLY)) == []
+    # the autopilot took them: 2 inclusion zones, 2 exclusion zones, 2 rally points
+    fence = px4_vehicle.autopilot.fence
+    assert (len(fence.inclusion_polygons), len(fence.exclusion_polygons),
+            len(fence.inclusion_circles), len(fence.exclusion_circles)) == (1, 1, 1, 1)
+    assert len(px4_vehicle.autopilot.rally_enu) == 2
     # an independent read-back equals what was sent
-    got = download_wire(url_of(mavsdk_peer, backend), (0, 1, 2), config=FAST)
+    got = download_wire(url_of(px4_vehicle, backend), (0, 1, 2), config=FAST)
     assert compare_wire(mission_to_wire(m), got[0]) == []
     assert compare_wire(fence_to_wire(m), got[1]) == []
     assert compare_wire(rally_to_wire(m), got[2]) == []
@@ -110,25 +119,26 @@ def test_upload_to_mavsdk_server(mavsdk_peer: MavsdkVehiclePeer, backend: str) -
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_link_reuse_and_no_fence(mavsdk_peer: MavsdkVehiclePeer, backend: str) -> None:
+def test_link_reuse_and_no_fence(px4_vehicle: RunningVehicle, backend: str) -> None:
     """Several uploads on one link; ``fence=False`` leaves fence and rally untouched."""
-    with connected(url_of(mavsdk_peer, backend), FAST) as link:
+    with connected(url_of(px4_vehicle, backend), FAST) as link:
         for n in (1, 7, 100):
             m = sample_mission(n)
             link.upload(mission_to_wire(m), MAV_MISSION_TYPE_MISSION)
             assert compare_wire(mission_to_wire(m), link.download(MAV_MISSION_TYPE_MISSION)) == []
-    fence_uploads = mavsdk_peer.upload_count(MAV_MISSION_TYPE_FENCE)
+    fence_uploads = px4_vehicle.upload_count(MAV_MISSION_TYPE_FENCE)
     m = sample_mission(3)
-    report = upload_mission(m, url_of(mavsdk_peer, backend), config=FAST, fence=False)
+    report = upload_mission(m, url_of(px4_vehicle, backend), config=FAST, fence=False)
     assert (report.items, report.fence_items, report.rally_items) == (len(m.items), 0, 0)
-    assert mavsdk_peer.upload_count(MAV_MISSION_TYPE_FENCE) == fence_uploads
-    assert_holds(mavsdk_peer.held(), m)
+    assert px4_vehicle.upload_count(MAV_MISSION_TYPE_FENCE) == fence_uploads
+    assert_holds(px4_vehicle.held(), m)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_empty_mission_clears(mavsdk_peer: MavsdkVehiclePeer, backend: str) -> None:
     """An empty mission is sent as MISSION_CLEAR_ALL (a MISSION_COUNT of 0 corrupts
-    MAVSDK 4.1's MissionRawServer); the next upload still works."""
+    MAVSDK 4.1's MissionRawServer: this is why the check runs against it); the next
+    upload still works."""
     url = url_of(mavsdk_peer, backend)
     with connected(url, FAST) as link:
         link.upload(mission_to_wire(sample_mission(2)), MAV_MISSION_TYPE_MISSION)
@@ -239,15 +249,15 @@ def test_read_back_mismatch(scripted_vehicle, backend: str) -> None:
 
 @pytest.mark.parametrize(("backend", "suffix"), [("pymavlink", ".plan"),
                                                   ("mavsdk", ".waypoints")])
-def test_osa_upload_end_to_end(tmp_path: Path, mavsdk_peer: MavsdkVehiclePeer, capsys,
+def test_osa_upload_end_to_end(tmp_path: Path, px4_vehicle: RunningVehicle, capsys,
                                backend: str, suffix: str) -> None:
     m, path = write_mission_file(sample_mission(15), tmp_path, suffix)
-    status = osa_main(["upload", str(path), "--connection", url_of(mavsdk_peer, backend),
+    status = osa_main(["upload", str(path), "--connection", url_of(px4_vehicle, backend),
                        *CLI_FAST])
     out, err = capsys.readouterr()
     assert (status, err) == (0, "")
     assert f"mission items {len(m.items)}" in out and backend in out
-    assert_holds(mavsdk_peer.held(), m)
+    assert_holds(px4_vehicle.held(), m)
 
 
 def test_osa_upload_failures(tmp_path: Path, capsys) -> None:

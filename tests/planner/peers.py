@@ -1,18 +1,19 @@
-"""Loopback vehicles for tests, benchmarks and the closed-loop env.
+"""Test-only loopback peers for the upload tests (the vehicle itself is envs.vehicle).
 
 - :class:`MavsdkVehiclePeer`: MAVSDK as an autopilot (libcmavsdk,
   ``ComponentType.AUTOPILOT``) listening on ``udpin://127.0.0.1:PORT`` with a
-  ``MissionRawServer``: it accepts mission / fence / rally uploads, records what it
-  holds, and answers downloads by itself. ``server_component`` is exposed so other
-  server plugins (TelemetryServer, ActionServer) can be attached to the same vehicle.
-- :class:`ScriptedMavlinkVehicle`: a tiny pymavlink vehicle for the error paths
-  MAVSDK's server cannot produce: a chosen MISSION_ACK NACK (on MISSION_COUNT or on
-  an item), silence after N items, legacy MISSION_REQUEST, a corrupted read-back.
+  ``MissionRawServer``: an independent implementation of the vehicle side, kept for
+  the checks that are about MAVSDK's server (its heartbeat, its count-0 trap).
+- :class:`ScriptedMavlinkVehicle`: a tiny pymavlink vehicle for the error paths no
+  well-behaved vehicle produces on demand: a chosen MISSION_ACK NACK (on
+  MISSION_COUNT or on an item), silence after N items, legacy MISSION_REQUEST, a
+  corrupted read-back.
 - :class:`ArduPilotLikeVehicle`: the scripted vehicle with ArduPilot's heartbeat
   (autopilot 3, quadrotor) and ArduPilot's mission storage: seq 0 is always the
-  vehicle's own home (whatever was uploaded there), the mission from seq 1.
+  vehicle's own home (whatever was uploaded there), the mission from seq 1, items as
+  :func:`planner.mavlink.ardupilot_stored` gives them back.
 
-Both pick a free port at start and stop within a bounded time.
+All pick a free port at start and stop within a bounded time.
 
 Trap: a MISSION_COUNT of 0 leaves MAVSDK 4.1's MissionRawServer corrupted (the next
 upload aborts the process in ``process_mission_item_int``); clear with
@@ -23,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -34,6 +34,7 @@ from planner.mavlink import (
     MAV_AUTOPILOT_GENERIC,
     MAV_MISSION_ACCEPTED,
     WireItem,
+    ardupilot_stored,
     mavutil,
     quiet_mavsdk_logs,
 )
@@ -43,6 +44,7 @@ from planner.mission import (
     MAV_MISSION_TYPE_MISSION,
     deg_to_e7,
 )
+from tests.net import LOOPBACK, free_udp_port
 
 __all__ = [
     "ArduPilotLikeVehicle",
@@ -55,14 +57,6 @@ __all__ = [
 MAV_TYPE_QUADROTOR = 2
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 MAV_STATE_STANDBY = 3
-LOOPBACK = "127.0.0.1"
-
-
-def free_udp_port(host: str = LOOPBACK) -> int:
-    """A UDP port that was free a moment ago (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
 
 
 class _Holdings:
@@ -374,17 +368,6 @@ class ScriptedMavlinkVehicle:
         self._ack(MAV_MISSION_ACCEPTED, int(msg.mission_type))
 
 
-def _ardupilot_stored(it: WireItem) -> WireItem:
-    """An item as ArduPilot's AP_Mission gives it back: float frame numbers, altitude in
-    whole centimetres, commands without a position with frame 0 and x = y = z = 0."""
-    import dataclasses
-
-    if it.command in (20, *range(112, 160), *range(176, 253)):
-        return dataclasses.replace(it, frame=MAV_FRAME_GLOBAL, x=0, y=0, z=0.0)
-    frame = {5: 0, 6: 3, 11: 10}.get(it.frame, it.frame)
-    return dataclasses.replace(it, frame=frame, z=round(it.z * 100.0) / 100.0)
-
-
 class ArduPilotLikeVehicle(ScriptedMavlinkVehicle):
     """A pymavlink vehicle that numbers its mission as ArduPilot does.
 
@@ -421,7 +404,7 @@ class ArduPilotLikeVehicle(ScriptedMavlinkVehicle):
         self.received[mission_type] = list(items)
         if mission_type == MAV_MISSION_TYPE_MISSION:
             # seq 0 is home, whatever was sent; the rest as AP_Mission stores them
-            items = [self.home_item(), *(_ardupilot_stored(it) for it in items[1:])]
+            items = [self.home_item(), *(ardupilot_stored(it) for it in items[1:])]
         self._holdings.store(mission_type, items)
 
     def held(self, mission_type: int = MAV_MISSION_TYPE_MISSION) -> list[WireItem]:

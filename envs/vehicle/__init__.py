@@ -1,0 +1,16 @@
+"""A simulated PX4 multicopter on MAVLink: the scenario's world behind an autopilot.
+
+``osa vehicle`` (envs/commands/vehicle.py) runs :class:`VirtualVehicle`; docs/vehicle.md
+describes what it answers and how it flies. Modules: :mod:`.px4` (modes and codes),
+:mod:`.params`, :mod:`.flight` (flight tasks), :mod:`.autopilot` (modes, commands,
+mission executor, failsafes), :mod:`.mission` (what storage accepts),
+:mod:`.protocol` (mission protocol server), :mod:`.geofence`, :mod:`.telemetry`,
+:mod:`.server` (the loop and the MAVLink ports).
+"""
+
+from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.params import Params
+from envs.vehicle.px4 import Mode
+from envs.vehicle.server import ConnectionURLError, VirtualVehicle, vehicle_url
+
+__all__ = ["Autopilot", "ConnectionURLError", "Mode", "Params", "VirtualVehicle", "vehicle_url"]

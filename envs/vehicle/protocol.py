@@ -1,0 +1,232 @@
+"""Vehicle side of the MAVLink mission protocol: mission, fence and rally lists.
+
+Upload (MISSION_COUNT, then MISSION_REQUEST_INT for each item, MISSION_ACK): items
+are checked as they arrive (:mod:`envs.vehicle.mission`) and kept in a staging list;
+only a complete, valid list replaces the held one (``on_commit``), so an upload that
+is refused, cancelled or abandoned half way leaves the previous list in force and
+is never flown. The vehicle re-requests an unanswered item every ``retry_s`` and
+drops a transfer that makes no progress for ``timeout_s`` (wall clock; PX4: 250 ms
+and 5 s). A resent last item after the final ACK is acknowledged again (the ACK was
+lost), a resent earlier item is answered with a request for the one expected, an
+item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE. One upload per
+list at a time: a second ground station gets MAV_MISSION_DENIED while one runs.
+
+Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_ITEM_INT)
+is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
+float MISSION_ITEM, as PX4 does); the mission's current item carries ``current=1``.
+MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from envs.vehicle.mission import (
+    CAPACITY,
+    MISSION_ACCEPTED,
+    MISSION_DENIED,
+    MISSION_INVALID_SEQUENCE,
+    MISSION_NO_SPACE,
+    MISSION_OPERATION_CANCELLED,
+    MISSION_UNSUPPORTED,
+    check_item,
+    check_list,
+)
+from planner.mavlink import WireItem
+from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
+
+MAV_MISSION_TYPE_ALL = 255
+Peer = tuple[int, int, int]  # (port index, system id, component id)
+Send = Callable[[Peer, str, tuple], None]  # peer, pymavlink message name, args after target
+
+
+@dataclass
+class _Upload:
+    peer: Peer
+    mission_type: int
+    count: int
+    items: list[WireItem]
+    activity_s: float
+    requested_s: float
+
+
+@dataclass(frozen=True)
+class _Commit:
+    peer: Peer
+    count: int
+
+
+class MissionServer:
+    """See the module docstring. ``send(peer, name, args)`` sends
+    ``<name>_send(target_system, target_component, *args)`` to ``peer``;
+    ``on_commit(mission_type, items, current_seq)`` receives each accepted list;
+    ``current()`` is the mission's current item (for downloads)."""
+
+    def __init__(self, send: Send, on_commit: Callable[[int, list[WireItem], int], None],
+                 current: Callable[[], int], *, retry_s: float = 0.25, timeout_s: float = 5.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.send = send
+        self.on_commit = on_commit
+        self.current = current
+        self.retry_s = retry_s
+        self.timeout_s = timeout_s
+        self.clock = clock
+        self.held: dict[int, list[WireItem]] = {t: [] for t in CAPACITY}
+        self._rx: dict[int, _Upload] = {}
+        self._last: dict[int, _Commit] = {}
+        self.refused: list[tuple[int, int]] = []  # (mission_type, MAV_MISSION_RESULT)
+        self.commits: dict[int, int] = {t: 0 for t in CAPACITY}  # accepted lists per type
+
+    # ------------------------------------------------------------------ helpers
+    def _ack(self, peer: Peer, result: int, mission_type: int) -> None:
+        self.send(peer, "mission_ack", (result, mission_type))
+
+    def _refuse(self, peer: Peer, result: int, mission_type: int) -> None:
+        self._rx.pop(mission_type, None)
+        self.refused.append((mission_type, result))
+        self._ack(peer, result, mission_type)
+
+    def _request(self, rx: _Upload) -> None:
+        rx.requested_s = self.clock()
+        self.send(rx.peer, "mission_request_int", (len(rx.items), rx.mission_type))
+
+    def _commit(self, peer: Peer, mission_type: int, items: list[WireItem]) -> None:
+        current = 0
+        if mission_type == MAV_MISSION_TYPE_MISSION:
+            flagged = [w.seq for w in items if w.current]
+            current = flagged[0] if flagged else 0
+        self.held[mission_type] = items
+        self.commits[mission_type] += 1
+        self._last[mission_type] = _Commit(peer, len(items))
+        self.on_commit(mission_type, list(items), current)
+
+    @property
+    def uploading(self) -> bool:
+        return bool(self._rx)
+
+    # ------------------------------------------------------------------ upload
+    def on_count(self, peer: Peer, count: int, mission_type: int) -> None:
+        now = self.clock()
+        if mission_type not in CAPACITY:
+            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            return
+        rx = self._rx.get(mission_type)
+        if rx is not None and rx.peer != peer and now - rx.activity_s < self.timeout_s:
+            self._ack(peer, MISSION_DENIED, mission_type)  # another ground station's upload
+            return
+        if count > CAPACITY[mission_type]:
+            self._refuse(peer, MISSION_NO_SPACE, mission_type)
+            return
+        if count <= 0:
+            self._rx.pop(mission_type, None)
+            self._commit(peer, mission_type, [])
+            self._ack(peer, MISSION_ACCEPTED, mission_type)
+            return
+        if rx is not None and rx.peer == peer and rx.count == count and not rx.items:
+            self._request(rx)  # the count again: our request was lost
+            return
+        rx = _Upload(peer, mission_type, count, [], now, now)
+        self._rx[mission_type] = rx
+        self._request(rx)
+
+    def on_item(self, peer: Peer, w: WireItem) -> None:
+        rx = self._rx.get(w.mission_type)
+        if rx is None or rx.peer != peer:
+            last = self._last.get(w.mission_type)
+            if last is not None and last.peer == peer and w.seq == last.count - 1:
+                self._ack(peer, MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
+            return
+        n = len(rx.items)
+        if w.seq < n:
+            self._request(rx)  # a resend of an item we hold: ask for the next one
+            return
+        if w.seq > n:
+            self._refuse(peer, MISSION_INVALID_SEQUENCE, rx.mission_type)
+            return
+        result = check_item(w, rx.count)
+        if result != MISSION_ACCEPTED:
+            self._refuse(peer, result, rx.mission_type)
+            return
+        rx.items.append(w)
+        rx.activity_s = self.clock()
+        if len(rx.items) < rx.count:
+            self._request(rx)
+            return
+        result = check_list(rx.items, rx.mission_type)
+        if result != MISSION_ACCEPTED:
+            self._refuse(peer, result, rx.mission_type)
+            return
+        del self._rx[rx.mission_type]
+        self._commit(peer, rx.mission_type, rx.items)
+        self._ack(peer, MISSION_ACCEPTED, rx.mission_type)
+
+    def on_item_int(self, peer: Peer, msg: Any) -> None:
+        self.on_item(peer, WireItem.from_msg(msg))
+
+    def on_item_float(self, peer: Peer, msg: Any) -> None:
+        """Legacy MISSION_ITEM (lat/lon in float degrees), stored in the INT form."""
+        x, y = float(msg.x), float(msg.y)
+        w = WireItem(seq=int(msg.seq), frame=int(msg.frame), command=int(msg.command),
+                     current=int(msg.current), autocontinue=int(msg.autocontinue),
+                     param1=float(msg.param1), param2=float(msg.param2),
+                     param3=float(msg.param3), param4=float(msg.param4),
+                     x=deg_to_e7(x) if math.isfinite(x) else 2**31 - 1,
+                     y=deg_to_e7(y) if math.isfinite(y) else 2**31 - 1, z=float(msg.z),
+                     mission_type=int(getattr(msg, "mission_type", 0)))
+        self.on_item(peer, w)
+
+    def on_ack(self, peer: Peer, result: int, mission_type: int) -> None:
+        """A ground station's MISSION_ACK: a non-zero one cancels its upload."""
+        rx = self._rx.get(mission_type)
+        if rx is not None and rx.peer == peer and result != MISSION_ACCEPTED:
+            del self._rx[mission_type]
+
+    def tick(self) -> None:
+        """Re-request unanswered items; drop stalled uploads."""
+        now = self.clock()
+        for t, rx in list(self._rx.items()):
+            if now - rx.activity_s > self.timeout_s:
+                self._refuse(rx.peer, MISSION_OPERATION_CANCELLED, t)
+            elif now - rx.requested_s > self.retry_s:
+                self._request(rx)
+
+    # ------------------------------------------------------------------ download
+    def on_request_list(self, peer: Peer, mission_type: int) -> None:
+        if mission_type not in self.held:
+            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            return
+        self.send(peer, "mission_count", (len(self.held[mission_type]), mission_type))
+
+    def _item_args(self, w: WireItem, float_form: bool) -> tuple:
+        cur = int(w.mission_type == MAV_MISSION_TYPE_MISSION and w.seq == self.current())
+        x, y = (w.x / 1e7, w.y / 1e7) if float_form else (w.x, w.y)
+        return (w.seq, w.frame, w.command, cur, w.autocontinue, w.param1, w.param2, w.param3,
+                w.param4, x, y, w.z, w.mission_type)
+
+    def on_request(self, peer: Peer, seq: int, mission_type: int, *,
+                   float_form: bool = False) -> None:
+        items = self.held.get(mission_type)
+        if items is None:
+            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            return
+        if not 0 <= seq < len(items):
+            self._ack(peer, MISSION_INVALID_SEQUENCE, mission_type)
+            return
+        name = "mission_item" if float_form else "mission_item_int"
+        self.send(peer, name, self._item_args(items[seq], float_form))
+
+    # ------------------------------------------------------------------ clear
+    def on_clear_all(self, peer: Peer, mission_type: int) -> None:
+        types: Sequence[int] = tuple(self.held) if mission_type == MAV_MISSION_TYPE_ALL \
+            else (mission_type,)
+        if any(t not in self.held for t in types):
+            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            return
+        for t in types:
+            self._rx.pop(t, None)
+            self._commit(peer, t, [])
+        self._ack(peer, MISSION_ACCEPTED, mission_type)

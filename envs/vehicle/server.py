@@ -1,0 +1,650 @@
+"""The virtual vehicle's loop: simulated time, MAVLink ports, the phone's log.
+
+:class:`VirtualVehicle` realises the scenario's world for a seed
+(:func:`sim.realise`), flies its first agent with the :class:`Autopilot` and talks
+MAVLink 2 on one or more pymavlink ports (``udpin:HOST:PORT``: the vehicle listens
+and answers whoever wrote last; ``udpout:HOST:PORT``: it sends there, as PX4 SITL to
+QGroundControl's 14550; ``tcpin:``/``tcp:``). Each loop iteration (about 50 per wall
+second) it reads every port, advances simulated time to ``speedup`` x the elapsed
+wall time in steps of at most ``step_s`` (``speedup=inf``: one step per iteration,
+as fast as it can), publishes the autopilot's events and the telemetry streams that
+are due, and runs the mission protocol's and the operator timeouts. If the
+simulation cannot keep up with the speed-up it says so (``status``) and runs as fast
+as it can, re-basing its clock instead of drifting silently. ``--log`` receives the
+phone's records as they reach the file (:class:`sim.stepper.LogSink`, flushed).
+
+Replies go to the port and system that asked; telemetry to every port. Any message
+from another system keeps the ground-station link alive; after COM_DL_LOSS_T wall
+seconds of silence the autopilot's link-loss rule applies.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import math
+import os
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.params import MAV_PARAM_TYPE_REAL32, Params
+from envs.vehicle.protocol import MissionServer, Peer
+from envs.vehicle.px4 import (
+    MAV_RESULT_ACCEPTED,
+    MAV_RESULT_DENIED,
+    MAV_RESULT_UNSUPPORTED,
+    MAV_TYPE_GCS,
+    SEVERITY_CRITICAL,
+    SEVERITY_INFO,
+    SEVERITY_WARNING,
+    Mode,
+    decode_custom_mode,
+    mode_from_main_sub,
+    mode_name,
+)
+from envs.vehicle.telemetry import (
+    MSG_EXTENDED_SYS_STATE,
+    MSG_HOME_POSITION,
+    MSG_MISSION_CURRENT,
+    REQUESTABLE,
+    Telemetry,
+)
+from estimator.records import GnssFix
+from planner.mavlink import mavutil
+from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
+from sim.realisation import realise
+from sim.scenario import Scenario
+from sim.stepper import LogSink, Stepper
+from sim.vehicle import FlightError
+
+mavlink = mavutil.mavlink
+
+# MAV_CMD
+CMD_NAV_RETURN_TO_LAUNCH = 20
+CMD_NAV_LAND = 21
+CMD_NAV_TAKEOFF = 22
+CMD_DO_SET_MODE = 176
+CMD_DO_CHANGE_SPEED = 178
+CMD_DO_SET_HOME = 179
+CMD_DO_REPOSITION = 192
+CMD_DO_PAUSE_CONTINUE = 193
+CMD_DO_SET_MISSION_CURRENT = 224
+CMD_MISSION_START = 300
+CMD_COMPONENT_ARM_DISARM = 400
+CMD_GET_HOME_POSITION = 410
+CMD_GET_MESSAGE_INTERVAL = 510
+CMD_SET_MESSAGE_INTERVAL = 511
+CMD_REQUEST_MESSAGE = 512
+CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
+RELATIVE_COMMAND_FRAMES = (3, 6)
+
+_SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
+            "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
+_PYMAVLINK = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcpin:", "tcp:")
+
+
+class ConnectionURLError(ValueError):
+    """A connection URL the vehicle cannot open (one line)."""
+
+
+def vehicle_url(url: str) -> str:
+    """The pymavlink form of a vehicle-side URL (MAVSDK ``scheme://`` forms accepted)."""
+    u = url.strip()
+    for scheme, py in _SCHEMES.items():
+        if u.startswith(scheme):
+            u = py + u[len(scheme):]
+            break
+    if not u.startswith(_PYMAVLINK):
+        raise ConnectionURLError(
+            f"unsupported connection URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, "
+            "tcpin:HOST:PORT or tcp:HOST:PORT")
+    host, _, port = u.split(":", 1)[1].rpartition(":")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ConnectionURLError(f"bad connection URL {url!r}: port {port!r} "
+                                 "is not a number") from None
+    if not host or not 0 < p < 65536:
+        raise ConnectionURLError(f"bad connection URL {url!r}: expected HOST:PORT")
+    return u
+
+
+def open_port(url: str, sysid: int = 1, compid: int = 1) -> Any:
+    """A pymavlink connection for ``url`` (:class:`ConnectionURLError` if impossible)."""
+    u = vehicle_url(url)
+    scheme, rest = u.split(":", 1)
+    if scheme in ("udpin", "udp"):
+        # pymavlink binds with SO_REUSEADDR: two vehicles could share a port unnoticed
+        host, _, port = rest.rpartition(":")
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            try:
+                probe.bind((host, int(port)))
+            except OSError as exc:
+                raise ConnectionURLError(f"cannot listen on {url}: "
+                                         f"{exc.strerror or exc}") from None
+    try:
+        conn = mavutil.mavlink_connection(u, source_system=sysid, source_component=compid,
+                                          autoreconnect=False, retries=0,
+                                          reconnect_delay=0.1)
+    except (OSError, ValueError) as exc:
+        raise ConnectionURLError(f"cannot open {url}: {getattr(exc, 'strerror', None) or exc}") \
+            from None
+    return conn
+
+
+@dataclass
+class Stats:
+    """How the loop kept up (wall seconds, simulated seconds)."""
+
+    wall_s: float = 0.0
+    sim_s: float = 0.0
+    behind_events: int = 0
+    steps: int = 0
+    received: int = 0
+    sent: int = 0
+
+    @property
+    def ratio(self) -> float:
+        return self.sim_s / self.wall_s if self.wall_s > 0 else 0.0
+
+
+@dataclass
+class _Port:
+    url: str
+    conn: Any
+    fd: int | None = None
+
+
+@dataclass
+class _Link:
+    last_rx_wall: float = -math.inf
+    seen: bool = False
+    lost: bool = False
+    gcs: set[tuple[int, int]] = field(default_factory=set)
+
+
+class VirtualVehicle:
+    """A simulated PX4 multicopter on MAVLink (see the module docstring).
+
+    ``with VirtualVehicle(scenario, ["udpin:127.0.0.1:14540"], speedup=20) as v:``
+    runs it in a background thread (tests, benchmarks); :meth:`run` runs it in the
+    calling thread until ``should_stop()`` (the CLI).
+    """
+
+    LOOP_PERIOD_S = 0.02
+    BEHIND_WALL_S = 1.0  # later than this (wall seconds): cannot keep up
+    STEP_WALL_S = 0.1  # wall time one loop iteration may spend stepping
+
+    def __init__(self, scenario: Scenario, connections: Sequence[str], *, seed: int = 0,
+                 speedup: float = 1.0, log_path: str | os.PathLike | None = None,
+                 params: dict[str, float] | None = None, sysid: int = 1, compid: int = 1,
+                 step_s: float | None = None, status: Callable[[str], None] | None = None,
+                 transfer_timeout_s: float = 5.0,
+                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+        if not connections:
+            raise ConnectionURLError("a vehicle needs at least one --connection")
+        if not speedup > 0:
+            raise ValueError(f"speedup must be > 0, got {speedup!r}")
+        self.scenario = scenario
+        self.speedup = float(speedup)
+        # simulated seconds per step: 5 steps per simulated second up to a speed-up of 10
+        # (every 5 Hz stream has its own state), growing to 1 s from 50x (one per loop)
+        self.step_s = step_s if step_s is not None else \
+            max(0.2, min(1.0, self.speedup * self.LOOP_PERIOD_S))
+        self.sysid, self.compid = sysid, compid
+        self.status = status or (lambda message: None)
+        self.clock = wall_clock
+        self.realisation = realise(scenario, seed)
+        # the configured H_AGL of a search is its height (as in osa search)
+        agl = scenario.search.height_m if scenario.search is not None else None
+        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
+        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock)
+        for name, value in (params or {}).items():
+            why = self.autopilot.params.set(name, value)
+            if why is not None:
+                raise ValueError(why)
+        self.telemetry = Telemetry(self.autopilot)
+        self.protocol = MissionServer(self._send_to, self._on_commit,
+                                      lambda: self.autopilot.mission.seq,
+                                      timeout_s=transfer_timeout_s, clock=wall_clock)
+        self.ports: list[_Port] = []
+        try:
+            for url in connections:
+                conn = open_port(url, sysid, compid)
+                self.ports.append(_Port(url, conn))
+        except BaseException:
+            self._close_ports()
+            raise
+        self.log_path = Path(log_path) if log_path is not None else None
+        self._sink: LogSink | None = None
+        if self.log_path is not None:
+            agent = self.stepper.agents[0]
+            self._sink = LogSink(self.log_path, agent.header, self.realisation.truth_records(),
+                                 flush_lines=True)
+        self.stats = Stats()
+        self.error: str | None = None
+        self._link = _Link()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_current: tuple[int, int, int] | None = None
+        self._bad_kinds: set[str] = set()
+        self._closed = False
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def t_s(self) -> float:
+        return self.autopilot.vehicle.t_s
+
+    def start(self) -> VirtualVehicle:
+        self._thread = threading.Thread(target=self.run, args=(self._stop.is_set,),
+                                        name="osa-vehicle", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+        self.close()
+
+    def __enter__(self) -> VirtualVehicle:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def close(self) -> None:
+        """Deliver what the phone still has on its way, close the log and the ports."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._sink is not None:
+                with contextlib.suppress(FlightError):
+                    self._sink.add(self.autopilot.finish(), math.inf)
+                self._sink.close()
+            self._close_ports()
+
+    def _close_ports(self) -> None:
+        for p in self.ports:
+            with contextlib.suppress(OSError):
+                p.conn.close()
+
+    # ------------------------------------------------------------------ loop
+    def run(self, should_stop: Callable[[], bool]) -> None:
+        """Run until ``should_stop()`` (checked every iteration) or a crash."""
+        wall0 = self.clock()
+        sim0 = self.t_s
+        next_hb = wall0
+        next_report = -math.inf
+        start_wall, start_sim = wall0, sim0
+        window: collections.deque[tuple[float, float]] = collections.deque(maxlen=21)
+        while not should_stop():
+            now = self.clock()
+            if not window or now - window[-1][0] >= 0.5:
+                window.append((now, self.t_s))
+            self._receive(now)
+            if math.isfinite(self.speedup):
+                target = sim0 + (now - wall0) * self.speedup
+                if (target - self.t_s) / self.speedup > self.BEHIND_WALL_S:
+                    self.stats.behind_events += 1
+                    if now >= next_report:
+                        w0, s0 = window[0]
+                        ratio = (self.t_s - s0) / max(now - w0, 1e-9)
+                        self.status(f"cannot keep up with --speedup {self.speedup:g}: "
+                                    f"simulated time ran at {ratio:.0f}x real time over the "
+                                    f"last {now - w0:.0f} s; it runs as fast as it can")
+                        next_report = now + 30.0
+                    target = self.t_s + self.step_s
+                    sim0, wall0 = target, now
+            else:
+                target = self.t_s + self.step_s
+            try:
+                self._advance_to(target)
+            except FlightError as exc:
+                self.error = f"the vehicle crashed: {exc}"
+                self.autopilot.crashed = True
+                self.autopilot.text(SEVERITY_CRITICAL, "crashed")
+                self.status(self.error)
+                self._publish_events()
+                break
+            if now >= next_hb:
+                self._broadcast(self.telemetry.heartbeat())
+                next_hb = max(next_hb + 1.0, now + 0.5)
+            self._publish_streams()
+            self.protocol.tick()
+            self._link_check(now)
+            self.autopilot.on_wall_clock(now)
+            self._publish_events()
+            self.stats.wall_s = self.clock() - start_wall
+            self.stats.sim_s = self.t_s - start_sim
+            self._wait(0.0 if not math.isfinite(self.speedup) else self.LOOP_PERIOD_S)
+
+    def _advance_to(self, target_s: float) -> None:
+        """Step towards ``target_s``, for at most STEP_WALL_S of wall time (the ports
+        are read again after that; a target not reached shows as lag)."""
+        ap = self.autopilot
+        dt = ap.dt
+        until = self.clock() + self.STEP_WALL_S
+        while math.floor(target_s / dt + 1e-9) > ap.vehicle.k and self.clock() < until:
+            t = min(target_s, self.t_s + self.step_s)
+            emitted = ap.step_to(t)
+            self.stats.steps += 1
+            for e in emitted:
+                if isinstance(e.record, GnssFix):
+                    self.telemetry.last_fix = e.record
+            if self._sink is not None:
+                self._sink.add(emitted, self.t_s)
+            self._publish_events()
+            self._publish_streams()
+
+    def _publish_streams(self) -> None:
+        for msg_id in self.telemetry.streams.due(self.t_s):
+            self._broadcast(self.telemetry.build(msg_id))
+
+    def _wait(self, timeout_s: float) -> None:
+        fds = [p.conn.fd for p in self.ports]
+        if timeout_s <= 0:
+            return
+        if any(fd is None for fd in fds):
+            time.sleep(timeout_s)
+            return
+        with contextlib.suppress(OSError, ValueError):
+            select.select(fds, [], [], timeout_s)
+
+    # ------------------------------------------------------------------ sending
+    def _broadcast(self, msg: Any) -> None:
+        if msg is None:
+            return
+        for p in self.ports:
+            with contextlib.suppress(OSError):
+                p.conn.mav.send(msg)
+                self.stats.sent += 1
+
+    def _send_to(self, peer: Peer, name: str, args: tuple) -> None:
+        port = self.ports[peer[0]]
+        with contextlib.suppress(OSError):
+            getattr(port.conn.mav, f"{name}_send")(peer[1], peer[2], *args)
+            self.stats.sent += 1
+
+    def _send_msg(self, peer: Peer, msg: Any) -> None:
+        if msg is None:
+            return
+        with contextlib.suppress(OSError):
+            self.ports[peer[0]].conn.mav.send(msg)
+            self.stats.sent += 1
+
+    def _ack(self, peer: Peer, command: int, result: int) -> None:
+        self._send_msg(peer, mavlink.MAVLink_command_ack_message(command, result, 0, 0,
+                                                                 peer[1], peer[2]))
+
+    def _statustext(self, severity: int, text: str) -> None:
+        self._broadcast(mavlink.MAVLink_statustext_message(severity, text[:50].encode(), 0, 0))
+
+    def _publish_events(self) -> None:
+        ap = self.autopilot
+        for ev in ap.drain_events():
+            kind = ev[0]
+            if kind == "reached":
+                self._broadcast(mavlink.MAVLink_mission_item_reached_message(int(ev[1])))
+            elif kind == "current":
+                state = ev[1:4]
+                if state != self._last_current:
+                    self._last_current = state
+                    mode = 1 if ap.mode is Mode.MISSION else 2 if state[1] else 0
+                    self._broadcast(mavlink.MAVLink_mission_current_message(*state, mode))
+            elif kind in ("mode", "armed"):
+                self._broadcast(self.telemetry.heartbeat())
+            elif kind == "home":
+                self._broadcast(self.telemetry.build(MSG_HOME_POSITION))
+            elif kind == "landed":
+                self._broadcast(self.telemetry.build(MSG_EXTENDED_SYS_STATE))
+            elif kind == "text":
+                self._statustext(int(ev[1]), str(ev[2]))
+
+    # ------------------------------------------------------------------ receiving
+    def _receive(self, now: float) -> None:
+        for k, port in enumerate(self.ports):
+            for _ in range(1000):
+                try:
+                    msg = port.conn.recv_msg()
+                except (OSError, ValueError):
+                    break
+                if msg is None:
+                    break
+                self._dispatch(k, msg, now)
+
+    def _dispatch(self, port: int, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            return
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if src[0] == self.sysid:
+            return
+        self.stats.received += 1
+        self._link.last_rx_wall = now
+        if not self._link.seen or self._link.lost:
+            if self._link.lost:
+                self.autopilot.text(SEVERITY_WARNING, "ground station regained")
+            self._link.seen, self._link.lost = True, False
+        target = getattr(msg, "target_system", 0)
+        if target not in (0, self.sysid):
+            return
+        tcomp = getattr(msg, "target_component", 0)
+        if kind not in ("SET_MODE",) and tcomp not in (0, self.compid):
+            return
+        peer = (port, src[0], src[1])
+        handler = getattr(self, f"_on_{kind.lower()}", None)
+        if handler is None:
+            return
+        try:
+            handler(peer, msg)
+        except (ValueError, TypeError, OverflowError, KeyError) as exc:
+            # a message the vehicle cannot use never stops it: say so once per kind
+            if kind not in self._bad_kinds:
+                self._bad_kinds.add(kind)
+                self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
+
+    def _on_heartbeat(self, peer: Peer, msg: Any) -> None:
+        if msg.type == MAV_TYPE_GCS:
+            self._link.gcs.add(peer[1:])
+
+    # mission protocol
+    def _on_mission_count(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_count(peer, int(msg.count), int(getattr(msg, "mission_type", 0)))
+
+    def _on_mission_item_int(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_item_int(peer, msg)
+
+    def _on_mission_item(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_item_float(peer, msg)
+
+    def _on_mission_request_list(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_request_list(peer, int(getattr(msg, "mission_type", 0)))
+
+    def _on_mission_request_int(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_request(peer, int(msg.seq), int(getattr(msg, "mission_type", 0)))
+
+    def _on_mission_request(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_request(peer, int(msg.seq), int(getattr(msg, "mission_type", 0)),
+                                 float_form=True)
+
+    def _on_mission_clear_all(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_clear_all(peer, int(getattr(msg, "mission_type", 0)))
+
+    def _on_mission_ack(self, peer: Peer, msg: Any) -> None:
+        self.protocol.on_ack(peer, int(msg.type), int(getattr(msg, "mission_type", 0)))
+
+    def _on_mission_set_current(self, peer: Peer, msg: Any) -> None:
+        result, why = self.autopilot.set_current(int(msg.seq))
+        if result != MAV_RESULT_ACCEPTED:
+            self.autopilot.text(SEVERITY_WARNING, why)
+        self._send_msg(peer, self.telemetry.build(MSG_MISSION_CURRENT))
+
+    def _on_commit(self, mission_type: int, items: list, current: int) -> None:
+        ap = self.autopilot
+        if mission_type == MAV_MISSION_TYPE_MISSION:
+            ap.set_mission(items, current)
+        elif mission_type == MAV_MISSION_TYPE_FENCE:
+            ap.set_fence(items)
+        else:
+            ap.set_rally(items)
+
+    # parameters
+    def _param_value(self, peer: Peer | None, name: str) -> None:
+        params = self.autopilot.params
+        value, kind = params.wire_value(name)
+        k = params.index(name)
+        msg = mavlink.MAVLink_param_value_message(name.encode(), value, kind, len(params), k)
+        if peer is None:
+            self._broadcast(msg)
+        else:
+            self._send_msg(peer, msg)
+
+    def _on_param_request_list(self, peer: Peer, msg: Any) -> None:
+        for spec in self.autopilot.params.specs:
+            self._param_value(peer, spec.name)
+
+    def _on_param_request_read(self, peer: Peer, msg: Any) -> None:
+        params = self.autopilot.params
+        idx = int(msg.param_index)
+        if 0 <= idx < len(params):
+            self._param_value(peer, params.specs[idx].name)
+        elif params.index(msg.param_id) is not None:
+            self._param_value(peer, msg.param_id)
+
+    def _on_param_set(self, peer: Peer, msg: Any) -> None:
+        params = self.autopilot.params
+        name = msg.param_id
+        if params.index(name) is None:
+            self.autopilot.text(SEVERITY_WARNING, f"unknown parameter {name}")
+            return
+        value = Params.from_wire(float(msg.param_value), int(msg.param_type or
+                                                                MAV_PARAM_TYPE_REAL32))
+        why = params.set(name, value)
+        if why is not None:
+            self.autopilot.text(SEVERITY_WARNING, why)
+        self._param_value(None, name)
+
+    def _on_timesync(self, peer: Peer, msg: Any) -> None:
+        if msg.tc1 == 0:
+            self._send_msg(peer, mavlink.MAVLink_timesync_message(
+                int(self.clock() * 1e9), int(msg.ts1)))
+
+    # commands
+    def _on_command_long(self, peer: Peer, msg: Any) -> None:
+        p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+             msg.param7]
+        self._command(peer, int(msg.command), [float(v) for v in p], None)
+
+    def _on_command_int(self, peer: Peer, msg: Any) -> None:
+        p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z]
+        if msg.x == 0 and msg.y == 0:
+            p[4] = p[5] = math.nan
+        self._command(peer, int(msg.command), [float(v) for v in p], int(msg.frame))
+
+    def _on_set_mode(self, peer: Peer, msg: Any) -> None:
+        """SET_MODE (deprecated): answered as PX4 does, with a DO_SET_MODE COMMAND_ACK."""
+        main, sub = decode_custom_mode(int(msg.custom_mode))
+        self._command(peer, CMD_DO_SET_MODE, [float(msg.base_mode), float(main), float(sub),
+                                              0.0, 0.0, 0.0, 0.0], None)
+
+    def _alt_amsl(self, alt: float, frame: int | None) -> float:
+        """A command's altitude as AMSL (COMMAND_LONG: AMSL; COMMAND_INT: by frame)."""
+        if frame in RELATIVE_COMMAND_FRAMES and math.isfinite(alt):
+            return self.autopilot.home.alt_m + alt
+        return alt
+
+    def _command(self, peer: Peer, cmd: int, p: list[float], frame: int | None) -> None:
+        ap = self.autopilot
+        result, why, after = MAV_RESULT_UNSUPPORTED, "", None
+        if cmd == CMD_COMPONENT_ARM_DISARM:
+            if p[0] == 1.0:
+                result, why = ap.arm()
+            elif p[0] == 0.0:
+                result, why = ap.disarm(force=round(p[1]) == 21196)
+            else:
+                result, why = MAV_RESULT_DENIED, f"arm/disarm param1 {p[0]:g}"
+        elif cmd == CMD_NAV_TAKEOFF:
+            result, why = ap.takeoff(self._alt_amsl(p[6], frame))
+        elif cmd == CMD_DO_SET_MODE:
+            result, why = self._set_mode(p)
+        elif cmd == CMD_MISSION_START:
+            result, why = ap.mission_start(p[0], p[1])
+        elif cmd == CMD_NAV_RETURN_TO_LAUNCH:
+            result, why = ap.return_to_launch()
+        elif cmd == CMD_NAV_LAND:
+            result, why = ap.land()
+        elif cmd == CMD_DO_PAUSE_CONTINUE:
+            result, why = ap.pause_continue(p[0] >= 1.0)
+        elif cmd == CMD_DO_CHANGE_SPEED:
+            result, why = ap.change_speed(p[1])
+        elif cmd == CMD_DO_REPOSITION:
+            result, why = self._reposition(p, frame)
+        elif cmd == CMD_DO_SET_HOME:
+            if p[0] == 1.0 or not (math.isfinite(p[4]) and math.isfinite(p[5])):
+                result, why = ap.set_home(None)
+            else:
+                result, why = ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame)))
+        elif cmd == CMD_DO_SET_MISSION_CURRENT:
+            seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
+            result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
+            after = self.telemetry.build(MSG_MISSION_CURRENT)
+        elif cmd == CMD_SET_MESSAGE_INTERVAL:
+            ok = self.telemetry.streams.set_interval(int(p[0]), p[1])
+            result = MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED
+        elif cmd == CMD_GET_MESSAGE_INTERVAL:
+            result = MAV_RESULT_ACCEPTED
+            after = mavlink.MAVLink_message_interval_message(
+                int(p[0]), self.telemetry.streams.interval_us(int(p[0])))
+        elif cmd in (CMD_REQUEST_MESSAGE, CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                     CMD_GET_HOME_POSITION):
+            msg_id = {CMD_REQUEST_AUTOPILOT_CAPABILITIES: 148,
+                      CMD_GET_HOME_POSITION: MSG_HOME_POSITION}.get(cmd, int(p[0]))
+            if msg_id in REQUESTABLE:
+                result, after = MAV_RESULT_ACCEPTED, self.telemetry.build(msg_id)
+        self._ack(peer, cmd, result)
+        if why:
+            ap.text(SEVERITY_WARNING if result else SEVERITY_INFO, why)
+        self._send_msg(peer, after)
+        self._publish_events()
+
+    def _set_mode(self, p: list[float]) -> tuple[int, str]:
+        base = int(p[0]) if math.isfinite(p[0]) else 0
+        if not base & 1:
+            return MAV_RESULT_DENIED, "mode change without a custom mode"
+        main, sub = int(p[1]), int(p[2]) if math.isfinite(p[2]) else 0
+        mode = mode_from_main_sub(main, sub)
+        if mode is None:
+            return MAV_RESULT_DENIED, f"mode {mode_name(main, sub)} not supported"
+        return self.autopilot.set_mode(mode)
+
+    def _reposition(self, p: list[float], frame: int | None) -> tuple[int, str]:
+        ap = self.autopilot
+        here = ap.position
+        lat, lon, alt = ap.geodetic(here)
+        if math.isfinite(p[4]) and math.isfinite(p[5]):
+            lat, lon = p[4], p[5]
+        a = self._alt_amsl(p[6], frame)
+        if math.isfinite(a):
+            alt = a
+        e, n, u = ap.frame.to_enu(lat, lon, alt)
+        if p[0] > 0:
+            ap.change_speed(p[0])
+        return ap.reposition((float(e), float(n), float(u)))
+
+    def _link_check(self, now: float) -> None:
+        link = self._link
+        timeout = self.autopilot.params["COM_DL_LOSS_T"]
+        if link.seen and not link.lost and now - link.last_rx_wall > timeout:
+            link.lost = True
+            self.autopilot.on_link_lost()

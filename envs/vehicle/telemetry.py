@@ -1,0 +1,267 @@
+"""Telemetry: the messages the vehicle publishes, built from the autopilot's state.
+
+Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUDE
+10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT
+1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz), on the simulated clock (as PX4 SITL
+with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
+time) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most once per
+simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
+50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz of wall
+time (it keeps ground stations' links alive whatever the speed-up) and at once on a
+change of mode or arming.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+
+from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.px4 import (
+    MAV_AUTOPILOT_PX4,
+    MAV_STATE_ACTIVE,
+    MAV_STATE_STANDBY,
+    MAV_TYPE_QUADROTOR,
+    Mode,
+    base_mode,
+)
+from estimator.records import GnssFix
+from planner.mavlink import mavutil
+from sim.realisation import Realisation
+
+mavlink = mavutil.mavlink
+
+MSG_HEARTBEAT = 0
+MSG_SYS_STATUS = 1
+MSG_GPS_RAW_INT = 24
+MSG_ATTITUDE = 30
+MSG_GLOBAL_POSITION_INT = 33
+MSG_MISSION_CURRENT = 42
+MSG_VFR_HUD = 74
+MSG_AUTOPILOT_VERSION = 148
+MSG_BATTERY_STATUS = 147
+MSG_HOME_POSITION = 242
+MSG_EXTENDED_SYS_STATE = 245
+
+# message id -> default rate (Hz of simulated time)
+DEFAULT_RATES_HZ = {
+    MSG_GLOBAL_POSITION_INT: 5.0,
+    MSG_ATTITUDE: 10.0,
+    MSG_VFR_HUD: 4.0,
+    MSG_GPS_RAW_INT: 1.0,
+    MSG_SYS_STATUS: 1.0,
+    MSG_EXTENDED_SYS_STATE: 1.0,
+    MSG_MISSION_CURRENT: 1.0,
+    MSG_HOME_POSITION: 0.5,
+    MSG_BATTERY_STATUS: 0.5,
+}
+REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MSG_HEARTBEAT, MSG_AUTOPILOT_VERSION})
+
+CAPABILITIES = (
+    mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+)
+FLIGHT_SW_VERSION = (1 << 24) | (14 << 16) | (0 << 8) | 255  # "PX4 1.14.0, official"
+VEHICLE_TAG = b"osa-veh"  # AUTOPILOT_VERSION.flight_custom_version of this vehicle
+
+
+def world_fingerprint(realisation: Realisation) -> int:
+    """A 64-bit fingerprint of a realised world (scenario, seed, responders), sent as
+    AUTOPILOT_VERSION.uid, so a loop can check it flies the world it simulates."""
+    sc = realisation.scenario
+    truth = ";".join(f"{t.bssid},{t.lat_deg:.7f},{t.lon_deg:.7f}"
+                     for t in realisation.truth_records())
+    seq = realisation.seed
+    text = f"{sc.name}|{seq.entropy}|{tuple(seq.spawn_key)}|{truth}"
+    return int.from_bytes(hashlib.blake2b(text.encode(), digest_size=8).digest(), "little")
+# sensors a PX4 quadrotor reports present, enabled and healthy
+_SENSORS = (
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+    | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+    | mavlink.MAV_SYS_STATUS_SENSOR_YAW_POSITION
+    | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
+    | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL | mavlink.MAV_SYS_STATUS_AHRS
+    | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY | mavlink.MAV_SYS_STATUS_PREARM_CHECK
+)
+_FIX_TYPES = {"none": 1, "2d": 2, "3d": 3, "dgps": 4, "rtk_float": 5, "rtk_fixed": 6}
+ENDURANCE_S = 40 * 60.0  # battery: linear drain over 40 min of flight (no failsafe)
+GRAVITY = 9.80665
+
+
+def _wrap_pi(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass
+class Streams:
+    """Which messages stream at which interval (simulated seconds) and when next."""
+
+    interval_s: dict[int, float] = field(
+        default_factory=lambda: {k: 1.0 / v for k, v in DEFAULT_RATES_HZ.items()})
+    next_s: dict[int, float] = field(default_factory=dict)
+
+    def set_interval(self, msg_id: int, interval_us: float) -> bool:
+        """MAV_CMD_SET_MESSAGE_INTERVAL: -1 stops, 0 restores the default."""
+        if msg_id not in DEFAULT_RATES_HZ:
+            return False
+        if interval_us < 0:
+            self.interval_s[msg_id] = math.inf
+        elif interval_us == 0:
+            self.interval_s[msg_id] = 1.0 / DEFAULT_RATES_HZ[msg_id]
+        else:
+            self.interval_s[msg_id] = max(interval_us * 1e-6, 1e-3)
+        self.next_s.pop(msg_id, None)
+        return True
+
+    def interval_us(self, msg_id: int) -> int:
+        v = self.interval_s.get(msg_id)
+        if v is None:
+            return 0
+        return -1 if math.isinf(v) else round(v * 1e6)
+
+    def due(self, t_s: float) -> list[int]:
+        out = []
+        for msg_id, dt in self.interval_s.items():
+            if math.isinf(dt):
+                continue
+            nxt = self.next_s.get(msg_id, t_s)
+            if t_s + 1e-9 >= nxt:
+                out.append(msg_id)
+                nxt += dt
+                self.next_s[msg_id] = nxt if nxt > t_s else t_s + dt
+        return out
+
+
+class Telemetry:
+    """Builds telemetry messages (pymavlink message objects) for ``autopilot``."""
+
+    def __init__(self, autopilot: Autopilot) -> None:
+        self.ap = autopilot
+        self.last_fix: GnssFix | None = None
+        self.streams = Streams()
+        self.fingerprint = world_fingerprint(autopilot.stepper.realisation)
+
+    def _time_ms(self) -> int:
+        return int(self.ap.t_s * 1000.0) & 0xFFFFFFFF
+
+    def heartbeat(self) -> object:
+        ap = self.ap
+        status = MAV_STATE_ACTIVE if ap.armed else MAV_STATE_STANDBY
+        return mavlink.MAVLink_heartbeat_message(
+            MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4, base_mode(ap.mode, ap.armed),
+            ap.mode.custom_mode, status, 3)
+
+    def build(self, msg_id: int) -> object | None:
+        """The message ``msg_id`` now, or None if there is nothing to say yet."""
+        ap = self.ap
+        if msg_id == MSG_HEARTBEAT:
+            return self.heartbeat()
+        if msg_id == MSG_GLOBAL_POSITION_INT:
+            p, v = ap.position, ap.velocity
+            lat, lon, alt = ap.geodetic(p)
+            hdg = self._heading_deg()
+            return mavlink.MAVLink_global_position_int_message(
+                self._time_ms(), _e7(lat), _e7(lon), round(alt * 1000.0),
+                round((p[2] - ap.home.enu[2]) * 1000.0),
+                _cms(v[1]), _cms(v[0]), _cms(-v[2]), round(hdg * 100.0) % 36000)
+        if msg_id == MSG_ATTITUDE:
+            roll, pitch, yaw = self._attitude()
+            return mavlink.MAVLink_attitude_message(self._time_ms(), roll, pitch, yaw,
+                                                    0.0, 0.0, 0.0)
+        if msg_id == MSG_GPS_RAW_INT:
+            return self._gps_raw()
+        if msg_id == MSG_SYS_STATUS:
+            enabled = _SENSORS | (mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS if ap.armed else 0)
+            if not ap.fence.empty:
+                enabled |= mavlink.MAV_SYS_STATUS_GEOFENCE
+            present = _SENSORS | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS \
+                | mavlink.MAV_SYS_STATUS_GEOFENCE
+            volts, amps, left = self._battery()
+            return mavlink.MAVLink_sys_status_message(
+                present, enabled, enabled, 250, round(volts * 1000), round(amps * 100), left,
+                0, 0, 0, 0, 0, 0, 0, 0, 0)
+        if msg_id == MSG_EXTENDED_SYS_STATE:
+            return mavlink.MAVLink_extended_sys_state_message(0, ap.landed_state)
+        if msg_id == MSG_HOME_POSITION:
+            h = ap.home
+            return mavlink.MAVLink_home_position_message(
+                _e7(h.lat_deg), _e7(h.lon_deg), round(h.alt_m * 1000.0),
+                h.enu[1], h.enu[0], -h.enu[2], [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                int(ap.t_s * 1e6))
+        if msg_id == MSG_MISSION_CURRENT:
+            seq, total, state = ap.mission_current()
+            mode = 1 if ap.mode is Mode.MISSION else 2 if total else 0
+            return mavlink.MAVLink_mission_current_message(seq, total, state, mode)
+        if msg_id == MSG_VFR_HUD:
+            v = ap.velocity
+            gs = math.hypot(v[0], v[1])
+            lat, lon, alt = ap.geodetic(ap.position)
+            throttle = 0 if not ap.armed else 20 if ap.landed else 50
+            return mavlink.MAVLink_vfr_hud_message(gs, gs, round(self._heading_deg()) % 360,
+                                                   throttle, alt, v[2])
+        if msg_id == MSG_BATTERY_STATUS:
+            volts, amps, left = self._battery()
+            cells = [round(volts * 250)] * 4 + [65535] * 6
+            return mavlink.MAVLink_battery_status_message(
+                0, 1, 3, 32767, cells, round(amps * 100), -1, -1, left, 0, 0)
+        if msg_id == MSG_AUTOPILOT_VERSION:
+            return mavlink.MAVLink_autopilot_version_message(
+                CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
+                [0] * 8, [0] * 8, 0, 0, self.fingerprint, [0] * 18)
+        return None
+
+    def _heading_deg(self) -> float:
+        yaw = self.ap.vehicle.state.yaw_rad  # ENU, counter-clockwise from east
+        return math.degrees(_wrap_pi(math.pi / 2.0 - yaw)) % 360.0
+
+    def _attitude(self) -> tuple[float, float, float]:
+        ap = self.ap
+        yaw_enu = ap.vehicle.state.yaw_rad
+        ax, ay, _ = ap.accel if ap.armed and not ap.landed else (0.0, 0.0, 0.0)
+        c, s = math.cos(yaw_enu), math.sin(yaw_enu)
+        fwd, left = ax * c + ay * s, -ax * s + ay * c
+        pitch = -math.atan2(fwd, GRAVITY)
+        roll = math.atan2(-left, GRAVITY)
+        lim = math.radians(35.0)
+        return (max(-lim, min(lim, roll)), max(-lim, min(lim, pitch)),
+                _wrap_pi(math.pi / 2.0 - yaw_enu))
+
+    def _battery(self) -> tuple[float, float, int]:
+        left = max(0.0, 1.0 - self.ap.flight_time_s / ENDURANCE_S)
+        amps = 18.0 if self.ap.armed and not self.ap.landed else 0.5
+        return 14.0 + 2.8 * left, amps, round(100 * left)
+
+    def _gps_raw(self) -> object:
+        f = self.last_fix
+        t_us = int(self.ap.t_s * 1e6)
+        v = self.ap.velocity
+        gs = math.hypot(v[0], v[1])
+        cog = round(self._heading_deg() * 100) % 36000 if gs > 0.5 else 65535
+        if f is None:
+            return mavlink.MAVLink_gps_raw_int_message(t_us, 0, 0, 0, 0, 65535, 65535, 65535,
+                                                       65535, 0, 0, 0, 0, 0, 0, 0)
+        acc = f.acc_m if f.acc_m is not None else 9.99
+        vacc = f.vacc_m if f.vacc_m is not None else 2.0 * acc
+        alt_mm = round(f.alt_m * 1000.0)
+        return mavlink.MAVLink_gps_raw_int_message(
+            t_us, _FIX_TYPES.get(f.fix or "3d", 3), _e7(f.lat_deg), _e7(f.lon_deg), alt_mm,
+            min(round(acc * 100), 65534), min(round(vacc * 100), 65534), round(gs * 100), cog,
+            f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
+            round(vacc * 1000), 0, 0, 0)
+
+
+def _e7(deg: float) -> int:
+    v = math.floor(abs(deg) * 1e7 + 0.5)
+    return int(math.copysign(v, deg)) if v else 0
+
+
+def _cms(v_mps: float) -> int:
+    return max(-32768, min(32767, round(v_mps * 100.0)))

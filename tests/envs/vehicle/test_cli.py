@@ -1,0 +1,115 @@
+"""``osa vehicle`` as a process: it serves ``osa upload``, writes the phone's log as it
+runs, stops on SIGTERM or SIGINT with status 0 and a complete log; bad input is one
+line on stderr and status 2."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from envs.cli import main as osa_main
+from tests.envs.vehicle.helpers import SEARCH_SCENARIO
+from tests.net import free_udp_port
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def _start(args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "envs.cli", "vehicle", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _first_line(proc: subprocess.Popen, timeout_s: float = 20.0) -> str:
+    import selectors
+
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    if not sel.select(timeout_s):
+        proc.kill()
+        raise TimeoutError("osa vehicle did not start")
+    return proc.stdout.readline()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_vehicle_process_serves_upload_and_stops_cleanly(tmp_path: Path, capsys,
+                                                          sig: int) -> None:
+    port = free_udp_port()
+    log = tmp_path / "phone.jsonl"
+    proc = _start([SEARCH_SCENARIO, "--connection", f"udpin:127.0.0.1:{port}",
+                   "--speedup", "20", "--log", str(log), "--seed", "3"])
+    try:
+        line = _first_line(proc)
+        assert line.startswith("osa vehicle: search-ap1f seed 3: PX4 quadrotor")
+        assert "landed and disarmed" in line and "speed-up 20x" in line
+        if sig == signal.SIGTERM:
+            plan = tmp_path / "m.plan"
+            assert osa_main(["plan", "orbit", "--center", "36.7145,-4.4776", "--radius",
+                             "30", "--alt", "40", "-o", str(plan)]) == 0
+            capsys.readouterr()
+            status = osa_main(["upload", str(plan), "--connection",
+                               f"udpout:127.0.0.1:{port}", "--timeout", "5"])
+            out, err = capsys.readouterr()
+            assert (status, err) == (0, ""), err
+            assert "uploaded and verified" in out
+        time.sleep(1.0)
+        # the log grows while it runs (flushed): header, truth, then the phone's records
+        lines = log.read_text().splitlines()
+        assert json.loads(lines[0])["type"] == "header" and len(lines) > 50
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=5)
+    assert proc.returncode == 0, stderr
+    assert stderr == ""
+    assert "osa vehicle: stopped at" in stdout
+    text = log.read_text()
+    assert text.endswith("\n")
+    records = [json.loads(x) for x in text.splitlines()]  # every line whole
+    kinds = [r["type"] for r in records]
+    assert kinds[0] == "header" and kinds[1:4] == ["truth"] * 3
+    assert kinds.count("gnss") > 100 and "rtt" in kinds
+
+
+def test_vehicle_bad_input_is_one_line_and_status_2(capsys) -> None:
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    port = busy.getsockname()[1]
+    try:
+        cases = [
+            ([SEARCH_SCENARIO, "--connection", "serial:/dev/null"], "unsupported connection"),
+            ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:abc"], "is not a number"),
+            ([SEARCH_SCENARIO, "--connection", f"udpin:127.0.0.1:{port}"], "cannot listen"),
+            ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:1", "--param", "NOPE=1"],
+             "unknown parameter NOPE"),
+            ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:1", "--param",
+              "GF_ACTION=9"], "GF_ACTION = 9 outside"),
+            ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:1", "--speedup", "-1"],
+             "--speedup"),
+            ([SEARCH_SCENARIO], "--connection"),
+        ]
+        for args, text in cases:
+            try:
+                status = osa_main(["vehicle", *args])
+            except SystemExit as exc:  # argparse
+                status = exc.code
+            err = capsys.readouterr().err
+            assert status == 2, (args, err)
+            assert err.count("\n") == 1 and text in err, err
+    finally:
+        busy.close()
+    # a real process: one line, no traceback
+    proc = subprocess.run([sys.executable, "-m", "envs.cli", "vehicle", "no-such-scenario",
+                           "--connection", "udpin:127.0.0.1:1"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith("osa vehicle: unknown scenario 'no-such-scenario'")

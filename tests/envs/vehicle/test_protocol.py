@@ -1,0 +1,187 @@
+"""The vehicle side of the mission protocol, message by message (fake link and clock):
+what it ACKs, what it refuses with which MAV_MISSION_RESULT, and that only a complete
+list ever replaces the held one."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from envs.vehicle.mission import (
+    CAPACITY,
+    MISSION_ACCEPTED,
+    MISSION_DENIED,
+    MISSION_INVALID_PARAM1,
+    MISSION_INVALID_PARAM5_X,
+    MISSION_INVALID_SEQUENCE,
+    MISSION_NO_SPACE,
+    MISSION_OPERATION_CANCELLED,
+    MISSION_UNSUPPORTED,
+    MISSION_UNSUPPORTED_FRAME,
+)
+from envs.vehicle.protocol import MissionServer
+from planner.mavlink import WireItem
+from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
+
+GCS = (0, 255, 190)
+OTHER = (0, 250, 1)
+
+
+class Link:
+    def __init__(self) -> None:
+        self.sent: list[tuple] = []
+        self.now = 0.0
+        self.commits: list[tuple[int, list[WireItem], int]] = []
+        self.server = MissionServer(self.send, lambda t, items, cur: self.commits.append(
+            (t, items, cur)), lambda: 0, clock=lambda: self.now)
+
+    def send(self, peer, name, args) -> None:
+        self.sent.append((peer, name, args))
+
+    def take(self) -> list[tuple]:
+        out, self.sent = self.sent, []
+        return out
+
+    def acks(self) -> list[int]:
+        return [a[0] for _, n, a in self.sent if n == "mission_ack"]
+
+
+def wp(seq: int, **kw) -> WireItem:
+    base = dict(seq=seq, frame=6, command=16, current=int(seq == 0), autocontinue=1,
+                param1=0.0, param2=0.0, param3=0.0, param4=float("nan"),
+                x=367150000 + 100 * seq, y=-44780000, z=30.0, mission_type=0)
+    base.update(kw)
+    return WireItem(**base)
+
+
+def upload(link: Link, items: list[WireItem], peer=GCS, mission_type: int = 0) -> None:
+    link.server.on_count(peer, len(items), mission_type)
+    for w in items:
+        link.server.on_item(peer, w)
+
+
+def test_complete_upload_is_committed_and_acked_once() -> None:
+    link = Link()
+    items = [wp(k) for k in range(5)]
+    link.server.on_count(GCS, 5, 0)
+    assert link.take() == [(GCS, "mission_request_int", (0, 0))]
+    for w in items[:4]:
+        link.server.on_item(GCS, w)
+    assert [a for _, n, a in link.take()] == [(k, 0) for k in range(1, 5)]
+    assert link.commits == []  # nothing flown before the last item
+    link.server.on_item(GCS, items[4])
+    assert link.take() == [(GCS, "mission_ack", (MISSION_ACCEPTED, 0))]
+    assert link.commits == [(0, items, 0)]
+    # the ACK was lost: the last item again is acknowledged again, nothing re-committed
+    link.server.on_item(GCS, items[4])
+    assert link.take() == [(GCS, "mission_ack", (MISSION_ACCEPTED, 0))]
+    assert len(link.commits) == 1
+    # the current item of the upload becomes the current item
+    upload(link, [replace(wp(k), current=int(k == 2)) for k in range(4)])
+    assert link.commits[-1][2] == 2
+
+
+def test_refusals_leave_the_previous_mission() -> None:
+    link = Link()
+    good = [wp(k) for k in range(3)]
+    upload(link, good)
+    assert link.server.held[0] == good
+    cases = [
+        ([wp(0), wp(1, command=31000)], MISSION_UNSUPPORTED),  # unknown command
+        ([wp(0), wp(1, frame=1)], MISSION_UNSUPPORTED_FRAME),  # local NED
+        ([wp(0), wp(1, x=950_000_000)], MISSION_INVALID_PARAM5_X),  # latitude 95
+        ([wp(0), wp(1, command=177, frame=2, param1=7.0, param2=1.0)], MISSION_INVALID_PARAM1),
+        ([wp(0), wp(2)], MISSION_INVALID_SEQUENCE),  # a gap
+    ]
+    for items, result in cases:
+        link.take()
+        link.server.on_count(GCS, 3, 0)
+        for w in items:
+            link.server.on_item(GCS, w)
+        assert link.acks() == [result], items
+        assert link.server.held[0] == good and len(link.commits) == 1
+    link.take()
+    link.server.on_count(GCS, CAPACITY[0] + 1, 0)
+    assert link.acks() == [MISSION_NO_SPACE]
+    assert link.server.refused[-1] == (0, MISSION_NO_SPACE)
+
+
+def test_interrupted_upload_times_out_and_keeps_the_old_list() -> None:
+    link = Link()
+    old = [wp(k) for k in range(3)]
+    upload(link, old)
+    link.take()
+    new = [wp(k, z=50.0) for k in range(10)]
+    link.server.on_count(GCS, 10, 0)
+    for w in new[:5]:
+        link.server.on_item(GCS, w)
+    link.take()
+    # silence: the vehicle asks again every retry_s, gives up after timeout_s
+    for k in range(1, 20):
+        link.now = 0.3 * k
+        link.server.tick()
+    sent = link.take()
+    requests = [a for _, n, a in sent if n == "mission_request_int"]
+    assert requests and all(a == (5, 0) for a in requests)
+    assert len(requests) <= 5.0 / 0.25 + 1
+    assert [a for _, n, a in sent if n == "mission_ack"] == [(MISSION_OPERATION_CANCELLED, 0)]
+    assert link.server.held[0] == old and not link.server.uploading
+    # a late item of the dropped upload is ignored
+    link.server.on_item(GCS, new[5])
+    assert link.take() == [] and link.server.held[0] == old
+    # the ground station may cancel too
+    link.server.on_count(GCS, 10, 0)
+    link.server.on_item(GCS, new[0])
+    link.server.on_ack(GCS, MISSION_OPERATION_CANCELLED, 0)
+    assert not link.server.uploading and link.server.held[0] == old
+
+
+def test_duplicates_busy_and_other_types() -> None:
+    link = Link()
+    items = [wp(k) for k in range(4)]
+    link.server.on_count(GCS, 4, 0)
+    link.server.on_count(GCS, 4, 0)  # our request was lost: asked again
+    assert [a for _, n, a in link.take()] == [(0, 0), (0, 0)]
+    link.server.on_item(GCS, items[0])
+    link.server.on_item(GCS, items[0])  # a resend: ask for the next one again
+    assert [a for _, n, a in link.take()] == [(1, 0), (1, 0)]
+    # another ground station while this upload runs
+    link.server.on_count(OTHER, 2, 0)
+    assert link.take() == [(OTHER, "mission_ack", (MISSION_DENIED, 0))]
+    # a fence upload meanwhile is its own transfer; a split polygon is refused
+    fence = [WireItem(seq=k, frame=0, command=5001, current=0, autocontinue=0, param1=4.0,
+                      param2=0.0, param3=0.0, param4=0.0, x=367150000 + k, y=-44780000, z=0.0,
+                      mission_type=MAV_MISSION_TYPE_FENCE) for k in range(3)]
+    upload(link, fence, mission_type=MAV_MISSION_TYPE_FENCE)
+    assert link.acks()[-1] == MISSION_INVALID_PARAM1 and link.server.held[1] == []
+    for w in items[1:]:
+        link.server.on_item(GCS, w)
+    assert link.acks()[-1] == MISSION_ACCEPTED and link.server.held[0] == items
+
+
+def test_download_clear_and_count_zero() -> None:
+    link = Link()
+    items = [wp(k) for k in range(3)]
+    upload(link, items)
+    link.take()
+    link.server.on_request_list(GCS, 0)
+    assert link.take() == [(GCS, "mission_count", (3, 0))]
+    link.server.on_request(GCS, 1, 0)
+    (_, name, args), = link.take()
+    assert name == "mission_item_int" and args[0] == 1 and args[3] == 0 and args[9] == items[1].x
+    link.server.on_request(GCS, 0, 0)
+    assert link.take()[0][2][3] == 1  # the current item carries current=1
+    link.server.on_request(GCS, 1, 0, float_form=True)
+    (_, name, args), = link.take()
+    assert name == "mission_item" and args[9] == pytest.approx(items[1].x / 1e7)
+    link.server.on_request(GCS, 3, 0)
+    assert link.acks() == [MISSION_INVALID_SEQUENCE]
+    link.take()
+    link.server.on_clear_all(GCS, 255)
+    assert link.acks() == [MISSION_ACCEPTED]
+    assert all(v == [] for v in link.server.held.values())
+    upload(link, items)
+    link.take()
+    link.server.on_count(GCS, 0, MAV_MISSION_TYPE_MISSION)  # PX4: a count of 0 clears
+    assert link.acks() == [MISSION_ACCEPTED] and link.server.held[0] == []
