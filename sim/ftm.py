@@ -204,7 +204,10 @@ class FtmTrack:
     """All ranging results (E of them) in request order, with their hidden truth.
 
     ``status`` holds indices into :data:`STATUS_NAMES`; ``range_m`` is NaN for failures.
-    ``t_s`` is the true measurement time, ``t_delivery_s`` the callback time.
+    ``t_s`` is the true measurement time, ``t_delivery_s`` the callback time,
+    ``request`` the index of the request each result belongs to (per radio). A step of
+    the radio returns one of these for the requests it processed; :func:`ftm_track`
+    joins consecutive steps.
     """
 
     t_s: np.ndarray
@@ -228,6 +231,7 @@ class FtmTrack:
     offsets_m: np.ndarray  # (K,) hardware offset per responder
     request_t_s: np.ndarray  # (R,) request times
     request_peers: np.ndarray  # (R,) responders ranged per request
+    request: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def __repr__(self) -> str:
         return f"FtmTrack({len(self.t_s)} results, {int(self.ok.sum())} ok)"
@@ -245,15 +249,16 @@ class FtmTrack:
         return int(np.count_nonzero(self.ok & (self.responder == responder)))
 
 
-def _empty(k: int, attempted: int) -> FtmTrack:
+def _empty(k: int, attempted: int, offsets_m: np.ndarray | None = None) -> FtmTrack:
     z = np.zeros(0)
     zi = np.zeros(0, dtype=np.int64)
+    offsets = np.zeros(k) if offsets_m is None else np.asarray(offsets_m)
     return FtmTrack(
         t_s=z, t_delivery_s=z, responder=zi, status=zi, range_m=z, range_std_m=z,
         rssi_dbm=zi, successful=zi, attempted=attempted, true_range_m=z,
         antenna_enu_m=np.zeros((0, 3)), rssi_mean_dbm=z, p_ok=z, sigma_m=z, noise_m=z,
         nlos_excess_m=z, outlier=np.zeros(0, dtype=bool), outlier_excess_m=z,
-        offsets_m=np.zeros(k), request_t_s=z, request_peers=zi,
+        offsets_m=offsets, request_t_s=z, request_peers=zi,
     )  # fmt: skip
 
 
@@ -317,32 +322,6 @@ def _is_symbolic(x: object) -> bool:
 
 
 # ----------------------------------------------------------------------------- the radio
-
-
-@dataclass
-class FtmBatch:
-    """The ranging results computed in one step (arrays, one row per result)."""
-
-    t_s: np.ndarray
-    t_delivery_s: np.ndarray
-    request: np.ndarray  # request index (global per radio)
-    responder: np.ndarray
-    status: np.ndarray
-    range_m: np.ndarray
-    range_std_m: np.ndarray
-    rssi_dbm: np.ndarray
-    successful: np.ndarray
-    true_range_m: np.ndarray
-    antenna_enu_m: np.ndarray
-    rssi_mean_dbm: np.ndarray
-    p_ok: np.ndarray
-    sigma_m: np.ndarray
-    noise_m: np.ndarray
-    nlos_excess_m: np.ndarray
-    outlier: np.ndarray
-    outlier_excess_m: np.ndarray
-    request_t_s: np.ndarray  # per active request of the step
-    request_peers: np.ndarray
 
 
 class FtmRadio:
@@ -452,12 +431,12 @@ class FtmRadio:
         return blk
 
     # -------------------------------------------------------------- stepping
-    def range_until(self, t_end_s: float, position_at, antenna_at) -> FtmBatch:
+    def range_until(self, t_end_s: float, position_at, antenna_at) -> FtmTrack:
         """Every request whose bursts end by ``t_end_s`` and that is not done yet."""
         cfg = self.cfg
         if self.k_n == 0:
             self.horizon_s = math.inf
-            return _empty_batch(cfg.attempted)
+            return _empty(self.k_n, cfg.attempted, self.offsets_m)
         self._extend_grid(t_end_s, position_at)
         w_last = self.w_grid[-1]  # the warped time at t = g_done GRID_S >= t_end
         reqs: list[tuple[int, float, int]] = []  # (request index, t_req, grid index)
@@ -486,10 +465,10 @@ class FtmRadio:
         """The last g <= len(w) - 2 with w[g] <= tau (0 if none): w increases."""
         return max(0, min(bisect.bisect_right(self.w_grid, tau) - 1, len(self.w_grid) - 2))
 
-    def _results(self, reqs: list[tuple[int, float, int]], antenna_at) -> FtmBatch:
+    def _results(self, reqs: list[tuple[int, float, int]], antenna_at) -> FtmTrack:
         cfg = self.cfg
         if not reqs:
-            return _empty_batch(cfg.attempted)
+            return _empty(self.k_n, cfg.attempted, self.offsets_m)
         rows_req, rows_resp, rows_slot, t_req_l, n_peers_l = [], [], [], [], []
         for i, (_k, t_req, g) in enumerate(reqs):
             score = self.rssi_grid[g]
@@ -557,7 +536,9 @@ class FtmRadio:
         col = np.arange(cfg.attempted - 1)[None, :]
         chi_mean = np.where(col < dof[:, None], d["chi"], 0.0).sum(axis=1) / dof
         spread = np.where(successful >= 2, sigma * np.sqrt(chi_mean), 0.0)
-        return FtmBatch(
+        return FtmTrack(
+            attempted=cfg.attempted,
+            offsets_m=self.offsets_m,
             t_s=t_meas,
             t_delivery_s=t_cb[ri],
             request=kidx[ri],
@@ -581,35 +562,19 @@ class FtmRadio:
         )
 
 
-_BATCH_FIELDS = (
+_STEP_FIELDS = (
     "t_s", "t_delivery_s", "request", "responder", "status", "range_m", "range_std_m",
     "rssi_dbm", "successful", "true_range_m", "antenna_enu_m", "rssi_mean_dbm", "p_ok",
     "sigma_m", "noise_m", "nlos_excess_m", "outlier", "outlier_excess_m", "request_t_s",
     "request_peers",
 )  # fmt: skip
-_INT_FIELDS = {"request", "responder", "status", "rssi_dbm", "successful", "request_peers"}
 
 
-def _empty_batch(attempted: int) -> FtmBatch:
-    kw = {}
-    for name in _BATCH_FIELDS:
-        if name == "antenna_enu_m":
-            kw[name] = np.zeros((0, 3))
-        elif name == "outlier":
-            kw[name] = np.zeros(0, dtype=bool)
-        elif name in _INT_FIELDS:
-            kw[name] = np.zeros(0, dtype=np.int64)
-        else:
-            kw[name] = np.zeros(0)
-    return FtmBatch(**kw)
-
-
-def ftm_track(batches: list[FtmBatch], offsets_m: np.ndarray, attempted: int) -> FtmTrack:
-    """Concatenate a radio's batches into an :class:`FtmTrack`."""
-    if not batches:
-        return _empty(len(offsets_m), attempted)
-    cat = {name: np.concatenate([getattr(b, name) for b in batches]) for name in _BATCH_FIELDS}
-    cat.pop("request")
+def ftm_track(steps: list[FtmTrack], offsets_m: np.ndarray, attempted: int) -> FtmTrack:
+    """The results of a radio's consecutive steps as one :class:`FtmTrack`."""
+    if not steps:
+        return _empty(len(offsets_m), attempted, offsets_m)
+    cat = {name: np.concatenate([getattr(b, name) for b in steps]) for name in _STEP_FIELDS}
     return FtmTrack(attempted=attempted, offsets_m=np.asarray(offsets_m), **cat)
 
 

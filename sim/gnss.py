@@ -205,25 +205,11 @@ class GnssErrorProcess:
         return self.bias.at(np.maximum(t, 0.0))
 
 
-@dataclass
-class GnssBatch:
-    """Fixes measured in one step, with their truth (arrays, one row per fix)."""
-
-    t_s: np.ndarray
-    t_delivery_s: np.ndarray
-    enu_m: np.ndarray
-    true_enu_m: np.ndarray
-    bias_enu_m: np.ndarray
-    acc_m: np.ndarray
-    vacc_m: np.ndarray | None
-    sats: np.ndarray
-    n_epochs: int
-
-
 class GnssReceiver:
     """Measures the fixes of epochs as the flight advances (see :class:`GnssErrorProcess`).
 
-    ``measure_until(t_end, truth_at)`` returns the fixes of the epochs in (last, t_end]:
+    ``measure_until(t_end, truth_at)`` returns the fixes of the epochs in (last, t_end]
+    (a :class:`GnssTrack` of that step):
     reported = truth + bias + white noise; outage windows deliver nothing, fallback
     windows only every ``rate / fallback_rate``-th epoch, single fixes go missing with
     ``drop_prob``. Delivery is the measurement time plus latency and jitter, kept in
@@ -237,7 +223,7 @@ class GnssReceiver:
         self._k_next = 0
         self._last_delivery_s = -math.inf
 
-    def measure_until(self, t_end_s: float, truth_at) -> GnssBatch:
+    def measure_until(self, t_end_s: float, truth_at) -> GnssTrack:
         cfg = self.cfg
         proc = self.process
         k0 = self._k_next
@@ -275,19 +261,19 @@ class GnssReceiver:
             last = v if v > last + 1e-3 else last + 1e-3
             deliver[i] = last
         self._last_delivery_s = last
-        return GnssBatch(t, deliver, meas, truth, bias, acc, vacc, sats.astype(np.int64),
-                         len(k))
+        return GnssTrack(t, deliver, meas, truth, bias, acc, vacc, sats.astype(np.int64),
+                         cfg.fix, len(k))
 
 
-def gnss_track(batches: list[GnssBatch], fix: str) -> GnssTrack:
-    """Concatenate a receiver's batches into a :class:`GnssTrack`."""
+def gnss_track(steps: list[GnssTrack], fix: str) -> GnssTrack:
+    """The fixes of consecutive steps as one :class:`GnssTrack`."""
     def cat(name: str, width: int | None = None) -> np.ndarray:
-        parts = [getattr(b, name) for b in batches]
+        parts = [getattr(b, name) for b in steps]
         if not parts:
             return np.zeros((0, width)) if width else np.zeros(0)
         return np.concatenate(parts)
 
-    vacc = None if not batches or batches[0].vacc_m is None else cat("vacc_m")
+    vacc = None if not steps or steps[0].vacc_m is None else cat("vacc_m")
     return GnssTrack(
         t_s=cat("t_s"),
         t_delivery_s=cat("t_delivery_s"),
@@ -298,7 +284,7 @@ def gnss_track(batches: list[GnssBatch], fix: str) -> GnssTrack:
         vacc_m=vacc,
         sats=cat("sats").astype(np.int64),
         fix=fix,
-        n_epochs=sum(b.n_epochs for b in batches),
+        n_epochs=sum(b.n_epochs for b in steps),
     )
 
 

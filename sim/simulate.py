@@ -25,7 +25,13 @@ from sim.gnss import GnssTrack
 from sim.realisation import Realisation, realise
 from sim.scenario import Scenario, load_scenario
 from sim.stepper import Stepper
-from sim.vehicle import FlightError, VehicleState, VehicleTrack, path_guidance
+from sim.vehicle import (
+    FlightError,
+    VehicleState,
+    VehicleTrack,
+    path_guidance,
+    trajectory_error,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,11 +128,7 @@ def run_scenario(scenario: Scenario, seed: int) -> SimResult:
             agent.vehicle.advance(min(agent.t_s + 60.0, t_max), until_done=True)
             stepper.step_to(agent.t_s)
     except FlightError as exc:
-        h0 = traj.origin[2]
-        raise FlightError(
-            f"trajectory {traj.name or ''!s}: {exc.args[0]} ({traj.height_ref}; origin height "
-            f"{h0:g} m, the world's {world.origin.h_m:g} m)"
-        ) from None
+        raise trajectory_error(exc, traj, world) from None
     stepper.finish()
     vehicle = stepper.vehicle_track(0)
     gnss = stepper.gnss_track(0)

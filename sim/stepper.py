@@ -32,8 +32,8 @@ from estimator.logio import LogWriter
 from estimator.records import GnssFix, LogHeader, RangeSample, Trajectory
 from sim._random import BlockedGaussMarkov
 from sim.clock import PhoneClock
-from sim.ftm import STATUS_NAMES, FtmBatch, FtmRadio, FtmTrack, ftm_track
-from sim.gnss import GnssBatch, GnssReceiver, GnssTrack, gnss_track
+from sim.ftm import STATUS_NAMES, FtmRadio, FtmTrack, ftm_track
+from sim.gnss import GnssReceiver, GnssTrack, gnss_track
 from sim.realisation import (
     AGENT_CLOCK,
     AGENT_GNSS,
@@ -82,8 +82,8 @@ class AgentSim:
     clock: PhoneClock
     header: LogHeader
     writer_seed: np.random.SeedSequence
-    gnss_batches: list[GnssBatch] = field(default_factory=list)
-    ftm_batches: list[FtmBatch] = field(default_factory=list)
+    gnss_steps: list[GnssTrack] = field(default_factory=list)
+    ftm_steps: list[FtmTrack] = field(default_factory=list)
     emitted: list[Emitted] = field(default_factory=list)
     _pending: list[tuple[float, int, int, int, GnssFix | RangeSample]] = field(
         default_factory=list
@@ -196,14 +196,18 @@ class Stepper:
         """Fly ``guidance`` from now on (from the current position and velocity)."""
         self.agent(agent).vehicle.set_guidance(guidance)
 
+    ARRIVE_M = 0.5  # acceptance radius at a segment's end (the estimate drifts with GNSS)
+
     def follow(self, agent: int | str, traj: Trajectory) -> PathGuidance:
-        """Fly ``traj`` from where the agent is (a leg to its start is added if needed)."""
+        """Fly ``traj`` from where the agent is (a leg to its start is added if needed);
+        the segment is done within :attr:`ARRIVE_M` of its end."""
         a = self.agent(agent)
         st = a.vehicle.state
         nav = self.navigation_position_m(agent)
         # the path is flown on the autopilot's estimate: start the leg where it believes
         speed = math.hypot(st.velocity_mps[0], st.velocity_mps[1])
-        g = path_guidance(traj, self.world, a.spec.vehicle, start_speed_mps=speed, from_m=nav)
+        g = path_guidance(traj, self.world, a.spec.vehicle, start_speed_mps=speed, from_m=nav,
+                          arrive_m=self.ARRIVE_M)
         a.vehicle.set_guidance(g)
         return g
 
@@ -233,9 +237,9 @@ class Stepper:
         t_end = a.vehicle.t_s
         v = a.vehicle
         g = a.gnss.measure_until(t_end, v.position_at)
-        a.gnss_batches.append(g)
+        a.gnss_steps.append(g)
         f = a.radio.range_until(t_end, v.position_at, v.antenna_at)
-        a.ftm_batches.append(f)
+        a.ftm_steps.append(f)
         self._queue(a, g, f)
         # emit what was delivered by now, but not past the earliest callback of a
         # request still to be processed: every agent's records leave in delivery order
@@ -255,7 +259,7 @@ class Stepper:
         """End of the flight: deliver what is still on its way (measured, not delivered)."""
         return [self._advance(a, a.vehicle.t_s, flush=True) for a in self.agents]
 
-    def _queue(self, a: AgentSim, g: GnssBatch, f: FtmBatch) -> None:
+    def _queue(self, a: AgentSim, g: GnssTrack, f: FtmTrack) -> None:
         frame = self.world.frame
         if len(g.t_s):
             lat, lon, alt = frame.to_geodetic(g.enu_m[:, 0], g.enu_m[:, 1], g.enu_m[:, 2])
@@ -298,11 +302,11 @@ class Stepper:
 
     def gnss_track(self, agent: int | str = 0) -> GnssTrack:
         a = self.agent(agent)
-        return gnss_track(a.gnss_batches, a.spec.gnss.fix)
+        return gnss_track(a.gnss_steps, a.spec.gnss.fix)
 
     def ftm_track(self, agent: int | str = 0) -> FtmTrack:
         a = self.agent(agent)
-        return ftm_track(a.ftm_batches, self.realisation.offsets_m, a.radio.cfg.attempted)
+        return ftm_track(a.ftm_steps, self.realisation.offsets_m, a.radio.cfg.attempted)
 
     def file_records(self, agent: int | str = 0) -> list[GnssFix | RangeSample]:
         """Everything the agent logged, in file (write) order."""

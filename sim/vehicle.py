@@ -230,6 +230,10 @@ class PathGuidance:
     Built from a :class:`Trajectory` already in the world frame with absolute heights
     (:func:`absolute_path`); the path is resampled every ``path_step_m`` of arc length.
     Zero-length steps of the reference with time (hovers) become stops of that length.
+    The path is done when the reference has reached its end and the (navigation)
+    position is within ``arrive_m`` of it: 1 cm by default (an open-loop flight ends
+    on its last point); a closed loop flying on a drifting GNSS estimate uses an
+    acceptance radius instead (:meth:`sim.stepper.Stepper.follow`).
     """
 
     def __init__(
@@ -242,9 +246,11 @@ class PathGuidance:
         terrain_height: Callable | None = None,
         height_above_terrain_m: np.ndarray | None = None,
         name: str = "",
+        arrive_m: float = 0.01,
     ) -> None:
         self.cfg = cfg
         self.name = name
+        self.arrive_m = arrive_m
         t_ref = np.asarray(t_ref_s, dtype=float) - float(t_ref_s[0])
         p = np.asarray(enu_m, dtype=float)
         if len(p) == 0:
@@ -392,7 +398,7 @@ class PathGuidance:
             self._i = i
         if i >= last:
             vr = 0.0
-            if lag < 0.01:
+            if lag < self.arrive_m:
                 self.done = True
         k = cfg.position_gain_per_s
         return (
@@ -434,12 +440,13 @@ def absolute_path(
 
 def path_guidance(
     traj: Trajectory, world: World, cfg: VehicleConfig, *, start_speed_mps: float = 0.0,
-    from_m: tuple[float, float, float] | None = None,
+    from_m: tuple[float, float, float] | None = None, arrive_m: float = 0.01,
 ) -> PathGuidance:
     """Guidance along ``traj`` (any frame, any height reference) in ``world``.
 
     With ``from_m`` (where the vehicle is), a straight leg from there to the path's
-    first point is prepended when they are more than 1 m apart.
+    first point is prepended when they are more than 1 m apart. ``arrive_m``: see
+    :class:`PathGuidance`.
     """
     t, p, hov = absolute_path(traj, world)
     if hov is not None:  # terrain-referenced: prepend in the same reference
@@ -455,14 +462,15 @@ def path_guidance(
                 hov = np.concatenate([[from_m[2] - gh], hov])
         return PathGuidance(t, p, cfg, start_speed_mps=start_speed_mps,
                             terrain_height=world.ground_m, height_above_terrain_m=hov,
-                            name=traj.name)
+                            name=traj.name, arrive_m=arrive_m)
     if from_m is not None:
         gap = float(np.linalg.norm(np.asarray(from_m) - p[0]))
         if gap > 1.0:
             v = max(_median_speed(t, p), 1.0)
             t = np.concatenate([[t[0] - gap / v], t])
             p = np.vstack([np.asarray(from_m, dtype=float)[None, :], p])
-    return PathGuidance(t, p, cfg, start_speed_mps=start_speed_mps, name=traj.name)
+    return PathGuidance(t, p, cfg, start_speed_mps=start_speed_mps, name=traj.name,
+                        arrive_m=arrive_m)
 
 
 def _median_speed(t: np.ndarray, p: np.ndarray) -> float:
@@ -760,12 +768,17 @@ def fly(
     try:
         fly_guidance(v, g, max_duration_s or 3.0 * traj.duration_s + 600.0)
     except FlightError as exc:
-        h0 = traj.origin[2]
-        raise FlightError(
-            f"trajectory {traj.name or ''!s}: {exc.args[0]} ({traj.height_ref}; origin height "
-            f"{h0:g} m, the world's {world.origin.h_m:g} m)"
-        ) from None
+        raise trajectory_error(exc, traj, world) from None
     return v.track()
+
+
+def trajectory_error(exc: FlightError, traj: Trajectory, world: World) -> FlightError:
+    """The error of a trajectory that cannot be flown, naming its height reference and
+    origin height (an underground flight is almost always a datum mix-up)."""
+    return FlightError(
+        f"trajectory {traj.name or ''!s}: {exc.args[0]} ({traj.height_ref}; origin height "
+        f"{traj.origin[2]:g} m, the world's {world.origin.h_m:g} m)"
+    )
 
 
 def fly_guidance(v: Multirotor, g: Guidance, max_duration_s: float, chunk_s: float = 30.0) -> None:

@@ -223,3 +223,23 @@ def test_whole_flight_is_a_loop_over_the_stepper():
     assert len(recs) == res.n_gnss + res.n_rtt
     fixes = [r for r in recs if isinstance(r, sim.stepper.GnssFix)]
     assert len(fixes) == res.n_gnss
+
+
+def test_a_commanded_segment_is_done_soon_after_its_end():
+    """The autopilot flies on its drifting GNSS estimate (standalone: centimetres per
+    tick): a segment is done within the acceptance radius of its end, seconds after
+    the vehicle gets there, not when the drift happens to pass within a centimetre."""
+    sc = _world_scenario()
+    st = Stepper(realise(sc, 8))
+    g = st.follow(0, _line([(0, -100, 45), (0, 20, 45)], speed=6.0))
+    st.step_to(20.0)
+    flown_by = None
+    for k in range(1, 120):
+        st.step_to(20.0 + 0.5 * k)
+        if g.done:
+            flown_by = st.t_s
+            break
+    # climb from the ground to 45 m (~15 s at 3 m/s) then 120 m at 6 m/s, then brake
+    assert flown_by is not None and flown_by < 50.0
+    end = np.array(st.navigation_position_m(0)) - np.array([0.0, 20.0, 0.0])
+    assert np.hypot(end[0], end[1]) < Stepper.ARRIVE_M
