@@ -108,60 +108,56 @@ class SeriesPoint:
     err_h_m: float | None
 
 
-class ClosedLoop:
-    """One search in closed loop (see the module docstring)."""
+class SearchLoopBase:
+    """What every closed loop shares (in process here, over MAVLink in
+    :mod:`envs.mavlink_loop`): the estimator fed with the phones' records, the
+    responders heard and where, the observations of them a policy gets (no truth), the
+    evaluation series and the report's entries (the truth, for evaluation only).
 
-    def __init__(
-        self,
-        scenario: Scenario,
-        seed=0,
-        *,
-        config: LoopConfig = LoopConfig(),
-        log_paths: Sequence[str | Path] | None = None,
-        flush_lines: bool = False,
-        realisation: Realisation | None = None,
-    ) -> None:
+    A subclass flies the vehicle: it calls :meth:`_init_search`, feeds records to
+    ``self.estimator`` and heard ranges to :meth:`_hear`, and provides ``observe``,
+    ``apply``, ``advance``, ``finish``, ``t_s``, ``path_length_m``, ``log_paths``,
+    ``nav_track`` and :meth:`true_tracks`.
+    """
+
+    def _init_search(self, scenario: Scenario, seed, realisation: Realisation | None,
+                     config: LoopConfig, headers: Sequence) -> None:
         if scenario.search is None:
             raise ValueError(f"scenario {scenario.name} has no [search] table")
         self.scenario = scenario
+        self.seed = seed
         self.config = config
         self.realisation = realisation if realisation is not None else realise(scenario, seed)
-        self.seed = seed
-        self.mode = parse_modes(config.mode)[0]
-        s = scenario.search
-        self.stepper = Stepper(self.realisation, header_agl_m=s.height_m)
-        self.mission = mission_of(scenario, self.realisation, config.area_margin_m)
-        self._convex = self.mission.area.convex
         self.world = self.realisation.world
+        self.mission = mission_of(scenario, self.realisation, config.area_margin_m)
+        self.mode = parse_modes(config.mode)[0]
         self.estimator = OnlineEstimator(EstimatorOptions(modes=(self.mode,)))
-        for a in self.stepper.agents:
-            self.estimator.add_agent(a.name, header=a.header)
-        truth = self.realisation.truth_records()
-        self.truth = {t.bssid: t for t in truth}
-        self.sinks: list[LogSink] = []
-        if log_paths is not None:
-            if len(log_paths) != len(self.stepper.agents):
-                raise ValueError("one log path per agent")
-            for a, p in zip(self.stepper.agents, log_paths, strict=True):
-                self.sinks.append(LogSink(p, a.header, truth, flush_lines=flush_lines))
-        self.log_paths = [Path(p) for p in log_paths] if log_paths is not None else []
-        self.t_s = 0.0
+        for h in headers:
+            self.estimator.add_agent(h.agent, header=h)
+        self.truth = {t.bssid: t for t in self.realisation.truth_records()}
         self._heard: dict[str, _Heard] = {}
-        self._segment: dict[int, object] = {}
-        self._refused: set[int] = set()
-        self._path_m = [0.0] * len(self.stepper.agents)
-        self._last_pos = [self.stepper.state(i).position_m for i in range(len(self.stepper.agents))]
         self.replans = 0
         self.refused_plans = 0
         self.localised_at: dict[str, float] = {}
         self.series: dict[str, list[SeriesPoint]] = {b: [] for b in self.truth}
-        self.nav_track: list[list[tuple[float, float, float, float]]] = [
-            [] for _ in self.stepper.agents
-        ]
         self.notes: list[tuple[float, str]] = []
         self.finished = False
 
-    # ------------------------------------------------------------------ observe
+    # ------------------------------------------------------------------ knowledge
+    def _hear(self, bssid: str, t_s: float, position_enu_m: Sequence[float],
+              range_m: float) -> None:
+        """An ``ok`` range to ``bssid`` heard at flight time ``t_s`` from the position the
+        autopilot reported (mission ENU)."""
+        h = self._heard.get(bssid)
+        if h is None:
+            h = self._heard[bssid] = _Heard(first_t_s=t_s)
+        h.n += 1
+        h.pos.append((float(position_enu_m[0]), float(position_enu_m[1]),
+                      float(position_enu_m[2])))
+        h.rng.append(float(range_m))
+        if len(h.pos) > self.config.heard_kept:
+            del h.pos[0], h.rng[0]
+
     def _world_enu(self, e: Estimate) -> tuple[float, float, float] | None:
         if e.lat_deg is None:
             return None
@@ -176,16 +172,8 @@ class ClosedLoop:
     def estimate(self, bssid: str) -> Estimate:
         return self.estimator.estimate(bssid, self.mode)
 
-    def observe(self) -> Observation:
-        """What a policy may see now (no truth)."""
-        agents = []
-        for i, a in enumerate(self.stepper.agents):
-            nav = self.stepper.navigation_position_m(i)
-            v = a.vehicle.state.velocity_mps
-            g = self._segment.get(i)
-            done = g is None or i in self._refused or bool(getattr(g, "done", False))
-            agents.append(AgentView(position_enu_m=nav, velocity_enu_mps=tuple(v),
-                                    segment_done=done))
+    def responder_views(self) -> tuple[ResponderView, ...]:
+        """What the estimator says of every responder heard so far (no truth)."""
         views = []
         for b, h in self._heard.items():
             e = self.estimate(b)
@@ -201,18 +189,119 @@ class ClosedLoop:
                 heard_enu_m=tuple(h.pos), heard_range_m=tuple(h.rng), n_acc=e.n_acc,
                 kappa=e.kappa, candidates=cands, **kw,
             ))
-        return Observation(t_s=self.t_s, budget_s=self.mission.budget_s, agents=tuple(agents),
-                           responders=tuple(views))
+        return tuple(views)
 
-    # ------------------------------------------------------------------ act
-    def apply(self, decision: Decision) -> None:
-        """Fly the decision's new segments (a segment leaving the area is refused: the
-        vehicle holds instead) and note what it judged localised."""
+    def _note(self, decision: Decision) -> None:
+        """Bookkeeping of a decision: localised set, solves, what the policy does."""
         for b in decision.localised:
             self.localised_at.setdefault(b, self.t_s)
         self.replans += decision.replans
         if decision.note:
             self.notes.append((self.t_s, decision.note))
+
+    def _sample_series(self) -> None:
+        """Evaluation (truth): error and uncertainty of every responder now."""
+        frame = self.estimator.frame
+        for b, tr in self.truth.items():
+            e = self.estimate(b)
+            err = None
+            if e.mean_enu_m is not None and frame is not None:
+                err = errors_m(e.mean_enu_m, frame.to_enu(tr.lat_deg, tr.lon_deg, tr.alt_m))[0]
+            self.series[b].append(SeriesPoint(self.t_s, e.status, e.sigma_h_m, e.r95_h_m, err))
+
+    # ------------------------------------------------------------------ outcome
+    def detected_at(self, bssid: str) -> float | None:
+        h = self._heard.get(bssid)
+        return h.first_t_s if h is not None else None
+
+    def responder_outcome(self, bssid: str) -> dict:
+        """The ``responders`` entry of the report (truth errors for evaluation only)."""
+        out: dict = {"bssid": bssid}
+        det = self.detected_at(bssid)
+        if det is not None:
+            out["detected_at_s"] = round(det, 3)
+        if bssid in self.localised_at:
+            out["localised_at_s"] = round(self.localised_at[bssid], 3)
+        e = self.estimate(bssid)
+        out["status"] = e.status
+        if e.lat_deg is not None:
+            out.update(lat=round(e.lat_deg, 8), lon=round(e.lon_deg, 8), alt_m=round(e.alt_m, 3),
+                       sigma_h_m=round(e.sigma_h_m, 4), sigma_z_m=round(e.sigma_z_m, 4))
+            if e.r95_h_m is not None and math.isfinite(e.r95_h_m):
+                out["r95_h_m"] = round(e.r95_h_m, 4)
+            tr = self.truth.get(bssid)
+            frame = self.estimator.frame
+            if tr is not None and frame is not None:
+                eh, e3 = errors_m(e.mean_enu_m, frame.to_enu(tr.lat_deg, tr.lon_deg, tr.alt_m))
+                out["err_h_m"] = round(eh, 3)
+                out["err_3d_m"] = round(e3, 3)
+        if e.candidates:
+            out["candidates"] = [
+                {"lat": round(c.lat_deg, 8), "lon": round(c.lon_deg, 8),
+                 "alt_m": round(c.alt_m, 3), "sigma_h_m": round(c.sigma_h_m, 4),
+                 "weight": round(c.weight, 6)} for c in e.candidates
+            ]
+        tr = self.truth.get(bssid)
+        if tr is not None:
+            out["concealment"] = tr.concealment
+        return out
+
+
+class ClosedLoop(SearchLoopBase):
+    """One search in closed loop (see the module docstring)."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        seed=0,
+        *,
+        config: LoopConfig = LoopConfig(),
+        log_paths: Sequence[str | Path] | None = None,
+        flush_lines: bool = False,
+        realisation: Realisation | None = None,
+    ) -> None:
+        if scenario.search is None:
+            raise ValueError(f"scenario {scenario.name} has no [search] table")
+        real = realisation if realisation is not None else realise(scenario, seed)
+        self.stepper = Stepper(real, header_agl_m=scenario.search.height_m)
+        self._init_search(scenario, seed, real, config, [a.header for a in self.stepper.agents])
+        self._convex = self.mission.area.convex
+        truth = self.realisation.truth_records()
+        self.sinks: list[LogSink] = []
+        if log_paths is not None:
+            if len(log_paths) != len(self.stepper.agents):
+                raise ValueError("one log path per agent")
+            for a, p in zip(self.stepper.agents, log_paths, strict=True):
+                self.sinks.append(LogSink(p, a.header, truth, flush_lines=flush_lines))
+        self.log_paths = [Path(p) for p in log_paths] if log_paths is not None else []
+        self.t_s = 0.0
+        self._segment: dict[int, object] = {}
+        self._refused: set[int] = set()
+        self._path_m = [0.0] * len(self.stepper.agents)
+        self._last_pos = [self.stepper.state(i).position_m for i in range(len(self.stepper.agents))]
+        self.nav_track: list[list[tuple[float, float, float, float]]] = [
+            [] for _ in self.stepper.agents
+        ]
+
+    # ------------------------------------------------------------------ observe
+    def observe(self) -> Observation:
+        """What a policy may see now (no truth)."""
+        agents = []
+        for i, a in enumerate(self.stepper.agents):
+            nav = self.stepper.navigation_position_m(i)
+            v = a.vehicle.state.velocity_mps
+            g = self._segment.get(i)
+            done = g is None or i in self._refused or bool(getattr(g, "done", False))
+            agents.append(AgentView(position_enu_m=nav, velocity_enu_mps=tuple(v),
+                                    segment_done=done))
+        return Observation(t_s=self.t_s, budget_s=self.mission.budget_s, agents=tuple(agents),
+                           responders=self.responder_views())
+
+    # ------------------------------------------------------------------ act
+    def apply(self, decision: Decision) -> None:
+        """Fly the decision's new segments (a segment leaving the area is refused: the
+        vehicle holds instead) and note what it judged localised."""
+        self._note(decision)
         for i, traj in decision.plans.items():
             if not self.plan_inside(traj, i):
                 self.refused_plans += 1
@@ -264,32 +353,15 @@ class ClosedLoop:
                 r = e.record
                 if isinstance(r, RangeSample) and r.ok:
                     t = float(a.clock.to_s(np.array([r.t_ns]))[0])
-                    h = self._heard.get(r.bssid)
-                    if h is None:
-                        h = self._heard[r.bssid] = _Heard(first_t_s=t)
-                    h.n += 1
                     v = a.vehicle
-                    pos = v.position_at([t])[0]
+                    pos = v.position_at([t])[0]  # where the autopilot believed it was
                     if v.nav_error is not None:
                         pos = pos + v.nav_error(np.array([t]))[0]
-                    h.pos.append((float(pos[0]), float(pos[1]), float(pos[2])))
-                    h.rng.append(float(r.range_m))
-                    if len(h.pos) > self.config.heard_kept:
-                        del h.pos[0], h.rng[0]
+                    self._hear(r.bssid, t, pos, r.range_m)
             if emitted:
                 est.mark_time(i, emitted[-1].t_ns)
             if self.sinks:
                 self.sinks[i].add(emitted, a.t_s)
-
-    def _sample_series(self) -> None:
-        """Evaluation (truth): error and uncertainty of every responder now."""
-        frame = self.estimator.frame
-        for b, tr in self.truth.items():
-            e = self.estimate(b)
-            err = None
-            if e.mean_enu_m is not None and frame is not None:
-                err = errors_m(e.mean_enu_m, frame.to_enu(tr.lat_deg, tr.lon_deg, tr.alt_m))[0]
-            self.series[b].append(SeriesPoint(self.t_s, e.status, e.sigma_h_m, e.r95_h_m, err))
 
     def finish(self) -> None:
         """End of the flight: deliver what is still on its way, close the logs."""
@@ -308,41 +380,10 @@ class ClosedLoop:
     def path_length_m(self) -> float:
         return float(sum(self._path_m))
 
-    def detected_at(self, bssid: str) -> float | None:
-        h = self._heard.get(bssid)
-        return h.first_t_s if h is not None else None
-
-    def responder_outcome(self, bssid: str) -> dict:
-        """The ``responders`` entry of the report (truth errors for evaluation only)."""
-        out: dict = {"bssid": bssid}
-        det = self.detected_at(bssid)
-        if det is not None:
-            out["detected_at_s"] = round(det, 3)
-        if bssid in self.localised_at:
-            out["localised_at_s"] = round(self.localised_at[bssid], 3)
-        e = self.estimate(bssid)
-        out["status"] = e.status
-        if e.lat_deg is not None:
-            out.update(lat=round(e.lat_deg, 8), lon=round(e.lon_deg, 8), alt_m=round(e.alt_m, 3),
-                       sigma_h_m=round(e.sigma_h_m, 4), sigma_z_m=round(e.sigma_z_m, 4))
-            if e.r95_h_m is not None and math.isfinite(e.r95_h_m):
-                out["r95_h_m"] = round(e.r95_h_m, 4)
-            tr = self.truth.get(bssid)
-            frame = self.estimator.frame
-            if tr is not None and frame is not None:
-                eh, e3 = errors_m(e.mean_enu_m, frame.to_enu(tr.lat_deg, tr.lon_deg, tr.alt_m))
-                out["err_h_m"] = round(eh, 3)
-                out["err_3d_m"] = round(e3, 3)
-        if e.candidates:
-            out["candidates"] = [
-                {"lat": round(c.lat_deg, 8), "lon": round(c.lon_deg, 8),
-                 "alt_m": round(c.alt_m, 3), "sigma_h_m": round(c.sigma_h_m, 4),
-                 "weight": round(c.weight, 6)} for c in e.candidates
-            ]
-        tr = self.truth.get(bssid)
-        if tr is not None:
-            out["concealment"] = tr.concealment
-        return out
+    def true_tracks(self) -> list[np.ndarray]:
+        """The vehicles' true paths (evaluation: figures), every half second."""
+        return [self.stepper.vehicle_track(i).enu_m[::10]
+                for i in range(len(self.stepper.agents))]
 
 
 @dataclass
@@ -391,6 +432,30 @@ class SearchResult:
         return d
 
 
+def drive(loop, policy: Policy, config: LoopConfig,
+          progress: Callable[[float, str], None] | None = None,
+          policy_rng: np.random.Generator | None = None) -> str:
+    """Run ``policy`` on a started loop until it is done or the budget is spent; returns
+    how it ended (``localised`` or ``budget``). The loop is not finished here."""
+    rng = policy_rng if policy_rng is not None else np.random.default_rng(
+        np.random.SeedSequence(loop.realisation.seed.entropy, spawn_key=(9,))
+    )
+    policy.reset(loop.mission, rng)
+    budget = loop.mission.budget_s
+    while loop.t_s < budget - 1e-9:
+        d = policy.decide(loop.observe())
+        loop.apply(d)
+        if d.done:
+            return "localised"
+        loop.advance(config.decision_period_s)
+        if progress is not None:
+            progress(loop.t_s, loop.notes[-1][1] if loop.notes else "")
+    d = policy.decide(loop.observe())  # the policy's last judgement at the budget
+    for b in d.localised:
+        loop.localised_at.setdefault(b, loop.t_s)
+    return "budget"
+
+
 def run_search(
     scenario: Scenario,
     policy: Policy,
@@ -403,41 +468,22 @@ def run_search(
 ) -> SearchResult:
     """Fly ``scenario`` with ``policy`` until it is done or the budget is spent."""
     loop = ClosedLoop(scenario, seed, config=config, log_paths=log_paths)
-    rng = policy_rng if policy_rng is not None else np.random.default_rng(
-        np.random.SeedSequence(loop.realisation.seed.entropy, spawn_key=(9,))
-    )
-    policy.reset(loop.mission, rng)
-    ended = "budget"
-    budget = loop.mission.budget_s
-    while loop.t_s < budget - 1e-9:
-        d = policy.decide(loop.observe())
-        loop.apply(d)
-        if d.done:
-            ended = "localised"
-            break
-        loop.advance(config.decision_period_s)
-        if progress is not None:
-            progress(loop.t_s, loop.notes[-1][1] if loop.notes else "")
-    else:
-        d = policy.decide(loop.observe())  # the policy's last judgement at the budget
-        for b in d.localised:
-            loop.localised_at.setdefault(b, loop.t_s)
+    ended = drive(loop, policy, config, progress, policy_rng)
     loop.finish()
     return result_of(loop, policy.name, ended)
 
 
-def result_of(loop: ClosedLoop, policy_name: str, ended: str) -> SearchResult:
+def result_of(loop: SearchLoopBase, policy_name: str, ended: str) -> SearchResult:
+    """The report of a finished search (the loop gives its own true tracks)."""
+    frame = loop.world.frame
     bssids = list(loop.truth)
-    responders = [loop.responder_outcome(b) for b in bssids]
-    truth_enu = {b: tuple(float(v) for v in loop.world.frame.to_enu(t.lat_deg, t.lon_deg,
-                                                                    t.alt_m))
+    truth_enu = {b: tuple(float(v) for v in frame.to_enu(t.lat_deg, t.lon_deg, t.alt_m))
                  for b, t in loop.truth.items()}
     est_enu = {}
     for b in bssids:
         e = loop.estimate(b)
         if e.lat_deg is not None:
-            est_enu[b] = tuple(float(v) for v in loop.world.frame.to_enu(e.lat_deg, e.lon_deg,
-                                                                          e.alt_m))
+            est_enu[b] = tuple(float(v) for v in frame.to_enu(e.lat_deg, e.lon_deg, e.alt_m))
     logs = [str(p) for p in loop.log_paths]
     return SearchResult(
         policy=policy_name,
@@ -447,14 +493,13 @@ def result_of(loop: ClosedLoop, policy_name: str, ended: str) -> SearchResult:
         flight_time_s=loop.t_s,
         path_length_m=loop.path_length_m,
         replans=loop.replans,
-        responders=responders,
+        responders=[loop.responder_outcome(b) for b in bssids],
         log=logs[0] if logs else None,
         logs=logs,
         refused_plans=loop.refused_plans,
         series=loop.series,
         nav_track=loop.nav_track,
-        true_track=[loop.stepper.vehicle_track(i).enu_m[::10]
-                    for i in range(len(loop.stepper.agents))],
+        true_track=loop.true_tracks(),
         truth_enu_m=truth_enu,
         estimates_enu_m=est_enu,
         area_enu_m=tuple(tuple(v) for v in loop.scenario.search.area_enu_m),

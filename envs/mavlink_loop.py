@@ -36,19 +36,16 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from envs.loop import LoopConfig, SearchResult, SeriesPoint, mission_of
+from envs.loop import LoopConfig, SearchLoopBase, SearchResult, drive, result_of
 from envs.vehicle.telemetry import VEHICLE_TAG, world_fingerprint
-from estimator.evaluation import errors_m
 from estimator.logio import LogWriter, RejectCounts, parse_line
-from estimator.online import EstimatorOptions, OnlineEstimator
-from estimator.records import Estimate, GnssFix, LogHeader, RangeSample, Trajectory, TruthRecord
-from estimator.replay import parse_modes
+from estimator.records import GnssFix, LogHeader, RangeSample, Trajectory, TruthRecord
 from planner.convert import trajectory_to_mission
 from planner.mavlink import (
     MissionRejectedError,
@@ -58,8 +55,8 @@ from planner.mavlink import (
     upload_on_link,
 )
 from planner.mission import MAV_CMD_DO_CHANGE_SPEED, Mission, MissionItem
-from planner.policy import AgentView, Decision, Observation, Policy, ResponderView
-from sim.realisation import Realisation, realise
+from planner.policy import AgentView, Decision, Observation, Policy
+from sim.realisation import Realisation
 from sim.scenario import Scenario
 
 MAV_CMD_NAV_RETURN_TO_LAUNCH = 20
@@ -170,41 +167,23 @@ class LogTail:
         self._fh.close()
 
 
-@dataclass
-class _Heard:
-    first_t_s: float
-    n: int = 0
-    pos: list[tuple[float, float, float]] = field(default_factory=list)
-    rng: list[float] = field(default_factory=list)
-
-
-class MavlinkLoop:
+class MavlinkLoop(SearchLoopBase):
     """One search flown over MAVLink (see the module docstring)."""
 
     def __init__(self, scenario: Scenario, seed: Any, url: str, vehicle_log: str | os.PathLike,
                  *, config: LoopConfig = LoopConfig(), link: LinkLoopConfig = LinkLoopConfig(),
                  log_paths: Sequence[str | os.PathLike] | None = None,
                  realisation: Realisation | None = None) -> None:
-        if scenario.search is None:
-            raise ValueError(f"scenario {scenario.name} has no [search] table")
-        if len(scenario.agents) != 1:
+        if scenario.search is not None and len(scenario.agents) != 1:
             raise ValueError(f"scenario {scenario.name} has {len(scenario.agents)} agents: "
                              "the loop over MAVLink flies one vehicle")
-        self.scenario = scenario
-        self.seed = seed
-        self.config = config
+        self._init_search(scenario, seed, realisation, config, ())
         self.link_config = link
-        self.realisation = realisation if realisation is not None else realise(scenario, seed)
-        self.world = self.realisation.world
-        self.mission = mission_of(scenario, self.realisation, config.area_margin_m)
-        self.mode = parse_modes(config.mode)[0]
-        self.truth = {t.bssid: t for t in self.realisation.truth_records()}
         self.tail = LogTail(vehicle_log, link.connect_timeout_s)
         self._check_world(self.tail.truth)
         header = self.tail.header
         assert header is not None
         header = replace(header, agl_m=scenario.search.height_m)
-        self.estimator = OnlineEstimator(EstimatorOptions(modes=(self.mode,)))
         self.estimator.add_agent(header.agent, header=header)
         self.log_paths = [Path(p) for p in log_paths] if log_paths else []
         self._writer: LogWriter | None = None
@@ -239,18 +218,11 @@ class MavlinkLoop:
         self._t_ns0: int | None = None
         self._end_ns = math.inf
         self._fix_enu: tuple[float, float, float] | None = None
-        self._heard: dict[str, _Heard] = {}
         self._path_m = 0.0
         self._last_pos: tuple[float, float, float] | None = None
-        self.replans = 0
-        self.refused_plans = 0
         self.uploads = 0
         self.upload_retries = 0
-        self.localised_at: dict[str, float] = {}
-        self.series: dict[str, list[SeriesPoint]] = {b: [] for b in self.truth}
         self.nav_track: list[list[tuple[float, float, float, float]]] = [[]]
-        self.notes: list[tuple[float, str]] = []
-        self.finished = False
 
     # ------------------------------------------------------------------ setup
     def _check_world(self, truth: Sequence[TruthRecord]) -> None:
@@ -394,56 +366,20 @@ class MavlinkLoop:
                 e, n, u = self.world.frame.to_enu(rec.lat_deg, rec.lon_deg, rec.alt_m)
                 self._fix_enu = (float(e), float(n), float(u))
             elif rec.ok and self._fix_enu is not None:
-                t = (t_ns - self._t_ns0) / 1e9
-                h = self._heard.get(rec.bssid)
-                if h is None:
-                    h = self._heard[rec.bssid] = _Heard(first_t_s=t)
-                h.n += 1
-                h.pos.append(self._fix_enu)
-                h.rng.append(float(rec.range_m))
-                if len(h.pos) > self.config.heard_kept:
-                    del h.pos[0], h.rng[0]
+                self._hear(rec.bssid, (t_ns - self._t_ns0) / 1e9, self._fix_enu, rec.range_m)
         if last is not None:
             est.mark_time(0, last)
             if self._writer is not None:
                 self._writer.flush()
 
     # ------------------------------------------------------------------ observe
-    def _world_enu(self, e: Estimate) -> tuple[float, float, float] | None:
-        if e.lat_deg is None:
-            return None
-        x, y, z = self.world.frame.to_enu(e.lat_deg, e.lon_deg, e.alt_m)
-        return float(x), float(y), float(z)
-
-    def _to_world(self, p_est: Sequence[float]) -> tuple[float, float, float]:
-        lat, lon, alt = self.estimator.frame.to_geodetic(*p_est)
-        x, y, z = self.world.frame.to_enu(lat, lon, alt)
-        return float(x), float(y), float(z)
-
-    def estimate(self, bssid: str) -> Estimate:
-        return self.estimator.estimate(bssid, self.mode)
-
     def observe(self) -> Observation:
         """What a policy may see now: telemetry and the estimator (no truth)."""
         assert self.position is not None
         agent = AgentView(position_enu_m=self.position, velocity_enu_mps=self.velocity,
                           segment_done=self._segment_done or self._refused)
-        views = []
-        for b, h in self._heard.items():
-            e = self.estimate(b)
-            kw: dict = {}
-            mean = self._world_enu(e)
-            if mean is not None and e.cov_m2 is not None:
-                cov = tuple(tuple(float(v) for v in row) for row in e.cov_m2)
-                kw = dict(mean_enu_m=mean, cov_m2=cov, sigma_h_m=e.sigma_h_m,
-                          r95_h_m=e.r95_h_m)
-            cands = tuple(self._to_world(c.mean_enu_m) for c in e.candidates)
-            views.append(ResponderView(
-                bssid=b, status=e.status, detected_at_s=h.first_t_s, n_heard=h.n,
-                heard_enu_m=tuple(h.pos), heard_range_m=tuple(h.rng), n_acc=e.n_acc,
-                kappa=e.kappa, candidates=cands, **kw))
         return Observation(t_s=self.t_s, budget_s=self.mission.budget_s, agents=(agent,),
-                           responders=tuple(views))
+                           responders=self.responder_views())
 
     # ------------------------------------------------------------------ act
     def plan_inside(self, traj: Trajectory) -> bool:
@@ -487,11 +423,7 @@ class MavlinkLoop:
 
     def apply(self, decision: Decision) -> None:
         """Upload the decision's new segment and fly it (or hold if it leaves the area)."""
-        for b in decision.localised:
-            self.localised_at.setdefault(b, self.t_s)
-        self.replans += decision.replans
-        if decision.note:
-            self.notes.append((self.t_s, decision.note))
+        self._note(decision)
         traj = decision.plans.get(0)
         if traj is None:
             return
@@ -531,15 +463,6 @@ class MavlinkLoop:
             self._last_pos = self.position
             self.nav_track[0].append((self.t_s, *self.position))
         self._sample_series()
-
-    def _sample_series(self) -> None:
-        frame = self.estimator.frame
-        for b, tr in self.truth.items():
-            e = self.estimate(b)
-            err = None
-            if e.mean_enu_m is not None and frame is not None:
-                err = errors_m(e.mean_enu_m, frame.to_enu(tr.lat_deg, tr.lon_deg, tr.alt_m))[0]
-            self.series[b].append(SeriesPoint(self.t_s, e.status, e.sigma_h_m, e.r95_h_m, err))
 
     def finish(self) -> None:
         """Feed what the log still holds, close the logs; send the vehicle home."""
@@ -581,14 +504,10 @@ class MavlinkLoop:
     def path_length_m(self) -> float:
         return self._path_m
 
-    def detected_at(self, bssid: str) -> float | None:
-        h = self._heard.get(bssid)
-        return h.first_t_s if h is not None else None
-
-    def responder_outcome(self, bssid: str) -> dict:
-        from envs.loop import ClosedLoop
-
-        return ClosedLoop.responder_outcome(self, bssid)  # type: ignore[arg-type]
+    def true_tracks(self) -> list[np.ndarray]:
+        """Over MAVLink the truth of the path is not seen: the reported track stands in."""
+        trk = self.nav_track[0]
+        return [np.array([p[1:] for p in trk]) if trk else np.zeros((0, 3))]
 
 
 def run_search_mavlink(
@@ -609,48 +528,7 @@ def run_search_mavlink(
                        log_paths=log_paths)
     try:
         loop.start()
-        rng = policy_rng if policy_rng is not None else np.random.default_rng(
-            np.random.SeedSequence(loop.realisation.seed.entropy, spawn_key=(9,)))
-        policy.reset(loop.mission, rng)
-        ended = "budget"
-        budget = loop.mission.budget_s
-        while loop.t_s < budget - 1e-9:
-            d = policy.decide(loop.observe())
-            loop.apply(d)
-            if d.done:
-                ended = "localised"
-                break
-            loop.advance(config.decision_period_s)
-            if progress is not None:
-                progress(loop.t_s, loop.notes[-1][1] if loop.notes else "")
-        else:
-            d = policy.decide(loop.observe())
-            for b in d.localised:
-                loop.localised_at.setdefault(b, loop.t_s)
+        ended = drive(loop, policy, config, progress, policy_rng)
     finally:
         loop.finish()
     return result_of(loop, policy.name, ended)
-
-
-def result_of(loop: MavlinkLoop, policy_name: str, ended: str) -> SearchResult:
-    """The report of a search over MAVLink (``true_track``: the reported track)."""
-    bssids = list(loop.truth)
-    frame = loop.world.frame
-    truth_enu = {b: tuple(float(v) for v in frame.to_enu(t.lat_deg, t.lon_deg, t.alt_m))
-                 for b, t in loop.truth.items()}
-    est_enu = {}
-    for b in bssids:
-        e = loop.estimate(b)
-        if e.lat_deg is not None:
-            est_enu[b] = tuple(float(v) for v in frame.to_enu(e.lat_deg, e.lon_deg, e.alt_m))
-    logs = [str(p) for p in loop.log_paths]
-    track = np.array([p[1:] for p in loop.nav_track[0]]) if loop.nav_track[0] else np.zeros((0, 3))
-    return SearchResult(
-        policy=policy_name, mode=loop.mode, seed=loop.seed, ended=ended,
-        flight_time_s=loop.t_s, path_length_m=loop.path_length_m, replans=loop.replans,
-        responders=[loop.responder_outcome(b) for b in bssids],
-        log=logs[0] if logs else None, logs=logs, refused_plans=loop.refused_plans,
-        series=loop.series, nav_track=loop.nav_track, true_track=[track],
-        truth_enu_m=truth_enu, estimates_enu_m=est_enu,
-        area_enu_m=tuple(tuple(v) for v in loop.scenario.search.area_enu_m),
-        notes=loop.notes, scenario=loop.scenario.name)

@@ -272,11 +272,13 @@ def test_mavsdk_server_is_not_ardupilot(px4_peer: MavsdkVehiclePeer, backend: st
     """MAVSDK's server says autopilot 0 (generic): "auto" keeps the mission from seq 0
     too (any autopilot but ArduPilot numbers from seq 0)."""
     m = sample_mission(3)
+    before = px4_peer.upload_count()
     with connected(url_of(px4_peer, backend), FAST) as link:
         assert link.autopilot == 0
         assert resolve_autopilot("auto", link) == "px4"
         assert upload_on_link(link, m, fence=False) == (7, 0, 0)
-    held = px4_peer.held()
+    # MAVSDK's server hands the mission over in a callback after its ACK: wait for it
+    held = px4_peer.wait_for_upload(after=before, timeout_s=5.0)
     assert len(held) == 7 and held[0].command == MAV_CMD_NAV_TAKEOFF
 
 
