@@ -89,7 +89,7 @@ def main() -> None:
         medians[p] = median(t1)
         print(f"{p:<18}{sim_s / wall:>9.0f}x{solve / wall:>12.1%}"
               f"{median([x[6] for x in r]):>9.0f}{got:>7d}/{len(r):<4d}"
-              f"{medians[p] / 60:>9.1f} min{quantile(t1, 0.9) / 60:>6.1f} m"
+              f"{medians[p] / 60:>9.1f} min{quantile(t1, 0.9) / 60:>5.1f} min"
               f"{median(errs):>10.2f} m{median(e10):>9.2f} m")
     if "adaptive" in medians and "lawnmower" in medians:
         ratio = medians["adaptive"] / medians["lawnmower"]

@@ -92,6 +92,14 @@ class SearchArea:
         object.__setattr__(self, "_edge_a", p)
         object.__setattr__(self, "_edge_b", np.roll(p, -1, axis=0))
         object.__setattr__(self, "_inset_cache", {})
+        convex = polygon_is_convex(p)
+        object.__setattr__(self, "_convex", convex)
+        if convex:  # inward unit normals and offsets: inside iff n . q - c >= 0 on each edge
+            e = self._edge_b - p
+            length = np.linalg.norm(e, axis=1)
+            keep = length > 1e-9  # a repeated vertex has no edge
+            nrm = np.column_stack([-e[keep, 1], e[keep, 0]]) / length[keep, None]
+            object.__setattr__(self, "_halfplanes", (nrm, (nrm * p[keep]).sum(axis=1)))
 
     @property
     def vertices(self) -> np.ndarray:
@@ -100,7 +108,7 @@ class SearchArea:
 
     @property
     def convex(self) -> bool:
-        return polygon_is_convex(self._ccw)
+        return self._convex
 
     @property
     def centroid_m(self) -> XY:
@@ -130,6 +138,10 @@ class SearchArea:
     def contains(self, xy: np.ndarray, margin_m: float | None = None) -> np.ndarray:
         """Points at least ``margin_m`` (default: none) inside the polygon."""
         m = 0.0 if margin_m is None else margin_m
+        if self._convex:  # inside a convex polygon the nearest edge is the nearest line
+            nrm, c = self._halfplanes
+            q = np.asarray(xy, dtype=float).reshape(-1, 2)
+            return (q @ nrm.T - c).min(axis=1) >= m - 1e-9
         return self.signed_distance_m(xy) <= -m + 1e-9
 
     def path_inside(self, points_m: np.ndarray, margin_m: float = 0.0, step_m: float = 1.0) -> bool:

@@ -142,6 +142,7 @@ class Stepper:
         models = tuple(sc.ftm.concealment(r.concealment) for r in self.world.responders)
         self.bssids = realisation.bssids
         self.agents: list[AgentSim] = []
+        self._nav_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}
         for i, spec in enumerate(specs):
             if starts is not None:
                 start = starts[i]
@@ -220,12 +221,18 @@ class Stepper:
 
     def navigation_position_m(self, agent: int | str = 0) -> tuple[float, float, float]:
         """Where the autopilot believes the vehicle is (truth + its navigation error)."""
-        v = self.agent(agent).vehicle
-        p = v.state.position_m
+        a = self.agent(agent)
+        v = a.vehicle
         if v.nav_error is None:
-            return p
-        b = v.nav_error(np.array([v.t_s]))[0]
-        return (p[0] + float(b[0]), p[1] + float(b[1]), p[2] + float(b[2]))
+            return tuple(v._p)
+        cached = self._nav_cache.get(a.index)
+        if cached is not None and cached[0] == v.k:  # asked again before the next tick
+            return cached[1]
+        p = v._p
+        b = v.nav_error(np.array([v.t_s]))[0].tolist()
+        nav = (p[0] + b[0], p[1] + b[1], p[2] + b[2])
+        self._nav_cache[a.index] = (v.k, nav)
+        return nav
 
     # ------------------------------------------------------------------ stepping
     def step_to(self, t_s: float) -> list[list[Emitted]]:

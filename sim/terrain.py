@@ -116,6 +116,8 @@ class HillsTerrain:
 
     def height_m(self, e_m, n_m):
         """Ground height at (e, n): NumPy arrays in, array out; CasADi symbols in, symbol out."""
+        if isinstance(e_m, float | int) and isinstance(n_m, float | int):
+            return self._height_scalar(float(e_m), float(n_m))
         if _is_symbolic(e_m) or _is_symbolic(n_m):
             import casadi as ca
 
@@ -125,6 +127,8 @@ class HillsTerrain:
             exp, sin = np.exp, np.sin
             e = np.asarray(e_m, dtype=float)
             n = np.asarray(n_m, dtype=float)
+            if e.ndim == 0 and n.ndim == 0:
+                return self._height_scalar(float(e), float(n))
         h = self.base_m + self.slope_e * e + self.slope_n * n
         for hill in self.hills:
             r2 = (e - hill.e_m) ** 2 + (n - hill.n_m) ** 2
@@ -134,6 +138,24 @@ class HillsTerrain:
             k = 2.0 * math.pi / self.ripple_wavelength_m
             h = h + self.ripple_amplitude_m * sin(k * (math.cos(a) * e + math.sin(a) * n))
         return h
+
+    def _height_scalar(self, e: float, n: float) -> np.float64:
+        """:meth:`height_m` at one point: the same operations in the same order on Python
+        floats (the hills' exponentials in one NumPy call, so every value is bit for bit
+        the array path's), some 10 x faster than NumPy on 0-d arrays."""
+        h = self.base_m + self.slope_e * e + self.slope_n * n
+        if self.hills:
+            x = []
+            for g in self.hills:  # NumPy squares by multiplying (not C pow)
+                de, dn = e - g.e_m, n - g.n_m
+                x.append(-0.5 * (de * de + dn * dn) / (g.sigma_m * g.sigma_m))
+            for g, ex in zip(self.hills, np.exp(x).tolist(), strict=True):
+                h = h + g.height_m * ex
+        if self.ripple_amplitude_m > 0:
+            a = math.radians(self.ripple_direction_deg)
+            k = 2.0 * math.pi / self.ripple_wavelength_m
+            h = h + self.ripple_amplitude_m * math.sin(k * (math.cos(a) * e + math.sin(a) * n))
+        return np.float64(h)
 
     def sag_curvature(self) -> tuple[float, float]:
         """Bounds (concave, convex) on -T'' and +T'' along any horizontal line (1/m).

@@ -31,6 +31,7 @@ height above the terrain.
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -187,19 +188,33 @@ def _densify(
     t: np.ndarray, en: np.ndarray, z: np.ndarray, step_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split segments into pieces of at most ``step_m`` (horizontally and vertically)."""
-    d_en = np.diff(en, axis=0)
-    seg = np.maximum(np.hypot(d_en[:, 0], d_en[:, 1]), np.abs(np.diff(z)))
+    d_en = en[1:] - en[:-1]
+    seg = np.maximum(np.hypot(d_en[:, 0], d_en[:, 1]), np.abs(z[1:] - z[:-1]))
     pieces = np.maximum(1, np.ceil(seg / step_m)).astype(np.intp)
     idx = np.repeat(np.arange(len(seg)), pieces)
     first = np.repeat(np.cumsum(pieces) - pieces, pieces)
     frac = (np.arange(len(idx)) - first) / np.repeat(pieces, pieces)
 
     def lerp(a: np.ndarray) -> np.ndarray:
-        da = np.diff(a, axis=0)
+        da = a[1:] - a[:-1]
         f = frac if a.ndim == 1 else frac[:, None]
         return np.concatenate([a[idx] + f * da[idx], a[-1:]])
 
     return lerp(t), lerp(en), lerp(z)
+
+
+def _unwrap(p: np.ndarray) -> np.ndarray:
+    """``numpy.unwrap`` of a 1-D angle series (period 2 pi), without its generality."""
+    if len(p) < 2:
+        return p.copy()
+    dd = p[1:] - p[:-1]
+    ddmod = np.mod(dd + math.pi, 2.0 * math.pi) - math.pi
+    ddmod[(ddmod == -math.pi) & (dd > 0)] = math.pi
+    correct = ddmod - dd
+    correct[np.abs(dd) < math.pi] = 0.0
+    out = p.copy()
+    out[1:] += np.cumsum(correct)
+    return out
 
 
 def _forward_fill(values: np.ndarray, valid: np.ndarray, default: float) -> np.ndarray:
@@ -264,8 +279,9 @@ class PathGuidance:
         if hov is not None and terrain_height is not None:
             z_d = z_d + np.asarray(terrain_height(en_d[:, 0], en_d[:, 1]), dtype=float)
         pd = np.column_stack([en_d, z_d])
-        seg = np.linalg.norm(np.diff(pd, axis=0), axis=1)
-        dt_d = np.diff(t_d)
+        dpd = pd[1:] - pd[:-1]
+        seg = np.sqrt((dpd * dpd).sum(axis=1))
+        dt_d = t_d[1:] - t_d[:-1]
         moving = seg > 1e-9
         # nodes: drop zero-length steps, remembering the hovers they hold
         keep = np.concatenate([[True], moving])
@@ -281,19 +297,20 @@ class PathGuidance:
         self.total_m = float(s[-1])
         m = len(pts)
         if m >= 2:
-            d = np.diff(pts, axis=0)
-            cell = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+            d = pts[1:] - pts[:-1]
+            cell = np.maximum(np.sqrt((d * d).sum(axis=1)), 1e-12)
             tangent = d / cell[:, None]
             tangent = np.vstack([tangent, tangent[-1:]])
-            t_cell = np.diff(np.concatenate([[0.0], np.cumsum(np.where(moving, dt_d, 0.0))])[keep])
+            t_acc = np.concatenate([[0.0], np.cumsum(np.where(moving, dt_d, 0.0))])[keep]
+            t_cell = t_acc[1:] - t_acc[:-1]
             with np.errstate(divide="ignore"):
                 v_ref = np.where(t_cell > 0, cell / t_cell, np.inf)
                 v_climb = cfg.max_vertical_speed_mps * cell / np.maximum(np.abs(d[:, 2]), 1e-12)
             v_cell = np.minimum(np.minimum(v_ref, v_climb), cfg.max_speed_mps)
             h = d[:, :2]
             h_len = np.hypot(h[:, 0], h[:, 1])
-            psi = np.unwrap(_forward_fill(np.arctan2(h[:, 1], h[:, 0]), h_len > 1e-6 * ds, 0.0))
-            turn = np.abs(np.diff(psi))
+            psi = _unwrap(_forward_fill(np.arctan2(h[:, 1], h[:, 0]), h_len > 1e-6 * ds, 0.0))
+            turn = np.abs(psi[1:] - psi[:-1])
             arc = 0.5 * (h_len[:-1] + h_len[1:])
             with np.errstate(divide="ignore", invalid="ignore"):
                 curv = np.where(turn > 0, turn / np.maximum(arc, 1e-9), 0.0)
@@ -312,21 +329,11 @@ class PathGuidance:
             for n in dwell:
                 stops[n] = True
             v_node[stops] = 0.0
-            # braking: backward pass on v^2 (deceleration max_accel over each cell)
-            a2 = 2.0 * cfg.max_accel_mps2
-            v2 = (v_node * v_node).tolist()  # Python floats: the passes run element-wise
-            cell_l = cell.tolist()
-            for i in range(m - 2, -1, -1):
-                lim = v2[i + 1] + a2 * cell_l[i]
-                if v2[i] > lim:
-                    v2[i] = lim
+            # braking: backward pass on v^2 (deceleration max_accel over each cell), then
             # acceleration from the current speed: forward pass
-            v2[0] = min(v2[0], max(start_speed_mps, 0.0) ** 2)
-            for i in range(1, m):
-                lim = v2[i - 1] + a2 * cell_l[i - 1]
-                if v2[i] > lim:
-                    v2[i] = lim
-            v_prof = np.sqrt(np.array(v2))
+            a2 = 2.0 * cfg.max_accel_mps2
+            v2 = _limit_passes(v_node * v_node, a2 * cell, max(start_speed_mps, 0.0) ** 2)
+            v_prof = np.sqrt(v2)
             # the reference never stands still between stops
             floor = np.where(stops, 0.0, cfg.crawl_speed_mps)
             v_prof = np.maximum(v_prof, floor)
@@ -408,6 +415,46 @@ class PathGuidance:
         )
 
 
+def _limit_passes(v2: np.ndarray, step: np.ndarray, start_v2: float) -> np.ndarray:
+    """The speed profile's two passes on v^2: backward, ``v2[i] <= v2[i+1] + step[i]``
+    (braking), then forward from ``v2[0] <= start_v2``, ``v2[i] <= v2[i-1] + step[i-1]``
+    (acceleration). Element by element in Python floats, but only where a limit binds:
+    a run of changes starts where the limit binds on the unchanged profile (found with
+    NumPy) and ends at the first element it leaves alone, so the result is that of the
+    plain element-wise loops, bit for bit, at the cost of the changed elements only."""
+    m = len(v2)
+    out = v2.tolist()
+    st = step.tolist()
+    lowest = m
+    for c in np.flatnonzero(v2[:-1] > v2[1:] + step)[::-1].tolist():
+        if c >= lowest:
+            continue
+        i = c
+        while i >= 0:
+            lim = out[i + 1] + st[i]
+            if out[i] <= lim:
+                break
+            out[i] = lim
+            i -= 1
+        lowest = i
+    out[0] = min(out[0], start_v2)
+    b = np.asarray(out)
+    highest = -1
+    seeds = np.flatnonzero(b[1:] > b[:-1] + step) + 1
+    for c in ([1] if m > 1 else []) + seeds.tolist():
+        if c <= highest:
+            continue
+        i = c
+        while i < m:
+            lim = out[i - 1] + st[i - 1]
+            if out[i] <= lim:
+                break
+            out[i] = lim
+            i += 1
+        highest = i
+    return np.asarray(out)
+
+
 class HoldGuidance:
     """Brake and hold a point (PX4 HOLD / LOITER for a multirotor)."""
 
@@ -476,10 +523,11 @@ def path_guidance(
 def _median_speed(t: np.ndarray, p: np.ndarray) -> float:
     if len(t) < 2:
         return 5.0
-    dt = np.diff(t)
-    dd = np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1)
+    dt = t[1:] - t[:-1]
+    dp = p[1:, :2] - p[:-1, :2]
+    dd = np.sqrt((dp * dp).sum(axis=1))
     ok = dt > 0
-    return float(np.median(dd[ok] / dt[ok])) if ok.any() else 5.0
+    return float(statistics.median((dd[ok] / dt[ok]).tolist())) if ok.any() else 5.0
 
 
 # ----------------------------------------------------------------------------- vehicle
