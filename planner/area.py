@@ -122,6 +122,11 @@ class SearchArea:
     def signed_distance_m(self, xy: np.ndarray) -> np.ndarray:
         """Distance to the boundary, negative inside (even-odd rule), positive outside."""
         q = np.asarray(xy, dtype=float).reshape(-1, 2)
+        if self._convex:  # inside a convex polygon: the distance to the nearest edge's line
+            nrm, c = self._halfplanes
+            g = (q @ nrm.T - c).min(axis=1)
+            if np.all(g > 0.0):
+                return -g
         a, b = self._edge_a, self._edge_b
         ab = b - a
         ap = q[:, None, :] - a[None, :, :]
