@@ -119,7 +119,7 @@ def plot(times: dict, budget: float, scenario: str, n: int, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=110)
+    fig, ax = plt.subplots(figsize=(8.2, 3.6), dpi=110)
     for p, t in times.items():
         x = np.sort(t)
         y = np.arange(1, len(x) + 1) / len(x)
@@ -133,7 +133,7 @@ def plot(times: dict, budget: float, scenario: str, n: int, path: str) -> None:
     ax.set_xlabel("flight time to localise (s)")
     ax.set_ylabel("share of worlds localised")
     ax.set_title(f"{scenario}: {n} held-out test worlds", fontsize=10)
-    ax.legend(fontsize=8, loc="center right")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     ax.grid(alpha=0.3)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
