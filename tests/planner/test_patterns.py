@@ -226,3 +226,23 @@ def test_lawnmower_outer_tracks_sit_at_most_half_a_spacing_in(
         inset
     )
     assert 0.0 < inset <= spacing / 2
+
+
+@pytest.mark.parametrize("polygon", [
+    ((0.0, 0.0), (500.0, 0.0), (500.0, 500.0), (0.0, 500.0)),
+    ((0.0, 0.0), (400.0, -50.0), (520.0, 300.0), (200.0, 480.0), (-60.0, 260.0)),
+])
+def test_convex_area_half_plane_tests_equal_the_general_polygon_tests(polygon) -> None:
+    """A convex area answers inside / distance from its edges' lines: the same answers as
+    the general (segment distance, crossing count) path."""
+    from planner.area import SearchArea
+
+    fast = SearchArea(polygon, 10.0)
+    general = SearchArea(polygon, 10.0)
+    object.__setattr__(general, "_convex", False)
+    q = np.random.default_rng(5).uniform(-80, 600, (4000, 2))
+    for margin in (0.0, 10.0, 35.0):
+        assert np.array_equal(fast.contains(q, margin), general.contains(q, margin))
+    np.testing.assert_allclose(fast.signed_distance_m(q), general.signed_distance_m(q),
+                               rtol=0, atol=1e-9)
+    assert (fast.signed_distance_m(q) < 0).sum() > 1000  # many points inside

@@ -134,3 +134,41 @@ def test_bad_vehicle_config_is_refused():
         VehicleConfig(max_speed_mps=5.0, wind_enu_mps=(6.0, 0.0))
     with pytest.raises(ValueError, match="> 0"):
         VehicleConfig(max_accel_mps2=0.0)
+
+
+def _plain_passes(v2: list[float], step: list[float], start_v2: float) -> list[float]:
+    """The speed profile's braking and acceleration passes, element by element."""
+    v2 = list(v2)
+    for i in range(len(v2) - 2, -1, -1):
+        v2[i] = min(v2[i], v2[i + 1] + step[i])
+    v2[0] = min(v2[0], start_v2)
+    for i in range(1, len(v2)):
+        v2[i] = min(v2[i], v2[i - 1] + step[i - 1])
+    return v2
+
+
+def test_sparse_speed_passes_equal_the_plain_loops_bit_for_bit() -> None:
+    from sim.vehicle import _limit_passes
+
+    rng = np.random.default_rng(7)
+    for _ in range(3000):
+        m = int(rng.integers(2, 80))
+        v = rng.uniform(0.0, 10.0, m)
+        v[rng.random(m) < 0.3] = 0.0  # stops
+        v[rng.random(m) < 0.3] = 8.0  # cruise
+        step = rng.uniform(0.0, 1.5, m - 1) * float(rng.uniform(0.5, 6.0))
+        start = float(rng.uniform(0.0, 80.0))
+        got = _limit_passes(v * v, step, start)
+        assert got.tolist() == _plain_passes((v * v).tolist(), step.tolist(), start)
+
+
+def test_scalar_terrain_height_equals_the_array_path_bit_for_bit() -> None:
+    from sim.terrain import HillsTerrain
+
+    t = HillsTerrain()
+    rng = np.random.default_rng(3)
+    e, n = rng.uniform(-700, 700, 40000), rng.uniform(-700, 700, 40000)
+    arr = t.height_m(e, n)
+    one = [t.height_m(float(a), float(b)) for a, b in zip(e, n, strict=True)]
+    zero_d = [t.height_m(np.float64(a), np.float64(b)) for a, b in zip(e, n, strict=True)]
+    assert np.array_equal(arr, one) and np.array_equal(arr, zero_d)
