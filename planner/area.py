@@ -111,6 +111,13 @@ class SearchArea:
         return self._convex
 
     @property
+    def halfplanes(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A convex area's edges as half-planes: inward unit normals (E, 2) and offsets
+        (E,), a point q inside iff ``normals @ q - offsets >= 0`` on every edge (each the
+        distance to that edge's line); None for a concave area."""
+        return self._halfplanes if self._convex else None
+
+    @property
     def centroid_m(self) -> XY:
         p = self._ccw
         x, y = p[:, 0], p[:, 1]

@@ -474,3 +474,15 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load a packaged preset by name (see :func:`list_scenarios`) or a TOML file by path."""
     table, source, base_dir = _read_toml(name_or_path)
     return scenario_from_table(table, source, base_dir)
+
+
+def search_scenario(scenario: str | Path | Scenario) -> Scenario:
+    """A search scenario (one with a ``[search]`` table: ``osa search``, ``osa evaluate``,
+    the environments) from a preset name, a TOML path or a :class:`Scenario`; a
+    :class:`ScenarioError` for anything else."""
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    if sc.search is None:
+        name = sc.name if isinstance(scenario, Scenario) else scenario
+        raise ScenarioError(f"{name}: not a search scenario (no [search] table); "
+                            "osa simulate flies fixed flights")
+    return sc

@@ -441,7 +441,7 @@ def _limit_passes(v2: np.ndarray, step: np.ndarray, start_v2: float) -> np.ndarr
     b = np.asarray(out)
     highest = -1
     seeds = np.flatnonzero(b[1:] > b[:-1] + step) + 1
-    for c in ([1] if m > 1 else []) + seeds.tolist():
+    for c in seeds.tolist():  # (index 1 after the start limit is among them)
         if c <= highest:
             continue
         i = c

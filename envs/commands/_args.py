@@ -31,6 +31,13 @@ def non_negative_float(text: str) -> float:
     return v
 
 
+def positive_int(text: str) -> int:
+    v = non_negative_int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1: {text!r}")
+    return v
+
+
 def non_negative_int(text: str) -> int:
     try:
         v = int(text)

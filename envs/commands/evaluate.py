@@ -16,18 +16,11 @@ import math
 import sys
 from pathlib import Path
 
-from envs.commands._args import non_negative_int, positive_float
+from envs.commands._args import non_negative_int, positive_float, positive_int
 from envs.seeds import SPLITS
 
 DEFAULT_OUT = "osa-evaluate/rows.csv"
 MAX_SEED = 2**63 - 1  # seeds are int64 columns
-
-
-def positive_int(text: str) -> int:
-    v = non_negative_int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1: {text!r}")
-    return v
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -165,16 +158,13 @@ def run(args: argparse.Namespace) -> int:
     from envs.commands._progress import QuantityProgress
     from envs.evaluate import EpisodeError, EvaluationTimeoutError, evaluate, local_workers
     from envs.loop import DEFAULT_MODE, LoopConfig
-    from sim.scenario import ScenarioError, load_scenario
+    from sim.scenario import ScenarioError, search_scenario
 
     # every mistake is reported before any work starts
     try:
-        scenario = load_scenario(args.scenario)
+        scenario = search_scenario(args.scenario)
     except ScenarioError as exc:
         return _fail(exc)
-    if scenario.search is None:
-        return _fail(f"{args.scenario}: not a search scenario (no [search] table); "
-                     "osa simulate flies fixed flights")
     try:
         policies = parse_policies(args.policies)
         seeds = seeds_of(args.seeds, args.first_seed, args.split)

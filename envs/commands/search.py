@@ -65,15 +65,12 @@ def run(args: argparse.Namespace) -> int:
     from envs.commands.run import writable_file_problem
     from envs.loop import DEFAULT_MODE, LoopConfig, run_search
     from envs.policies import load_policy
-    from sim.scenario import ScenarioError, load_scenario
+    from sim.scenario import ScenarioError, search_scenario
 
     try:
-        scenario = load_scenario(args.scenario)
+        scenario = search_scenario(args.scenario)
     except ScenarioError as exc:
         return _fail(exc)
-    if scenario.search is None:
-        return _fail(f"{args.scenario}: not a search scenario (no [search] table); "
-                     "osa simulate flies fixed flights")
     if not (math.isfinite(args.decision_period) and 0.5 <= args.decision_period <= 600):
         return _fail(f"--decision-period must be in [0.5, 600] s, got {args.decision_period}")
     try:

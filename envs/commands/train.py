@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from envs.commands._args import non_negative_int
+from envs.commands._args import non_negative_int, positive_int
 
 
 def linear_schedule(start: float):
@@ -28,13 +28,6 @@ def linear_schedule(start: float):
 PPO_DEFAULTS = dict(n_steps=256, batch_size=128, n_epochs=10, gamma=0.995, gae_lambda=0.95,
                     ent_coef=0.01, learning_rate=linear_schedule(3e-4),
                     clip_range=0.2)  # docs/rl.md
-
-
-def positive_int(text: str) -> int:
-    v = non_negative_int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1: {text!r}")
-    return v
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -100,14 +93,12 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--algo {args.algo} does not fit the action space of {args.env}")
     env_kwargs = {}
     if args.scenario is not None:
-        from sim.scenario import ScenarioError, load_scenario
+        from sim.scenario import ScenarioError, search_scenario
 
         try:
-            sc = load_scenario(args.scenario)
+            search_scenario(args.scenario)
         except ScenarioError as exc:
             return _fail(f"--scenario: {exc}")
-        if sc.search is None:
-            return _fail(f"--scenario: {args.scenario} is not a search scenario")
         env_kwargs["scenario"] = args.scenario
     out = Path(args.out)
     try:

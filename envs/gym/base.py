@@ -21,17 +21,37 @@ import numpy as np
 from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig
 from envs.seeds import SPLITS
-from sim.scenario import Scenario, load_scenario
+from sim.scenario import Scenario, search_scenario
 
 DEFAULT_SCENARIO = "search-random-los"  # one open responder at a random place
 
 
-def resolve_scenario(scenario: str | Path | Scenario) -> Scenario:
-    """A search scenario from a preset name, a TOML path or a :class:`Scenario`."""
-    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-    if sc.search is None:
-        raise ValueError(f"scenario {sc.name} has no [search] table (not a search)")
-    return sc
+def env_settings(render_mode: str | None, render_modes: list[str], seed_split: str,
+                 mode: str, **env: Any) -> tuple[EnvConfig, LoopConfig]:
+    """Check the arguments every search env takes; its :class:`EnvConfig` (``env``: the
+    reward and observation settings) and the closed loop's :class:`LoopConfig`."""
+    if render_mode is not None and render_mode not in render_modes:
+        raise ValueError(f"render_mode must be one of {render_modes}")
+    if seed_split not in SPLITS:
+        raise ValueError(f"unknown seed split {seed_split!r}; choose from {list(SPLITS)}")
+    config = EnvConfig(**env)
+    return config, LoopConfig(mode=mode, decision_period_s=config.decision_period_s)
+
+
+def draw_world_seed(options: dict | None, rng: np.random.Generator, seed_split: str) -> int:
+    """The world of an episode: ``options["world_seed"]``, else one of ``seed_split``'s
+    seeds drawn from the env's generator."""
+    world_seed = (options or {}).get("world_seed")
+    if world_seed is None:
+        lo, hi = SPLITS[seed_split]
+        world_seed = rng.integers(lo, hi)
+    return int(world_seed)
+
+
+def outside_area(loop: ClosedLoop, obs, agent: int) -> float:
+    """1 when the agent's autopilot position is outside the search area, else 0."""
+    p = np.asarray(obs.agents[agent].position_enu_m[:2], dtype=float)[None, :]
+    return 0.0 if loop.mission.area.contains(p, 0.0)[0] else 1.0
 
 
 def loop_eval(loop: ClosedLoop) -> dict[str, dict]:
@@ -69,22 +89,18 @@ class SearchEnvBase(gym.Env):
         mode: str = DEFAULT_MODE,
         rerun_path: str | None = None,
     ) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}")
-        if seed_split not in SPLITS:
-            raise ValueError(f"unknown seed split {seed_split!r}; choose from {list(SPLITS)}")
-        self.scenario = resolve_scenario(scenario)
+        self.config, self.loop_config = env_settings(
+            render_mode, self.metadata["render_modes"], seed_split, mode,
+            decision_period_s=decision_period_s, max_responders=max_responders,
+            coverage_cells=coverage_cells, detection_bonus=detection_bonus,
+            coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
+            leave_penalty=leave_penalty)
+        self.scenario = search_scenario(scenario)
         if len(self.scenario.agents) != 1:
             raise ValueError(f"{self.scenario.name} has {len(self.scenario.agents)} agents: "
                              "use envs.gym.multi.SearchParallelEnv")
         self.render_mode = render_mode
         self.seed_split = seed_split
-        self.config = EnvConfig(decision_period_s=decision_period_s,
-                                max_responders=max_responders, coverage_cells=coverage_cells,
-                                detection_bonus=detection_bonus,
-                                coverage_bonus=coverage_bonus,
-                                time_cost_per_s=time_cost_per_s, leave_penalty=leave_penalty)
-        self.loop_config = LoopConfig(mode=mode, decision_period_s=decision_period_s)
         self.pilot = Pilot(self.kind, self.config)
         self.observation_space = self.pilot.observation_space
         self.action_space = self.pilot.action_space
@@ -96,11 +112,7 @@ class SearchEnvBase(gym.Env):
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        world_seed = (options or {}).get("world_seed")
-        if world_seed is None:
-            lo, hi = SPLITS[self.seed_split]
-            world_seed = int(self.np_random.integers(lo, hi))
-        self.world_seed = int(world_seed)
+        self.world_seed = draw_world_seed(options, self.np_random, self.seed_split)
         self.loop = ClosedLoop(self.scenario, self.world_seed, config=self.loop_config)
         self.pilot.reset(self.loop.mission)
         self._obs = self.loop.observe()
@@ -122,18 +134,13 @@ class SearchEnvBase(gym.Env):
         enc, changes = self.pilot.observe(self._obs)
         changes["dt_s"] = loop.t_s - t0
         changes["refused"] = loop.refused_plans - refused0
-        changes["outside"] = self.pilot.area_penalty() + self._outside()
+        changes["outside"] = self.pilot.area_penalty() + outside_area(loop, self._obs, 0)
         reward = self._compute_reward(changes)
         terminated = self.pilot.done(self._obs)
         truncated = not terminated and loop.t_s >= loop.mission.budget_s - 1e-9
         if self.render_mode == "human":
             self.render()
         return enc, reward, terminated, truncated, self._info()
-
-    def _outside(self, agent: int = 0) -> float:
-        """1 when the autopilot's position is outside the area now, else 0."""
-        p = np.asarray(self._obs.agents[agent].position_enu_m[:2], dtype=float)[None, :]
-        return 0.0 if self.loop.mission.area.contains(p, 0.0)[0] else 1.0
 
     # ------------------------------------------------------------------ hooks
     def _compute_reward(self, changes: dict) -> float:

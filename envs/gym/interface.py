@@ -413,12 +413,8 @@ class WaypointActions:
         self.band = (max(10.0, mission.height_m + band[0]), mission.height_m + band[1])
         self.penalty = 0.0  # of the last decision: share of the reach outside the area
         area = mission.area
-        self.halfplanes = None
-        if area.convex:  # inside with the margin: n . (p - v) >= margin for every edge
-            v = area.vertices
-            e = np.concatenate([v[1:], v[:1]]) - v
-            nrm = np.column_stack([-e[:, 1], e[:, 0]]) / np.linalg.norm(e, axis=1)[:, None]
-            self.halfplanes = (nrm, (nrm * v).sum(axis=1) + area.margin_m)
+        hp = area.halfplanes  # inside with the margin: n . q - c >= margin on every edge
+        self.halfplanes = None if hp is None else (hp[0], hp[1] + area.margin_m)
 
     def _inside(self, p: np.ndarray) -> np.ndarray:
         """The point of the area inset by its margin nearest to ``p`` (a convex area:

@@ -16,12 +16,17 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from envs.gym.base import DEFAULT_SCENARIO, loop_eval, resolve_scenario
-from envs.gym.interface import EnvConfig, Pilot
-from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig
-from envs.seeds import SPLITS
+from envs.gym.base import (
+    DEFAULT_SCENARIO,
+    draw_world_seed,
+    env_settings,
+    loop_eval,
+    outside_area,
+)
+from envs.gym.interface import Pilot
+from envs.loop import DEFAULT_MODE, ClosedLoop
 from planner.policy import Decision
-from sim.scenario import AgentSpec, Scenario
+from sim.scenario import AgentSpec, Scenario, search_scenario
 from sim.vehicle import WALKER
 
 
@@ -81,22 +86,18 @@ class SearchParallelEnv(ParallelEnv):
         leave_penalty: float = 1.0,
         mode: str = DEFAULT_MODE,
     ) -> None:
-        sc = resolve_scenario(scenario)
+        self.config, self.loop_config = env_settings(
+            render_mode, self.metadata["render_modes"], seed_split, mode,
+            decision_period_s=decision_period_s, max_responders=max_responders,
+            coverage_cells=coverage_cells, detection_bonus=detection_bonus,
+            coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
+            leave_penalty=leave_penalty)
+        sc = search_scenario(scenario)
         if len(sc.agents) == 1:
             sc = with_agents(sc, uavs, ground)
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}")
-        if seed_split not in SPLITS:
-            raise ValueError(f"unknown seed split {seed_split!r}; choose from {list(SPLITS)}")
         self.scenario = sc
         self.render_mode = render_mode
         self.seed_split = seed_split
-        self.config = EnvConfig(decision_period_s=decision_period_s,
-                                max_responders=max_responders, coverage_cells=coverage_cells,
-                                detection_bonus=detection_bonus,
-                                coverage_bonus=coverage_bonus,
-                                time_cost_per_s=time_cost_per_s, leave_penalty=leave_penalty)
-        self.loop_config = LoopConfig(mode=mode, decision_period_s=decision_period_s)
         self.possible_agents = [a.name for a in sc.agents]
         n = len(self.possible_agents)
         self.pilots = {
@@ -120,11 +121,7 @@ class SearchParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None or self.loop is None:
             self.np_random, _ = seeding.np_random(seed)
-        world_seed = (options or {}).get("world_seed")
-        if world_seed is None:
-            lo, hi = SPLITS[self.seed_split]
-            world_seed = int(self.np_random.integers(lo, hi))
-        self.world_seed = int(world_seed)
+        self.world_seed = draw_world_seed(options, self.np_random, self.seed_split)
         self.loop = ClosedLoop(self.scenario, self.world_seed, config=self.loop_config)
         self.agents = list(self.possible_agents)
         for i, name in enumerate(self.possible_agents):
@@ -133,12 +130,14 @@ class SearchParallelEnv(ParallelEnv):
         obs, _ = self._observe_all()
         return obs, {a: self._info() for a in self.agents}
 
+    def _others(self, i: int) -> tuple:
+        """Every agent's view but agent ``i``'s (its ``others`` observation)."""
+        return tuple(v for j, v in enumerate(self._obs.agents) if j != i)
+
     def _observe_all(self) -> tuple[dict, dict]:
         obs, changes = {}, {}
-        views = self._obs.agents
         for i, name in enumerate(self.possible_agents):
-            others = tuple(v for j, v in enumerate(views) if j != i)
-            obs[name], changes[name] = self.pilots[name].observe(self._obs, others)
+            obs[name], changes[name] = self.pilots[name].observe(self._obs, self._others(i))
         return obs, changes
 
     def step(self, actions: dict):
@@ -162,8 +161,7 @@ class SearchParallelEnv(ParallelEnv):
         dt = loop.t_s - t0
         rewards = {}
         for i, name in enumerate(self.possible_agents):
-            here = np.asarray(self._obs.agents[i].position_enu_m[:2])[None, :]
-            outside = 0.0 if loop.mission.area.contains(here, 0.0)[0] else 1.0
+            outside = outside_area(loop, self._obs, i)
             own = -c.time_cost_per_s * dt - c.leave_penalty * (
                 (i in refused) + outside
                 + (self.pilots[name].area_penalty() if name in actions else 0.0))
@@ -187,17 +185,10 @@ class SearchParallelEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Every agent's observation, concatenated (for centralised critics)."""
-        obs, _ = self._encode_only()
-        return np.concatenate([np.concatenate(list(obs[a].values())) for a in
-                               self.possible_agents])
-
-    def _encode_only(self) -> tuple[dict, dict]:
-        views = self._obs.agents
-        out = {}
-        for i, name in enumerate(self.possible_agents):
-            others = tuple(v for j, v in enumerate(views) if j != i)
-            out[name] = self.pilots[name].encoder.encode(self._obs, others)
-        return out, {}
+        return np.concatenate([
+            np.concatenate(list(self.pilots[name].encoder.encode(self._obs,
+                                                                 self._others(i)).values()))
+            for i, name in enumerate(self.possible_agents)])
 
     def render(self):
         if self.render_mode != "rgb_array" or self.loop is None:
