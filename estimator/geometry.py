@@ -94,13 +94,10 @@ def polygon_edge_distance_m(polygon_m: ArrayLike, points_m: ArrayLike) -> np.nda
     """Distance from each of the (M, 2) points to the polygon's boundary."""
     poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
-    a = poly[None, :, :]
-    b = _next_vertex(poly)[None, :, :]
-    ab = b - a
-    t = np.clip(((p[:, None, :] - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2),
-                                                                     1e-300), 0.0, 1.0)
-    closest = a + t[:, :, None] * ab
-    return np.linalg.norm(p[:, None, :] - closest, axis=2).min(axis=1)
+    ab = (_next_vertex(poly) - poly)[None, :, :]
+    ap = p[:, None, :] - poly[None, :, :]
+    t = np.clip((ap * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(ap - t[:, :, None] * ab, axis=2).min(axis=1)
 
 
 def signed_distance_to_polygon_m(polygon_m: ArrayLike, points_m: ArrayLike) -> np.ndarray:

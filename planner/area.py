@@ -30,7 +30,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.geometry import point_in_polygon, polygon_area_m2, polygon_is_convex
+from estimator.geometry import (
+    point_in_polygon,
+    polygon_area_m2,
+    polygon_is_convex,
+    signed_distance_to_polygon_m,
+)
 from planner.models import LinkModel
 from planner.patterns import Geofence
 
@@ -89,13 +94,11 @@ class SearchArea:
         if polygon_area_m2(p) < 0:
             p = p[::-1]
         object.__setattr__(self, "_ccw", p)
-        object.__setattr__(self, "_edge_a", p)
-        object.__setattr__(self, "_edge_b", np.roll(p, -1, axis=0))
         object.__setattr__(self, "_inset_cache", {})
         convex = polygon_is_convex(p)
         object.__setattr__(self, "_convex", convex)
         if convex:  # inward unit normals and offsets: inside iff n . q - c >= 0 on each edge
-            e = self._edge_b - p
+            e = np.roll(p, -1, axis=0) - p
             length = np.linalg.norm(e, axis=1)
             keep = length > 1e-9  # a repeated vertex has no edge
             nrm = np.column_stack([-e[keep, 1], e[keep, 0]]) / length[keep, None]
@@ -134,18 +137,7 @@ class SearchArea:
             g = (q @ nrm.T - c).min(axis=1)
             if np.all(g > 0.0):
                 return -g
-        a, b = self._edge_a, self._edge_b
-        ab = b - a
-        ap = q[:, None, :] - a[None, :, :]
-        t = np.clip((ap * ab[None]).sum(axis=2) / np.maximum((ab * ab).sum(axis=1), 1e-300),
-                    0.0, 1.0)
-        d = np.linalg.norm(ap - t[:, :, None] * ab[None], axis=2).min(axis=1)
-        y = q[:, 1:2]
-        crosses = (a[None, :, 1] > y) != (b[None, :, 1] > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x_at = a[None, :, 0] + (y - a[None, :, 1]) * ab[None, :, 0] / ab[None, :, 1]
-        inside = (np.count_nonzero(crosses & (q[:, 0:1] < x_at), axis=1) % 2) == 1
-        return np.where(inside, -d, d)
+        return signed_distance_to_polygon_m(self._ccw, q)
 
     def contains(self, xy: np.ndarray, margin_m: float | None = None) -> np.ndarray:
         """Points at least ``margin_m`` (default: none) inside the polygon."""

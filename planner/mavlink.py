@@ -321,6 +321,15 @@ def wire_to_mission(items: Sequence[WireItem], *, home: tuple[float, float, floa
                     param2=w.param2, param3=w.param3, param4=w.param4,
                     autocontinue=bool(w.autocontinue))
         for w in items[skip:])
+    polygons, circles = wire_to_fence(fence)
+    return Mission(items=mission_items, home=home, polygons=polygons, circles=circles,
+                   rally_deg=tuple((e7_to_deg(w.x), e7_to_deg(w.y), w.z) for w in rally))
+
+
+def wire_to_fence(fence: Sequence[WireItem]
+                  ) -> tuple[tuple[FencePolygon, ...], tuple[FenceCircle, ...]]:
+    """The polygons and circles of fence items (a polygon: ``param1`` vertex items in a
+    row); :class:`ProtocolError` for items that do not make a fence."""
     polygons: list[FencePolygon] = []
     circles: list[FenceCircle] = []
     k = 0
@@ -343,9 +352,7 @@ def wire_to_mission(items: Sequence[WireItem], *, home: tuple[float, float, floa
             k += 1
         else:
             raise ProtocolError(f"fence item {k}: unexpected command {w.command}")
-    return Mission(items=mission_items, home=home, polygons=tuple(polygons),
-                   circles=tuple(circles),
-                   rally_deg=tuple((e7_to_deg(w.x), e7_to_deg(w.y), w.z) for w in rally))
+    return tuple(polygons), tuple(circles)
 
 
 def _same_f32(a: float, b: float) -> bool:

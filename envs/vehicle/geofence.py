@@ -10,12 +10,14 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from planner.mavlink import WireItem
+from planner.mavlink import WireItem, wire_to_fence
 from planner.mission import (
     MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
     MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION,
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+    FenceCircle,
+    FencePolygon,
 )
 
 
@@ -60,26 +62,18 @@ class Fence:
 def fence_from_items(items: Sequence[WireItem],
                      to_en: Callable[[float, float], tuple[float, float]]) -> Fence:
     """A :class:`Fence` from validated fence items (``to_en(lat, lon)`` -> (e, n))."""
-    inc_p: list[tuple[tuple[float, float], ...]] = []
-    exc_p: list[tuple[tuple[float, float], ...]] = []
-    inc_c: list[tuple[float, float, float]] = []
-    exc_c: list[tuple[float, float, float]] = []
-    k = 0
-    while k < len(items):
-        w = items[k]
-        if w.command in (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
-                         MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION):
-            m = int(w.param1)
-            poly = tuple(to_en(v.x / 1e7, v.y / 1e7) for v in items[k:k + m])
-            (inc_p if w.command == MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
-             else exc_p).append(poly)
-            k += m
-            continue
-        e, n = to_en(w.x / 1e7, w.y / 1e7)
-        (inc_c if w.command == MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION else exc_c).append(
-            (e, n, float(w.param1)))
-        k += 1
-    return Fence(tuple(inc_p), tuple(exc_p), tuple(inc_c), tuple(exc_c))
+    polygons, circles = wire_to_fence(items)
+
+    def poly(p: FencePolygon) -> tuple[tuple[float, float], ...]:
+        return tuple(to_en(lat, lon) for lat, lon in p.vertices_deg)
+
+    def circle(c: FenceCircle) -> tuple[float, float, float]:
+        return (*to_en(c.lat_deg, c.lon_deg), float(c.radius_m))
+
+    return Fence(tuple(poly(p) for p in polygons if p.inclusion),
+                 tuple(poly(p) for p in polygons if not p.inclusion),
+                 tuple(circle(c) for c in circles if c.inclusion),
+                 tuple(circle(c) for c in circles if not c.inclusion))
 
 
 FENCE_COMMANDS = (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
