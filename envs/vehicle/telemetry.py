@@ -28,6 +28,7 @@ from envs.vehicle.px4 import (
 )
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
+from planner.mission import deg_to_e7
 from sim.realisation import Realisation
 
 mavlink = mavutil.mavlink
@@ -169,7 +170,7 @@ class Telemetry:
             lat, lon, alt = ap.geodetic(p)
             hdg = self._heading_deg()
             return mavlink.MAVLink_global_position_int_message(
-                self._time_ms(), _e7(lat), _e7(lon), round(alt * 1000.0),
+                self._time_ms(), deg_to_e7(lat), deg_to_e7(lon), round(alt * 1000.0),
                 round((p[2] - ap.home.enu[2]) * 1000.0),
                 _cms(v[1]), _cms(v[0]), _cms(-v[2]), round(hdg * 100.0) % 36000)
         if msg_id == MSG_ATTITUDE:
@@ -193,7 +194,7 @@ class Telemetry:
         if msg_id == MSG_HOME_POSITION:
             h = ap.home
             return mavlink.MAVLink_home_position_message(
-                _e7(h.lat_deg), _e7(h.lon_deg), round(h.alt_m * 1000.0),
+                deg_to_e7(h.lat_deg), deg_to_e7(h.lon_deg), round(h.alt_m * 1000.0),
                 h.enu[1], h.enu[0], -h.enu[2], [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
                 int(ap.t_s * 1e6))
         if msg_id == MSG_MISSION_CURRENT:
@@ -252,15 +253,11 @@ class Telemetry:
         vacc = f.vacc_m if f.vacc_m is not None else 2.0 * acc
         alt_mm = round(f.alt_m * 1000.0)
         return mavlink.MAVLink_gps_raw_int_message(
-            t_us, _FIX_TYPES.get(f.fix or "3d", 3), _e7(f.lat_deg), _e7(f.lon_deg), alt_mm,
+            t_us, _FIX_TYPES.get(f.fix or "3d", 3), deg_to_e7(f.lat_deg),
+            deg_to_e7(f.lon_deg), alt_mm,
             min(round(acc * 100), 65534), min(round(vacc * 100), 65534), round(gs * 100), cog,
             f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
             round(vacc * 1000), 0, 0, 0)
-
-
-def _e7(deg: float) -> int:
-    v = math.floor(abs(deg) * 1e7 + 0.5)
-    return int(math.copysign(v, deg)) if v else 0
 
 
 def _cms(v_mps: float) -> int:
