@@ -184,48 +184,6 @@ def _reference_in_world(traj: Trajectory, world: World) -> tuple[np.ndarray, np.
     return np.column_stack([e, n]), np.asarray(u, dtype=float)
 
 
-def _densify(
-    t: np.ndarray, en: np.ndarray, z: np.ndarray, step_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Split segments into pieces of at most ``step_m`` (horizontally and vertically)."""
-    d_en = en[1:] - en[:-1]
-    seg = np.maximum(np.hypot(d_en[:, 0], d_en[:, 1]), np.abs(z[1:] - z[:-1]))
-    pieces = np.maximum(1, np.ceil(seg / step_m)).astype(np.intp)
-    idx = np.repeat(np.arange(len(seg)), pieces)
-    first = np.repeat(np.cumsum(pieces) - pieces, pieces)
-    frac = (np.arange(len(idx)) - first) / np.repeat(pieces, pieces)
-
-    def lerp(a: np.ndarray) -> np.ndarray:
-        da = a[1:] - a[:-1]
-        f = frac if a.ndim == 1 else frac[:, None]
-        return np.concatenate([a[idx] + f * da[idx], a[-1:]])
-
-    return lerp(t), lerp(en), lerp(z)
-
-
-def _unwrap(p: np.ndarray) -> np.ndarray:
-    """``numpy.unwrap`` of a 1-D angle series (period 2 pi), without its generality."""
-    if len(p) < 2:
-        return p.copy()
-    dd = p[1:] - p[:-1]
-    ddmod = np.mod(dd + math.pi, 2.0 * math.pi) - math.pi
-    ddmod[(ddmod == -math.pi) & (dd > 0)] = math.pi
-    correct = ddmod - dd
-    correct[np.abs(dd) < math.pi] = 0.0
-    out = p.copy()
-    out[1:] += np.cumsum(correct)
-    return out
-
-
-def _forward_fill(values: np.ndarray, valid: np.ndarray, default: float) -> np.ndarray:
-    if not valid.any():
-        return np.full(len(values), default)
-    idx = np.where(valid, np.arange(len(values)), -1)
-    idx = np.maximum.accumulate(idx)
-    idx[idx < 0] = int(np.argmax(valid))  # before the first valid value: take it
-    return values[idx]
-
-
 # ----------------------------------------------------------------------------- guidance
 
 
@@ -275,184 +233,50 @@ class PathGuidance:
         if len(p) == 1:
             t_ref, p = np.array([0.0, t_ref[0]]), np.vstack([p, p])
             hov = None if hov is None else np.array([hov[0], hov[0]])
-        t_d, en_d, z_d = _densify(t_ref, p[:, :2], p[:, 2] if hov is None else hov, ds)
+        from sim import _kernels
+
+        z_ref = np.ascontiguousarray(p[:, 2] if hov is None else hov, dtype=float)
+        t_d, en_d, z_d = _kernels.densify(t_ref, np.ascontiguousarray(p[:, :2]), z_ref, ds)
         if hov is not None and terrain_height is not None:
             z_d = z_d + np.asarray(terrain_height(en_d[:, 0], en_d[:, 1]), dtype=float)
-        pd = np.column_stack([en_d, z_d])
-        dpd = pd[1:] - pd[:-1]
-        seg = np.sqrt((dpd * dpd).sum(axis=1))
-        dt_d = t_d[1:] - t_d[:-1]
-        moving = seg > 1e-9
-        # nodes: drop zero-length steps, remembering the hovers they hold
-        keep = np.concatenate([[True], moving])
-        s_all = np.concatenate([[0.0], np.cumsum(seg)])
-        idx_keep = np.flatnonzero(keep)
-        node_of = np.cumsum(keep) - 1  # dense index -> node index
-        dwell: dict[int, float] = {}
-        for i in np.flatnonzero(~moving & (dt_d > 0)).tolist():
-            n = int(node_of[i])
-            dwell[n] = dwell.get(n, 0.0) + float(dt_d[i])
-        pts = pd[idx_keep]
-        s = s_all[idx_keep]
+        pts, s, self._dwell, t_move = _kernels.path_nodes(t_d, np.column_stack([en_d, z_d]))
         self.total_m = float(s[-1])
         m = len(pts)
         if m >= 2:
             d = pts[1:] - pts[:-1]
-            cell = np.maximum(np.sqrt((d * d).sum(axis=1)), 1e-12)
-            tangent = d / cell[:, None]
-            tangent = np.vstack([tangent, tangent[-1:]])
-            t_acc = np.concatenate([[0.0], np.cumsum(np.where(moving, dt_d, 0.0))])[keep]
-            t_cell = t_acc[1:] - t_acc[:-1]
-            with np.errstate(divide="ignore"):
-                v_ref = np.where(t_cell > 0, cell / t_cell, np.inf)
-                v_climb = cfg.max_vertical_speed_mps * cell / np.maximum(np.abs(d[:, 2]), 1e-12)
-            v_cell = np.minimum(np.minimum(v_ref, v_climb), cfg.max_speed_mps)
-            h = d[:, :2]
-            h_len = np.hypot(h[:, 0], h[:, 1])
-            psi = _unwrap(_forward_fill(np.arctan2(h[:, 1], h[:, 0]), h_len > 1e-6 * ds, 0.0))
-            turn = np.abs(psi[1:] - psi[:-1])
-            arc = 0.5 * (h_len[:-1] + h_len[1:])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                curv = np.where(turn > 0, turn / np.maximum(arc, 1e-9), 0.0)
-                v_turn = np.minimum(
-                    np.where(curv > 0, math.radians(cfg.max_yaw_rate_dps) / curv, np.inf),
-                    np.where(curv > 0, np.sqrt(cfg.max_lateral_accel_mps2 / curv), np.inf),
-                )
-            v_node = np.empty(m)
-            v_node[0] = v_cell[0]
-            v_node[1:-1] = np.minimum(np.minimum(v_cell[:-1], v_cell[1:]), v_turn)
-            v_node[-1] = v_cell[-1]
-            v_node[1:-1][turn > math.radians(cfg.sharp_turn_deg)] = 0.0
-            v_node = np.maximum(v_node, cfg.crawl_speed_mps)
-            stops = np.zeros(m, dtype=bool)
-            stops[-1] = True
-            for n in dwell:
-                stops[n] = True
-            v_node[stops] = 0.0
-            # braking: backward pass on v^2 (deceleration max_accel over each cell), then
-            # acceleration from the current speed: forward pass
-            a2 = 2.0 * cfg.max_accel_mps2
-            v2 = _limit_passes(v_node * v_node, a2 * cell, max(start_speed_mps, 0.0) ** 2)
-            v_prof = np.sqrt(v2)
-            # the reference never stands still between stops
-            floor = np.where(stops, 0.0, cfg.crawl_speed_mps)
-            v_prof = np.maximum(v_prof, floor)
-        else:
-            tangent = np.array([[1.0, 0.0, 0.0]])
-            v_prof = np.zeros(1)
-        self.s = s.tolist()
-        self.x = pts[:, 0].tolist()
-        self.y = pts[:, 1].tolist()
-        self.z = pts[:, 2].tolist()
-        self.tx = tangent[:, 0].tolist()
-        self.ty = tangent[:, 1].tolist()
-        self.tz = tangent[:, 2].tolist()
-        self.v = v_prof.tolist()
-        self.dwell = dwell
-        self.end_m = (self.x[-1], self.y[-1], self.z[-1])
-        self._i = 0
-        self._s_ref = 0.0
-        self._dwell_left = dwell.get(0, 0.0)
-        self._next_stop = self._stop_after(0)
-        self.done = False
+            lim = np.array([ds, cfg.max_speed_mps, cfg.max_vertical_speed_mps,
+                            math.radians(cfg.max_yaw_rate_dps), cfg.max_lateral_accel_mps2,
+                            cfg.max_accel_mps2, math.radians(cfg.sharp_turn_deg),
+                            cfg.crawl_speed_mps, max(start_speed_mps, 0.0) ** 2])
+            self._path, self._stop_after = _kernels.path_profile(
+                pts, s, self._dwell, t_move, np.arctan2(d[:, 1], d[:, 0]), lim)
+        else:  # a single point: hold it
+            self._path = np.array([[0.0], *pts.T, [1.0], [0.0], [0.0], [0.0]])
+            self._stop_after = np.zeros(1)
+        self._gc = np.array([cfg.position_gain_per_s, cfg.lag_limit_m, cfg.crawl_speed_mps,
+                             arrive_m])
+        self._gs = np.array([0.0, 0.0, self._dwell[0], self._stop_after[0], 0.0])
+        self.end_m = tuple(pts[-1].tolist())
+
+    @property
+    def done(self) -> bool:
+        return bool(self._gs[4])
 
     @property
     def start_m(self) -> tuple[float, float, float]:
-        return self.x[0], self.y[0], self.z[0]
+        return tuple(self._path[1:4, 0].tolist())
 
     @property
     def progress_m(self) -> float:
-        return self._s_ref
-
-    def _stop_after(self, i: int) -> int:
-        later = [n for n in self.dwell if n > i]
-        return min(later) if later else len(self.s) - 1
+        return float(self._gs[1])
 
     def command(self, px: float, py: float, pz: float, dt: float) -> tuple[float, float, float]:
-        """Velocity command at the navigation position (px, py, pz) for one tick."""
-        cfg = self.cfg
-        s, xs, ys, zs = self.s, self.x, self.y, self.z
-        i = self._i
-        last = len(s) - 1
-        s_ref = self._s_ref
-        if i < last:  # the reference point and its profile speed
-            f = (s_ref - s[i]) / (s[i + 1] - s[i])
-            rx = xs[i] + f * (xs[i + 1] - xs[i])
-            ry = ys[i] + f * (ys[i + 1] - ys[i])
-            rz = zs[i] + f * (zs[i + 1] - zs[i])
-            vr = self.v[i] + f * (self.v[i + 1] - self.v[i])
-        else:
-            rx, ry, rz, vr = xs[last], ys[last], zs[last], 0.0
-        ex, ey, ez = rx - px, ry - py, rz - pz
-        lag = math.sqrt(ex * ex + ey * ey + ez * ez)
-        if self._dwell_left > 0.0:  # hovering at a stop
-            vr = 0.0
-            if lag < 0.5:
-                self._dwell_left -= dt
-        elif i < last and lag < cfg.lag_limit_m:
-            # advance along the profile (at least at crawl speed: the profile is 0 at a
-            # stop), never past the next stop
-            stop = self._next_stop
-            s_new = s_ref + max(vr, cfg.crawl_speed_mps) * dt
-            if s_new >= s[stop]:
-                s_new = s[stop]
-                if stop < last:
-                    self._dwell_left = self.dwell.get(stop, 0.0)
-                    self._next_stop = self._stop_after(stop)
-            self._s_ref = s_new
-            while i < last and s[i + 1] <= s_new:
-                i += 1
-            self._i = i
-        if i >= last:
-            vr = 0.0
-            if lag < self.arrive_m:
-                self.done = True
-        k = cfg.position_gain_per_s
-        return (
-            vr * self.tx[i] + k * ex,
-            vr * self.ty[i] + k * ey,
-            vr * self.tz[i] + k * ez,
-        )
+        """Velocity command at the navigation position (px, py, pz) for one tick
+        (:func:`sim._kernels.path_command`)."""
+        from sim import _kernels
 
-
-def _limit_passes(v2: np.ndarray, step: np.ndarray, start_v2: float) -> np.ndarray:
-    """The speed profile's two passes on v^2: backward, ``v2[i] <= v2[i+1] + step[i]``
-    (braking), then forward from ``v2[0] <= start_v2``, ``v2[i] <= v2[i-1] + step[i-1]``
-    (acceleration). Element by element in Python floats, but only where a limit binds:
-    a run of changes starts where the limit binds on the unchanged profile (found with
-    NumPy) and ends at the first element it leaves alone, so the result is that of the
-    plain element-wise loops, bit for bit, at the cost of the changed elements only."""
-    m = len(v2)
-    out = v2.tolist()
-    st = step.tolist()
-    lowest = m
-    for c in np.flatnonzero(v2[:-1] > v2[1:] + step)[::-1].tolist():
-        if c >= lowest:
-            continue
-        i = c
-        while i >= 0:
-            lim = out[i + 1] + st[i]
-            if out[i] <= lim:
-                break
-            out[i] = lim
-            i -= 1
-        lowest = i
-    out[0] = min(out[0], start_v2)
-    b = np.asarray(out)
-    highest = -1
-    seeds = np.flatnonzero(b[1:] > b[:-1] + step) + 1
-    for c in seeds.tolist():  # (index 1 after the start limit is among them)
-        if c <= highest:
-            continue
-        i = c
-        while i < m:
-            lim = out[i - 1] + st[i - 1]
-            if out[i] <= lim:
-                break
-            out[i] = lim
-            i += 1
-        highest = i
-    return np.asarray(out)
+        return _kernels.path_command(self._path, self._dwell, self._stop_after, self._gs,
+                                     self._gc, px, py, pz, dt)
 
 
 class HoldGuidance:
@@ -460,14 +284,16 @@ class HoldGuidance:
 
     def __init__(self, point_m: tuple[float, float, float], cfg: VehicleConfig) -> None:
         self.point = tuple(float(v) for v in point_m)
+        self._point = np.array(self.point)
         self.cfg = cfg
         self.done = False
         self.name = "hold"
 
     def command(self, px: float, py: float, pz: float, dt: float) -> tuple[float, float, float]:
-        k = self.cfg.position_gain_per_s
-        x, y, z = self.point
-        return k * (x - px), k * (y - py), k * (z - pz)
+        """Velocity command at the navigation position (:func:`sim._kernels.hold_command`)."""
+        from sim import _kernels
+
+        return _kernels.hold_command(self._point, self.cfg.position_gain_per_s, px, py, pz)
 
 
 Guidance = PathGuidance | HoldGuidance
@@ -554,6 +380,12 @@ class _Columns:
         return self._a[: self.n]
 
 
+_NO_NAV = np.empty((0, 3))  # placeholders of the kernel's unused arguments
+_NO_POINT = np.zeros(3)
+_NO_PATH = np.zeros((8, 1))
+_NO_NODES = np.zeros(1)
+_NO_GS = np.zeros(5)
+
 UNDERGROUND_TOLERANCE_M = 1.0  # wander and corner cutting may graze the ground by less
 
 
@@ -591,6 +423,12 @@ class Multirotor:
         self._p = [x, y, z]
         self._v = [float(v) for v in start.velocity_mps]
         self._yaw = float(start.yaw_rad)
+        dt = self.dt  # per-tick limits, in sim._kernels' layout
+        self._params = np.array([
+            dt, cfg.max_accel_mps2 * dt, cfg.max_lateral_accel_mps2 * dt,
+            cfg.max_vertical_accel_mps2 * dt, cfg.max_speed_mps, cfg.max_vertical_speed_mps,
+            math.radians(cfg.max_yaw_rate_dps) * dt, *cfg.wind_enu_mps,
+        ])
         self.state_log = _Columns(8)  # t, x, y, z, vx, vy, vz, yaw (controller state)
         self.out_log = _Columns(3)  # output position: + drift + wander
         self._record(np.array([[self.t_s, x, y, z, *self._v, self._yaw]]))
@@ -630,7 +468,12 @@ class Multirotor:
 
     def advance(self, t_end_s: float, *, until_done: bool = False) -> None:
         """Integrate ticks up to the last grid time at or before ``t_end_s`` (or, with
-        ``until_done``, up to the tick where the guidance is done)."""
+        ``until_done``, up to the tick where the guidance is done). Path and hold
+        guidance fly compiled (:func:`sim._kernels.fly`); any other guidance object
+        (the MAVLink autopilot) and a walking agent, whose height follows the terrain,
+        tick by tick with the same dynamics (:func:`sim._kernels.tick`)."""
+        from sim import _kernels as kn
+
         k_end = math.floor(t_end_s / self.dt + 1e-9)
         n = k_end - self.k
         if n <= 0:
@@ -639,104 +482,54 @@ class Multirotor:
         dt = self.dt
         t_ticks = (self.k + 1 + np.arange(n)) * dt
         nav = self.nav_error(t_ticks - dt) if self.nav_error is not None else None
-        a_long = cfg.max_accel_mps2 * dt
-        a_lat = cfg.max_lateral_accel_mps2 * dt
-        a_z = cfg.max_vertical_accel_mps2 * dt
-        vmax = cfg.max_speed_mps
-        vz_max = cfg.max_vertical_speed_mps
-        yaw_step = math.radians(cfg.max_yaw_rate_dps) * dt
-        we, wn = cfg.wind_enu_mps
         walker = cfg.ground_height_m is not None
         ground = self.world.ground_m
-        x, y, z = self._p
-        vx, vy, vz = self._v
-        yaw = self._yaw
         g = self.guidance
-        command = g.command
-        rows: list[tuple[float, ...]] = []
-        row = rows.append
-        t_l = t_ticks.tolist()
-        nav_l = nav.tolist() if nav is not None else None
-        hypot, atan2, pi, two_pi = math.hypot, math.atan2, math.pi, 2.0 * math.pi
-        for j in range(n):
-            if nav_l is not None:
-                bx, by, bz = nav_l[j]
-                cx, cy, cz = command(x + bx, y + by, z + bz, dt)
+        st = np.array([*self._p, *self._v, self._yaw])
+        rows = np.empty((n, 8))
+        p = self._params
+        if not walker and isinstance(g, PathGuidance | HoldGuidance):
+            path = isinstance(g, PathGuidance)
+            nav_a = np.ascontiguousarray(nav, dtype=float) if nav is not None else _NO_NAV
+            if path:
+                mode, point, args = kn.PATH, _NO_POINT, (g._path, g._dwell, g._stop_after,
+                                                         g._gs, g._gc)
             else:
-                cx, cy, cz = command(x, y, z, dt)
-            if we or wn:  # air speed: shorten the ground velocity along its own direction
-                ax_, ay_ = cx - we, cy - wn
-                if ax_ * ax_ + ay_ * ay_ > vmax * vmax:
-                    cw = cx * we + cy * wn
-                    c2 = cx * cx + cy * cy
-                    lam = (cw + math.sqrt(cw * cw - c2 * (we * we + wn * wn - vmax * vmax))) / c2
-                    cx *= lam
-                    cy *= lam
-            elif cx * cx + cy * cy > vmax * vmax:
-                sc = vmax / hypot(cx, cy)
-                cx *= sc
-                cy *= sc
-            # horizontal: along-track and lateral acceleration limits
-            dvx, dvy = cx - vx, cy - vy
-            sp = hypot(vx, vy)
-            if sp > 0.1:
-                ux, uy = vx / sp, vy / sp
-            else:
-                dn = hypot(dvx, dvy)
-                ux, uy = (dvx / dn, dvy / dn) if dn > 0 else (1.0, 0.0)
-            along = dvx * ux + dvy * uy
-            latx, laty = dvx - along * ux, dvy - along * uy
-            if along > a_long:
-                along = a_long
-            elif along < -a_long:
-                along = -a_long
-            lat = hypot(latx, laty)
-            if lat > a_lat:
-                latx *= a_lat / lat
-                laty *= a_lat / lat
-            nvx = vx + along * ux + latx
-            nvy = vy + along * uy + laty
-            # air speed
-            ax_, ay_ = nvx - we, nvy - wn
-            air = hypot(ax_, ay_)
-            if air > vmax:
-                nvx = we + ax_ * vmax / air
-                nvy = wn + ay_ * vmax / air
-            dvz = cz - vz
-            if dvz > a_z:
-                dvz = a_z
-            elif dvz < -a_z:
-                dvz = -a_z
-            nvz = vz + dvz
-            if nvz > vz_max:
-                nvz = vz_max
-            elif nvz < -vz_max:
-                nvz = -vz_max
-            x += 0.5 * (vx + nvx) * dt
-            y += 0.5 * (vy + nvy) * dt
-            if walker:
-                nz = float(ground(x, y)) + cfg.ground_height_m
-                nvz = (nz - z) / dt
-                z = nz
-            else:
-                z += 0.5 * (vz + nvz) * dt
-            vx, vy, vz = nvx, nvy, nvz
-            # the nose follows the course, within the yaw-rate limit
-            sp = hypot(vx, vy)
-            if sp > 0.5:
-                d = atan2(vy, vx) - yaw
-                d = (d + pi) % two_pi - pi
-                yaw += yaw_step if d > yaw_step else -yaw_step if d < -yaw_step else d
-            row((t_l[j], x, y, z, vx, vy, vz, yaw))
-            if until_done and g.done:
-                n = j + 1
-                k_end = self.k + n
-                break
+                mode, point = kn.HOLD, g._point
+                args = (_NO_PATH, _NO_NODES, _NO_NODES, _NO_GS,
+                        np.array([g.cfg.position_gain_per_s, 0.0, 0.0, 0.0]))
+            done = kn.fly(st, nav_a, p, mode, point, *args, until_done, rows)
+        else:
+            command = g.command
+            nav_l = nav.tolist() if nav is not None else None
+            h = cfg.ground_height_m
+            done = n
+            for j in range(n):
+                x, y, z = st[:3].tolist()
+                if nav_l is not None:
+                    bx, by, bz = nav_l[j]
+                    cx, cy, cz = command(x + bx, y + by, z + bz, dt)
+                else:
+                    cx, cy, cz = command(x, y, z, dt)
+                kn.tick(st, cx, cy, cz, p)
+                if walker:  # the height follows the ground beneath
+                    nz = float(ground(float(st[0]), float(st[1]))) + h
+                    st[2], st[5] = nz, (nz - z) / dt
+                rows[j, 1:] = st
+                if until_done and g.done:
+                    done = j + 1
+                    break
+        if done < n:
+            n = done
+            k_end = self.k + n
+            rows = rows[:n]
+        rows[:, 0] = t_ticks[:n]
+        x, y, z, vx, vy, vz, yaw = st.tolist()
         self._p = [x, y, z]
         self._v = [vx, vy, vz]
         self._yaw = yaw
         self.k = k_end
-        self._record(np.array(rows, dtype=float).reshape(-1, 8))
+        self._record(rows)
         agl = self.out_log.view[-n:, 2] - ground(self.out_log.view[-n:, 0],
                                                   self.out_log.view[-n:, 1])
         i = int(np.argmin(agl))

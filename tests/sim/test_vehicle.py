@@ -147,8 +147,8 @@ def _plain_passes(v2: list[float], step: list[float], start_v2: float) -> list[f
     return v2
 
 
-def test_sparse_speed_passes_equal_the_plain_loops_bit_for_bit() -> None:
-    from sim.vehicle import _limit_passes
+def test_compiled_speed_passes_equal_the_plain_loops_bit_for_bit() -> None:
+    from sim._kernels import limit_passes as _limit_passes
 
     rng = np.random.default_rng(7)
     for _ in range(3000):

@@ -1,0 +1,121 @@
+"""The vehicle's compiled inner loops (sim._kernels) give the interpreted source's values
+bit for bit, so a flight is the same flight with and without numba's compiler."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from sim import _kernels as kn
+from sim.terrain import HillsTerrain
+from sim.vehicle import WALKER, HoldGuidance, Multirotor, PathGuidance, VehicleConfig, VehicleState
+from sim.world import Origin, World
+
+WORLD = World(Origin(), HillsTerrain(), ())
+
+
+def test_hypot_rounds_as_cpython_does() -> None:
+    rng = np.random.default_rng(11)
+    for scale in (1e-300, 1e-3, 1.0, 37.0, 1e5, 1e300):
+        a = rng.normal(size=20000) * scale
+        b = rng.normal(size=20000) * scale
+        b[::5] = 0.0
+        a[::7] = b[::7]
+        want = [math.hypot(x, y) for x, y in zip(a.tolist(), b.tolist(), strict=True)]
+        got = [kn.hypot(x, y) for x, y in zip(a.tolist(), b.tolist(), strict=True)]
+        assert got == want
+    assert math.isinf(kn.hypot(math.inf, math.nan)) and math.isnan(kn.hypot(1.0, math.nan))
+    assert kn.hypot(0.0, -0.0) == 0.0 and kn.hypot(5e-324, 5e-324) == math.hypot(5e-324, 5e-324)
+
+
+def _random_path(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    k = int(rng.integers(2, 7))
+    p = np.cumsum(rng.normal(0.0, 25.0, (k, 3)), axis=0)
+    p[:, 2] = 30.0 + 0.2 * np.abs(p[:, 2])
+    if k > 2 and rng.random() < 0.4:
+        p[2] = p[1]  # a hover
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(1.0, 15.0, k - 1))])
+    return t, p
+
+
+def flights_digest() -> str:
+    """SHA-256 of paths built and flown (path, hold, wind, a terrain-referenced path,
+    navigation errors) on seeded random references: the same in any process."""
+    rng = np.random.default_rng(5)
+    h = hashlib.sha256()
+    cfgs = (VehicleConfig(), VehicleConfig(wind_enu_mps=(3.0, -2.0)),
+            VehicleConfig(max_speed_mps=6.0, sharp_turn_deg=40.0))
+    for j in range(18):
+        cfg = cfgs[j % 3]
+        t, p = _random_path(rng)
+        kw = {}
+        if j % 4 == 3:
+            kw = {"terrain_height": WORLD.ground_m, "height_above_terrain_m": p[:, 2] - 10.0}
+        g = PathGuidance(t, p, cfg, start_speed_mps=float(rng.uniform(0.0, 6.0)),
+                         arrive_m=0.5, **kw)
+        off = rng.normal(0.0, 1.0, 3)
+        v = Multirotor(cfg, WORLD, VehicleState(0.0, g.start_m, (0.5, -0.3, 0.0)),
+                       nav_error=lambda tt, off=off: np.sin(tt)[:, None] * off)
+        v.set_guidance(g)
+        v.advance(37.35)
+        v.set_guidance(HoldGuidance(tuple(p[0]), cfg))
+        v.advance(60.0)
+        for a in (g._path, g._dwell, g._stop_after, g._gs, v.state_log.view):
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def test_compiled_flights_equal_the_interpreted_source_bit_for_bit() -> None:
+    """The same flights with numba's compiler and with NUMBA_DISABLE_JIT=1 (the source
+    run by the interpreter, CPython's math.hypot included): the same bytes."""
+    code = "from tests.sim.test_kernels import flights_digest; print(flights_digest())"
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120, cwd=Path(__file__).parents[2], check=True)
+    assert out.stdout.strip() == flights_digest()
+
+
+def test_walker_and_generic_guidance_tick_by_tick_equal_the_compiled_run() -> None:
+    """A guidance object the kernel does not know flies tick by tick through the same
+    dynamics: wrapping a path guidance's command gives the compiled flight's track."""
+    world = WORLD
+    cfg = VehicleConfig()
+    t, p = np.array([0.0, 20.0, 40.0]), np.array([[0.0, 0.0, 60.0], [90.0, 10.0, 70.0],
+                                                   [120.0, 80.0, 65.0]])
+
+    class Wrapped:
+        name = "wrapped"
+
+        def __init__(self, g: PathGuidance) -> None:
+            self.g = g
+
+        @property
+        def done(self) -> bool:
+            return self.g.done
+
+        def command(self, px: float, py: float, pz: float, dt: float):
+            return self.g.command(px, py, pz, dt)
+
+    tracks = []
+    for wrap in (False, True):
+        g = PathGuidance(t, p, cfg)
+        v = Multirotor(cfg, world, VehicleState(0.0, tuple(p[0]), (0.0, 0.0, 0.0)),
+                       nav_error=lambda tt: np.column_stack([np.sin(tt), np.cos(tt), 0 * tt]))
+        v.set_guidance(Wrapped(g) if wrap else g)
+        for t_end in (7.3, 19.0, 61.0):
+            v.advance(t_end, until_done=True)
+        tracks.append(v.state_log.view.copy())
+    assert np.array_equal(tracks[0], tracks[1]) and len(tracks[0]) > 500
+    # a walker's height follows the ground, 1.5 m above it
+    v = Multirotor(WALKER, world, VehicleState(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    v.set_guidance(HoldGuidance((20.0, 5.0, 0.0), WALKER))
+    v.advance(30.0)
+    st = v.state_log.view
+    assert np.allclose(st[:, 3], world.ground_m(st[:, 1], st[:, 2]) + 1.5)
+    assert math.dist(st[-1, 1:3], (20.0, 5.0)) < 0.5
