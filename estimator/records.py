@@ -7,7 +7,7 @@ monotonic clock; inside the estimator time is float seconds (``t_s``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Literal
 
 if TYPE_CHECKING:
@@ -32,6 +32,23 @@ class LogHeader:
     agl_m: float | None = None  # configured H_AGL (sec. Gauss-Newton Bootstrap, eq. 5)
     range_offset_m: float | None = None  # pre-flight calibration offset b0 (sec. Range Model)
     extra: dict = field(default_factory=dict, compare=False, hash=False)
+
+
+def records_from_columns(cls: type, columns: dict[str, list]) -> list:
+    """``cls(**row)`` for each row of the equal-length ``columns``, which name every
+    field of the record class ``cls``: the same frozen, equal-comparing objects, built
+    without the dataclass ``__init__`` (a fifth of its cost) for producers of checked
+    values by the thousand (the simulator's phone)."""
+    names = tuple(columns)
+    if set(names) != {f.name for f in fields(cls)}:
+        raise ValueError(f"columns {sorted(names)} are not the fields of {cls.__name__}")
+    new = object.__new__
+    out = []
+    for row in zip(*columns.values(), strict=True):
+        rec = new(cls)
+        rec.__dict__.update(zip(names, row, strict=True))
+        out.append(rec)
+    return out
 
 
 @dataclass(frozen=True, kw_only=True)

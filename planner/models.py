@@ -40,6 +40,10 @@ class TerrainModel(Protocol):
         """Bounds (concave, convex) on -h'' and +h'' along any horizontal line (1/m)."""
         ...
 
+    # Optional: ``max_height_m(e_min, e_max, n_min, n_max) -> float``, an upper bound of
+    # the height over a box, lets the simulated vehicle skip its below-the-terrain check
+    # where it flies clearly above (sim.vehicle.Multirotor.advance).
+
 
 @runtime_checkable
 class LinkModel(Protocol):
@@ -67,6 +71,9 @@ class FlatTerrain:
         if is_symbolic(e_m):
             return 0.0 * e_m + self.level_m
         return np.zeros(np.broadcast(np.asarray(e_m), np.asarray(n_m)).shape) + self.level_m
+
+    def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
+        return self.level_m
 
     def sag_curvature(self) -> tuple[float, float]:
         return 0.0, 0.0

@@ -20,6 +20,7 @@ order :meth:`Emitted.replay_key` gives.
 from __future__ import annotations
 
 import math
+import operator
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -29,7 +30,13 @@ from typing import NamedTuple
 import numpy as np
 
 from estimator.logio import LogWriter
-from estimator.records import GnssFix, LogHeader, RangeSample, Trajectory
+from estimator.records import (
+    GnssFix,
+    LogHeader,
+    RangeSample,
+    Trajectory,
+    records_from_columns,
+)
 from sim._random import BlockedGaussMarkov
 from sim.clock import PhoneClock
 from sim.ftm import STATUS_NAMES, FtmRadio, FtmTrack, ftm_track
@@ -54,6 +61,7 @@ from sim.vehicle import (
 )
 
 GNSS_SOURCE, RTT_SOURCE = 0, 1
+_DELIVERY_ORDER = operator.itemgetter(1, 3, 4)  # (t_ns, source, index) of a pending row
 
 
 class Emitted(NamedTuple):
@@ -85,7 +93,7 @@ class AgentSim:
     gnss_steps: list[GnssTrack] = field(default_factory=list)
     ftm_steps: list[FtmTrack] = field(default_factory=list)
     emitted: list[Emitted] = field(default_factory=list)
-    _pending: list[tuple[float, int, int, int, GnssFix | RangeSample]] = field(
+    _pending: list[tuple[float, int, float, int, int, GnssFix | RangeSample]] = field(
         default_factory=list
     )
     _n_fix: int = 0
@@ -94,22 +102,29 @@ class AgentSim:
 
     WRITE_BLOCK = 1024
 
-    def write_delay_s(self, source: int, index: int, mean_s: float) -> float:
-        """The writer's delay of record (source, index): drawn by the record's identity,
-        so it does not depend on how the flight was stepped."""
+    def write_delays_s(self, source: int, first: int, n: int, mean_s: float) -> list[float]:
+        """The writer's delays of records ``first .. first + n - 1`` of ``source``: drawn
+        by the records' identity (blocks of :attr:`WRITE_BLOCK` per source, each from
+        its own stream), so they do not depend on how the flight was stepped."""
         if mean_s <= 0.0:
-            return 0.0
-        b = index // self.WRITE_BLOCK
-        blk = self._delays.get((source, b))
-        if blk is None:
-            rng = np.random.default_rng(
-                np.random.SeedSequence(self.writer_seed.entropy,
-                                       spawn_key=(*self.writer_seed.spawn_key, source, b))
-            )
-            blk = self._delays[(source, b)] = rng.exponential(mean_s, self.WRITE_BLOCK)
-            for key in [k for k in self._delays if k[0] == source and k[1] < b - 1]:
-                del self._delays[key]
-        return float(blk[index % self.WRITE_BLOCK])
+            return [0.0] * n
+        out: list[float] = []
+        k, end = first, first + n
+        while k < end:
+            b = k // self.WRITE_BLOCK
+            blk = self._delays.get((source, b))
+            if blk is None:
+                rng = np.random.default_rng(
+                    np.random.SeedSequence(self.writer_seed.entropy,
+                                           spawn_key=(*self.writer_seed.spawn_key, source, b))
+                )
+                blk = self._delays[(source, b)] = rng.exponential(mean_s, self.WRITE_BLOCK)
+                for key in [q for q in self._delays if q[0] == source and q[1] < b - 1]:
+                    del self._delays[key]
+            stop = min(end, (b + 1) * self.WRITE_BLOCK)
+            out.extend(blk[k - b * self.WRITE_BLOCK : stop - b * self.WRITE_BLOCK].tolist())
+            k = stop
+        return out
 
     @property
     def name(self) -> str:
@@ -253,12 +268,8 @@ class Stepper:
         limit = math.inf if flush else min(t_end, a.radio.horizon_s)
         ready = [p for p in a._pending if p[0] <= limit]
         a._pending = [p for p in a._pending if p[0] > limit]
-        ready.sort(key=lambda p: (p[1], p[2], p[3]))
-        mean = self.realisation.scenario.clock.write_delay_s
-        out = [
-            Emitted(t_ns, t_del + a.write_delay_s(source, idx, mean), source, idx, rec)
-            for t_del, t_ns, source, idx, rec in ready
-        ]
+        ready.sort(key=_DELIVERY_ORDER)
+        out = [Emitted(*p[1:]) for p in ready]
         a.emitted.extend(out)
         return out
 
@@ -268,40 +279,55 @@ class Stepper:
 
     def _queue(self, a: AgentSim, g: GnssTrack, f: FtmTrack) -> None:
         frame = self.world.frame
-        if len(g.t_s):
+        n = len(g.t_s)
+        if n:
             lat, lon, alt = frame.to_geodetic(g.enu_m[:, 0], g.enu_m[:, 1], g.enu_m[:, 2])
             t_ns = a.clock.to_ns(g.t_delivery_s).tolist()
-            lat = np.round(np.atleast_1d(lat), 9).tolist()
-            lon = np.round(np.atleast_1d(lon), 9).tolist()
-            alt = np.round(np.atleast_1d(alt), 3).tolist()
-            acc = g.acc_m.tolist()
-            vacc = g.vacc_m.tolist() if g.vacc_m is not None else [None] * len(acc)
-            sats = g.sats.tolist()
-            fix = a.spec.gnss.fix
-            for j, td in enumerate(g.t_delivery_s.tolist()):
-                rec = GnssFix(t_ns=t_ns[j], lat_deg=lat[j], lon_deg=lon[j], alt_m=alt[j],
-                              acc_m=acc[j], vacc_m=vacc[j], fix=fix, sats=sats[j])
-                a._pending.append((td, t_ns[j], GNSS_SOURCE, a._n_fix + j, rec))
-            a._n_fix += len(g.t_s)
-        if len(f.t_s):
+            recs = records_from_columns(GnssFix, {
+                "t_ns": t_ns,
+                "lat_deg": np.round(np.atleast_1d(lat), 9).tolist(),
+                "lon_deg": np.round(np.atleast_1d(lon), 9).tolist(),
+                "alt_m": np.round(np.atleast_1d(alt), 3).tolist(),
+                "acc_m": g.acc_m.tolist(),
+                "vacc_m": g.vacc_m.tolist() if g.vacc_m is not None else [None] * n,
+                "fix": [a.spec.gnss.fix] * n,
+                "sats": g.sats.tolist(),
+            })
+            a._pending.extend(self._pending_rows(a, g.t_delivery_s, t_ns, GNSS_SOURCE,
+                                                 a._n_fix, recs))
+            a._n_fix += n
+        n = len(f.t_s)
+        if n:
             t_ns = a.clock.to_ns(f.t_delivery_s).tolist()
-            bssid = [self.bssids[j] for j in f.responder.tolist()]
             status = [STATUS_NAMES[s] for s in f.status.tolist()]
-            rng_m = np.round(f.range_m, 3).tolist()
-            std = np.round(f.range_std_m, 3).tolist()
-            rssi = f.rssi_dbm.tolist()
-            succ = f.successful.tolist()
-            att = a.radio.cfg.attempted
-            for j, td in enumerate(f.t_delivery_s.tolist()):
-                if status[j] == "ok":
-                    rec = RangeSample(t_ns=t_ns[j], bssid=bssid[j], status="ok", range_m=rng_m[j],
-                                      range_std_m=std[j], rssi_dbm=rssi[j], attempted=att,
-                                      successful=succ[j])
-                else:
-                    rec = RangeSample(t_ns=t_ns[j], bssid=bssid[j], status=status[j],
-                                      attempted=att, successful=succ[j])
-                a._pending.append((td, t_ns[j], RTT_SOURCE, a._n_rtt + j, rec))
-            a._n_rtt += len(f.t_s)
+            ok = [s == "ok" for s in status]
+
+            def if_ok(values: np.ndarray) -> list:
+                return [v if k else None for v, k in zip(values.tolist(), ok, strict=True)]
+
+            recs = records_from_columns(RangeSample, {
+                "t_ns": t_ns,
+                "bssid": [self.bssids[j] for j in f.responder.tolist()],
+                "status": status,
+                "range_m": if_ok(np.round(f.range_m, 3)),
+                "range_std_m": if_ok(np.round(f.range_std_m, 3)),
+                "rssi_dbm": if_ok(f.rssi_dbm),
+                "attempted": [a.radio.cfg.attempted] * n,
+                "successful": f.successful.tolist(),
+            })
+            a._pending.extend(self._pending_rows(a, f.t_delivery_s, t_ns, RTT_SOURCE,
+                                                 a._n_rtt, recs))
+            a._n_rtt += n
+
+    def _pending_rows(self, a: AgentSim, t_delivery_s: np.ndarray, t_ns: list[int],
+                      source: int, first: int, recs: list) -> list[tuple]:
+        """(delivery s, t_ns, write s, source, index, record) of new records."""
+        n = len(recs)
+        t_del = t_delivery_s.tolist()
+        delay = a.write_delays_s(source, first, n,
+                                 self.realisation.scenario.clock.write_delay_s)
+        return [(t_del[j], t_ns[j], t_del[j] + delay[j], source, first + j, recs[j])
+                for j in range(n)]
 
     # ------------------------------------------------------------------ traces
     def vehicle_track(self, agent: int | str = 0) -> VehicleTrack:

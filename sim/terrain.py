@@ -157,6 +157,19 @@ class HillsTerrain:
             h = h + self.ripple_amplitude_m * math.sin(k * (math.cos(a) * e + math.sin(a) * n))
         return np.float64(h)
 
+    def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
+        """An upper bound of the height over the box [e_min, e_max] x [n_min, n_max]:
+        the plane at its highest corner, each hill at the box's point nearest its
+        centre (a valley at most 0), the ripple's amplitude."""
+        h = (self.base_m + max(self.slope_e * e_min, self.slope_e * e_max)
+             + max(self.slope_n * n_min, self.slope_n * n_max) + self.ripple_amplitude_m)
+        for g in self.hills:
+            if g.height_m > 0:
+                de = max(e_min - g.e_m, 0.0, g.e_m - e_max)
+                dn = max(n_min - g.n_m, 0.0, g.n_m - n_max)
+                h += g.height_m * math.exp(-0.5 * (de * de + dn * dn) / (g.sigma_m * g.sigma_m))
+        return h
+
     def sag_curvature(self) -> tuple[float, float]:
         """Bounds (concave, convex) on -T'' and +T'' along any horizontal line (1/m).
 
@@ -240,6 +253,20 @@ class GridTerrain:
             f = ca.Function("terrain_height", [e, n], [lut(ca.vertcat(e, n))])
             object.__setattr__(self, "_ca_interp", f)
         return lambda e, n: _map2(f, e, n)
+
+    def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
+        """An upper bound of the height over the box [e_min, e_max] x [n_min, n_max]: the
+        highest grid node of the cells it touches (bilinear never exceeds its corners)."""
+        ny, nx = self.heights_m.shape
+        s = self.spacing_m
+
+        def span(lo: float, hi: float, x0: float, count: int) -> slice:
+            i0 = min(max(math.floor((lo - x0) / s), 0), count - 1)
+            i1 = min(max(math.ceil((hi - x0) / s), 0), count - 1)
+            return slice(i0, i1 + 1)
+
+        cells = self.heights_m[span(n_min, n_max, self.n0_m, ny), span(e_min, e_max, self.e0_m, nx)]
+        return float(cells.max())
 
     def sag_curvature(self) -> tuple[float, float]:
         """Curvature bounds along a line from the grid's second differences (1/m): the

@@ -530,13 +530,26 @@ class Multirotor:
         self._yaw = yaw
         self.k = k_end
         self._record(rows)
-        agl = self.out_log.view[-n:, 2] - ground(self.out_log.view[-n:, 0],
-                                                  self.out_log.view[-n:, 1])
+        if not walker:
+            self._check_above_ground(g, t_ticks[:n])
+
+    def _check_above_ground(self, g: Guidance, t_s: np.ndarray) -> None:
+        """Raise :class:`FlightError` if the last ``len(t_s)`` outputs went below the
+        terrain by more than the tolerance (skipped when the terrain's upper bound over
+        their box, if it has one, shows they cannot have)."""
+        out = self.out_log.view[-len(t_s):]
+        e, n, z = out[:, 0], out[:, 1], out[:, 2]
+        bound = getattr(self.world.terrain, "max_height_m", None)
+        if bound is not None and (float(z.min()) - bound(float(e.min()), float(e.max()),
+                                                         float(n.min()), float(n.max()))
+                                  > 0.01 - UNDERGROUND_TOLERANCE_M):
+            return
+        agl = z - self.world.ground_m(e, n)
         i = int(np.argmin(agl))
-        if agl[i] < -UNDERGROUND_TOLERANCE_M and not walker:
+        if agl[i] < -UNDERGROUND_TOLERANCE_M:
             raise FlightError(
                 f"{self.name or 'the vehicle'} flies {-agl[i]:.1f} m below the terrain at "
-                f"t = {t_ticks[i]:.1f} s ({g.name or 'its guidance'}): check the path's "
+                f"t = {t_s[i]:.1f} s ({g.name or 'its guidance'}): check the path's "
                 "height reference and origin height"
             )
 

@@ -172,3 +172,28 @@ def test_scalar_terrain_height_equals_the_array_path_bit_for_bit() -> None:
     one = [t.height_m(float(a), float(b)) for a, b in zip(e, n, strict=True)]
     zero_d = [t.height_m(np.float64(a), np.float64(b)) for a, b in zip(e, n, strict=True)]
     assert np.array_equal(arr, one) and np.array_equal(arr, zero_d)
+
+
+@pytest.mark.parametrize("kind", ["hills", "grid"])
+def test_terrain_height_bound_holds_over_every_box(kind: str) -> None:
+    """max_height_m (the vehicle skips its below-ground check under it) bounds every
+    height in its box, and is close: within the ripple and the box's relief."""
+    from sim.terrain import GridTerrain, HillsTerrain
+
+    rng = np.random.default_rng(8)
+    if kind == "hills":
+        terrain = HillsTerrain()
+    else:
+        terrain = GridTerrain(rng.normal(0.0, 8.0, (30, 40)), e0_m=-300.0, n0_m=-200.0,
+                              spacing_m=17.0)
+    slack = []
+    for _ in range(400):
+        e0, n0 = rng.uniform(-900.0, 900.0, 2)
+        w, h = rng.uniform(0.0, 60.0, 2)
+        e = rng.uniform(e0, e0 + w, 300)
+        n = rng.uniform(n0, n0 + h, 300)
+        top = terrain.max_height_m(e0, e0 + w, n0, n0 + h)
+        heights = terrain.height_m(e, n)
+        assert heights.max() <= top
+        slack.append(top - heights.max())
+    assert np.median(slack) < (8.0 if kind == "hills" else 15.0)
