@@ -252,6 +252,36 @@ def fly(st: np.ndarray, nav: np.ndarray, p: np.ndarray, mode: int, point: np.nda
     return n
 
 
+@njit(cache=True)
+def grid_lerp(values: np.ndarray, t0: float, dt: float, t: np.ndarray) -> np.ndarray:
+    """(len(t), C) rows of ``values`` (N, C), sampled every ``dt`` from ``t0``, linearly
+    interpolated at times ``t``, clamped to the sampled span."""
+    n, cols = values.shape
+    out = np.empty((len(t), cols))
+    for k in range(len(t)):
+        f = min(max((t[k] - t0) / dt, 0.0), n - 1.0)
+        i = min(int(f), max(n - 2, 0))
+        w = f - i
+        j = min(i + 1, n - 1)
+        for c in range(cols):
+            out[k, c] = values[i, c] * (1.0 - w) + values[j, c] * w
+    return out
+
+
+@njit(cache=True)
+def lerp_after(v: np.ndarray, f: np.ndarray, k0: int) -> np.ndarray:
+    """(len(f), C) rows of ``v`` (row r at grid index k0 + r) linearly interpolated at
+    the fractional grid indices ``f`` (each with a row after it)."""
+    out = np.empty((len(f), v.shape[1]))
+    for m in range(len(f)):
+        k = math.floor(f[m])
+        w = f[m] - k
+        i = k - k0
+        for c in range(v.shape[1]):
+            out[m, c] = v[i, c] * (1.0 - w) + v[i + 1, c] * w
+    return out
+
+
 # ----------------------------------------------------------------------------- path
 
 

@@ -164,16 +164,14 @@ class BlockedGaussMarkov:
 
     def at(self, t_s: ArrayLike) -> np.ndarray:
         """Linear interpolation of the grid values at times ``t_s`` (>= 0), (M, cols)."""
+        from sim import _kernels
+
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if len(t) == 0:
             return np.zeros((0, self.cols))
         f = t / self.dt_s
-        k = np.floor(f).astype(np.int64)
-        k0 = int(k.min())
-        v = self.values(k0, int(k.max()) + 2)
-        i = k - k0
-        w = (f - k)[:, None]
-        return v[i] * (1.0 - w) + v[i + 1] * w
+        k0 = math.floor(f.min())
+        return _kernels.lerp_after(self.values(k0, math.floor(f.max()) + 2), f, k0)
 
 
 @dataclass(frozen=True, eq=False)

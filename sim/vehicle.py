@@ -585,12 +585,12 @@ class Multirotor:
 
 
 def _interp_grid(values: np.ndarray, t0: float, dt: float, t_s: ArrayLike) -> np.ndarray:
+    """Rows of ``values`` (sampled every ``dt`` from ``t0``) linearly interpolated at
+    ``t_s``, clamped to the sampled span (:func:`sim._kernels.grid_lerp`)."""
+    from sim import _kernels
+
     t = np.atleast_1d(np.asarray(t_s, dtype=float))
-    f = np.clip((t - t0) / dt, 0.0, len(values) - 1.0)
-    i = np.minimum(f.astype(np.intp), max(len(values) - 2, 0))
-    w = (f - i)[:, None]
-    j = np.minimum(i + 1, len(values) - 1)
-    return values[i] * (1.0 - w) + values[j] * w
+    return _kernels.grid_lerp(values, float(t0), float(dt), t)
 
 
 def fly(
