@@ -26,7 +26,7 @@ from __future__ import annotations
 import heapq
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 
@@ -243,6 +243,27 @@ class OnlineEstimator:
         for g in a.associator.push(rec):
             self._queue(a, g)
         return self._release()
+
+    def push_many(self, recs: Iterable[GnssFix | RangeSample],
+                  agent: int | str = 0) -> list[Published]:
+        """:meth:`push` of each of ``agent``'s records in turn (the same effects and
+        publications, with one agent lookup): what a stream of many fixes costs less."""
+        if not self._started:
+            self._start()
+        a = self.agent(agent)
+        if a.finished:
+            raise RuntimeError(f"agent {a.name} has finished")
+        out: list[Published] = []
+        associate, queue = a.associator.push, self._queue
+        for rec in recs:
+            if a.offset_s is None:
+                self._place(a, rec.t_ns)
+            a.last_t_s = max(a.last_t_s, rec.t_ns * 1e-9 + a.offset_s)
+            for g in associate(rec):
+                queue(a, g)
+            if self._heap:
+                out.extend(self._release())
+        return out
 
     def mark_time(self, agent: int | str, t_ns: int) -> list[Published]:
         """Say that ``agent`` has delivered every record up to its phone time ``t_ns``."""
