@@ -282,6 +282,14 @@ class ClosedLoop(SearchLoopBase):
         self.nav_track: list[list[tuple[float, float, float, float]]] = [
             [] for _ in self.stepper.agents
         ]
+        self._estimates: dict[str, Estimate] = {}  # until the estimator is fed again
+
+    def estimate(self, bssid: str) -> Estimate:
+        """The estimator's estimate of ``bssid`` (kept until the next records reach it)."""
+        e = self._estimates.get(bssid)
+        if e is None:
+            e = self._estimates[bssid] = super().estimate(bssid)
+        return e
 
     # ------------------------------------------------------------------ observe
     def observe(self) -> Observation:
@@ -347,6 +355,7 @@ class ClosedLoop(SearchLoopBase):
 
     def _ingest(self, out: list[list[Emitted]]) -> None:
         est = self.estimator
+        self._estimates.clear()
         for i, (a, emitted) in enumerate(zip(self.stepper.agents, out, strict=True)):
             for e in sorted(emitted, key=Emitted.replay_key):
                 est.push(e.record, i)
@@ -370,6 +379,7 @@ class ClosedLoop(SearchLoopBase):
         out = self.stepper.finish()
         self._ingest(out)
         self.estimator.finish()
+        self._estimates.clear()
         for s in self.sinks:
             s.close()
         self._sample_series()
