@@ -328,7 +328,7 @@ class ClosedLoop(SearchLoopBase):
         here = np.asarray(self.stepper.navigation_position_m(agent)[:2])[None, :]
         pts = traj.enu_m[:, :2]
         if self.mission.area.contains(here, 0.0)[0]:
-            pts = np.vstack([here, pts])
+            pts = np.concatenate((here, pts))
         else:  # outside: the segment from its first point inside on (the rest comes back)
             inside = self.mission.area.contains(pts, 0.0)
             if not inside.any():
@@ -355,11 +355,12 @@ class ClosedLoop(SearchLoopBase):
 
     def _ingest(self, out: list[list[Emitted]]) -> None:
         est = self.estimator
+        push = est.push
         self._estimates.clear()
         for i, (a, emitted) in enumerate(zip(self.stepper.agents, out, strict=True)):
             for e in sorted(emitted, key=Emitted.replay_key):
-                est.push(e.record, i)
                 r = e.record
+                push(r, i)
                 if isinstance(r, RangeSample) and r.ok:
                     t = float(a.clock.to_s(np.array([r.t_ns]))[0])
                     v = a.vehicle

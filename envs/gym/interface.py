@@ -161,7 +161,7 @@ class Encoder:
                                                                self.cells[:, 1]), dtype=float)
         self.cell_inside = mission.area.contains(self.cells)
         self._cell_e, self._cell_n = self.cells[:, 0][None], self.cells[:, 1][None]
-        self._any_inside = bool(self.cell_inside.any())
+        self._n_inside = int(self.cell_inside.sum())
         self._cell_outside = ~self.cell_inside
         self.log_miss = np.zeros(len(self.cells))  # log P(not heard | responder in cell)
         self.coverage = 1.0 - np.exp(self.log_miss)  # kept with log_miss: P(heard | cell)
@@ -199,9 +199,9 @@ class Encoder:
     def covered(self) -> float:
         """The share of the area where a responder would have been heard by now (the
         mean coverage of the cells inside the area)."""
-        if not self._any_inside:
+        if not self._n_inside:
             return 0.0
-        return float(np.mean(self.coverage[self.cell_inside]))
+        return float(self.coverage[self.cell_inside].sum()) / self._n_inside  # np.mean's
 
     def potential(self, obs: Observation) -> float:
         """sum over detected responders of 0.5 (log det P0 - log det P)."""
