@@ -282,6 +282,14 @@ class ClosedLoop(SearchLoopBase):
         self.nav_track: list[list[tuple[float, float, float, float]]] = [
             [] for _ in self.stepper.agents
         ]
+        self._estimates: dict[str, Estimate] = {}  # until the estimator is fed again
+
+    def estimate(self, bssid: str) -> Estimate:
+        """The estimator's estimate of ``bssid`` (kept until the next records reach it)."""
+        e = self._estimates.get(bssid)
+        if e is None:
+            e = self._estimates[bssid] = super().estimate(bssid)
+        return e
 
     # ------------------------------------------------------------------ observe
     def observe(self) -> Observation:
@@ -320,7 +328,7 @@ class ClosedLoop(SearchLoopBase):
         here = np.asarray(self.stepper.navigation_position_m(agent)[:2])[None, :]
         pts = traj.enu_m[:, :2]
         if self.mission.area.contains(here, 0.0)[0]:
-            pts = np.vstack([here, pts])
+            pts = np.concatenate((here, pts))
         else:  # outside: the segment from its first point inside on (the rest comes back)
             inside = self.mission.area.contains(pts, 0.0)
             if not inside.any():
@@ -347,10 +355,12 @@ class ClosedLoop(SearchLoopBase):
 
     def _ingest(self, out: list[list[Emitted]]) -> None:
         est = self.estimator
+        push = est.push
+        self._estimates.clear()
         for i, (a, emitted) in enumerate(zip(self.stepper.agents, out, strict=True)):
             for e in sorted(emitted, key=Emitted.replay_key):
-                est.push(e.record, i)
                 r = e.record
+                push(r, i)
                 if isinstance(r, RangeSample) and r.ok:
                     t = float(a.clock.to_s(np.array([r.t_ns]))[0])
                     v = a.vehicle
@@ -370,6 +380,7 @@ class ClosedLoop(SearchLoopBase):
         out = self.stepper.finish()
         self._ingest(out)
         self.estimator.finish()
+        self._estimates.clear()
         for s in self.sinks:
             s.close()
         self._sample_series()

@@ -26,12 +26,16 @@ has learnt before anything is heard (where the responder is not).
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from gymnasium import spaces
 
+from estimator.records import Trajectory
 from planner.policy import (
     AdaptiveConfig,
     AgentView,
@@ -58,6 +62,8 @@ AGENT_FEATURES = (
 )  # fmt: skip
 _TRACKING = ("tracking",)
 _NONE = ("bootstrapping", "weak_geometry", "ambiguous", "no_data")
+T = TypeVar("T")
+_THIRDS = np.array([1 / 6, 1 / 2, 5 / 6])[:, None, None]  # three points along a step
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,6 +106,14 @@ def half_logdet(cov: np.ndarray, floor_m2: float) -> float:
     return 0.5 * float(ld) if sign > 0 else math.inf
 
 
+def _heard_center(r: ResponderView) -> tuple[float, float]:
+    """Where a responder was heard: the drone positions weighted by 1 / range^2."""
+    h = np.asarray(r.heard_enu_m, dtype=float)
+    w = 1.0 / np.maximum(np.asarray(r.heard_range_m, dtype=float), 5.0) ** 2
+    cx, cy = (h[:, :2] * w[:, None]).sum(axis=0) / w.sum()
+    return float(cx), float(cy)
+
+
 class Encoder:
     """Observation vectors, coverage, localised bookkeeping and the information potential
     of one agent's episode (see the module docstring)."""
@@ -118,6 +132,12 @@ class Encoder:
         if n_others:
             sp["others"] = spaces.Box(-4.0, 4.0, (4 * n_others,), f32)
         self.space = spaces.Dict(sp)
+        self._parts: list[tuple[str, int, int]] = []  # (key, start, end) in one vector
+        for key, box in sp.items():
+            start = self._parts[-1][2] if self._parts else 0
+            self._parts.append((key, start, start + box.shape[0]))
+        self._low = np.concatenate([b.low for b in sp.values()]).astype(float)
+        self._high = np.concatenate([b.high for b in sp.values()]).astype(float)
         p0 = np.diag([config.prior_sigma_h_m**2, config.prior_sigma_h_m**2,
                       config.prior_sigma_z_m**2])
         self.prior_half_logdet = half_logdet(p0, config.cov_floor_m2)
@@ -129,7 +149,7 @@ class Encoder:
         self.tracker = _Tracker(self.cfg.rule)
         v = mission.area.vertices
         lo, hi = v.min(axis=0), v.max(axis=0)
-        self.center = 0.5 * (lo + hi)
+        self.center = tuple((0.5 * (lo + hi)).tolist())
         self.half = max(float(np.max(hi - lo)) / 2.0, 1.0)
         g = self.cfg.coverage_cells
         edges_e = np.linspace(lo[0], hi[0], g + 1)
@@ -140,7 +160,13 @@ class Encoder:
         self.cell_ground = np.asarray(mission.terrain.height_m(self.cells[:, 0],
                                                                self.cells[:, 1]), dtype=float)
         self.cell_inside = mission.area.contains(self.cells)
+        self._cell_e, self._cell_n = self.cells[:, 0][None], self.cells[:, 1][None]
+        self._n_inside = int(self.cell_inside.sum())
+        self._cell_outside = ~self.cell_inside
         self.log_miss = np.zeros(len(self.cells))  # log P(not heard | responder in cell)
+        self.coverage = 1.0 - np.exp(self.log_miss)  # kept with log_miss: P(heard | cell)
+        self._ground_at: tuple[object, float] | None = None  # (position, terrain height)
+        self._memo: dict[tuple[str, str], tuple[object, object]] = {}  # see _kept
         self.rate_hz = float(getattr(mission.link, "ranging_rate_hz", 4.0))
         self.last_pos: np.ndarray | None = None
         self.last_t = 0.0
@@ -173,17 +199,17 @@ class Encoder:
     def covered(self) -> float:
         """The share of the area where a responder would have been heard by now (the
         mean coverage of the cells inside the area)."""
-        inside = self.cell_inside
-        if not inside.any():
+        if not self._n_inside:
             return 0.0
-        return float(np.mean(1.0 - np.exp(self.log_miss[inside])))
+        return float(self.coverage[self.cell_inside].sum()) / self._n_inside  # np.mean's
 
     def potential(self, obs: Observation) -> float:
         """sum over detected responders of 0.5 (log det P0 - log det P)."""
         total = 0.0
         for r in obs.responders:
             if r.cov_m2 is not None:
-                h = half_logdet(r.cov_m2, self.cfg.cov_floor_m2)
+                h = self._kept("logdet", r.bssid, r.cov_m2,
+                               lambda r=r: half_logdet(r.cov_m2, self.cfg.cov_floor_m2))
                 if math.isfinite(h):  # a covariance that is not positive definite: no gain
                     total += self.prior_half_logdet - h
         return total
@@ -197,14 +223,13 @@ class Encoder:
             return
         dt = t_s - self.last_t
         if dt > 0:
-            f = np.array([1 / 6, 1 / 2, 5 / 6])[:, None, None]  # three points along the step
-            p = (self.last_pos[None] + f * (pos - self.last_pos)[None]).reshape(-1, 3)
-            d = np.sqrt((self.cells[:, 0][None] - p[:, 0:1]) ** 2
-                        + (self.cells[:, 1][None] - p[:, 1:2]) ** 2
-                        + (p[:, 2:3] - self.cell_ground[None]) ** 2)
+            p = (self.last_pos[None] + _THIRDS * (pos - self.last_pos)[None]).reshape(-1, 3)
+            d = np.sqrt((self._cell_e - p[:, 0:1]) ** 2 + (self._cell_n - p[:, 1:2]) ** 2
+                        + (p[:, 2:3] - self.cell_ground) ** 2)
             q = np.clip(np.asarray(self.mission.link.response_probability(d), dtype=float),
                         0.0, 0.999)
             self.log_miss += self.rate_hz * dt / 3.0 * np.log1p(-q).sum(axis=0)
+            self.coverage = 1.0 - np.exp(self.log_miss)
         self.last_pos, self.last_t = pos, t_s
 
     # ------------------------------------------------------------------ encode
@@ -218,48 +243,59 @@ class Encoder:
         n = self.mission.expected_responders
         return n is None or len(loc) >= n
 
+    def _kept(self, kind: str, bssid: str, inputs: object, value: Callable[[], T]) -> T:
+        """``value()`` of a responder, kept while its ``inputs`` stay equal (a responder's
+        estimate and heard positions change only when new ranges arrive)."""
+        got = self._memo.get((kind, bssid))
+        if got is None or got[0] != inputs:
+            got = self._memo[(kind, bssid)] = (inputs, value())
+        return got[1]
+
+    def ground_m(self, position: tuple[float, float, float]) -> float:
+        """Terrain height under an agent's reported ``position_enu_m`` (kept for the same
+        position object: the encoder and the actions ask it of one observation)."""
+        if self._ground_at is None or self._ground_at[0] is not position:
+            h = self.mission.terrain.height_m(float(position[0]), float(position[1]))
+            self._ground_at = (position, float(np.asarray(h)))
+        return self._ground_at[1]
+
     def encode(self, obs: Observation, others: tuple[AgentView, ...] = ()) -> dict:
+        """The observation: one clipped float32 vector, a view of it per space key."""
         m, c = self.mission, self.cfg
         a = obs.agents[self.agent]
         pos = np.asarray(a.position_enu_m, dtype=float)
-        ground = float(np.asarray(m.terrain.height_m(pos[0], pos[1])))
+        e, n, z = pos.tolist()
+        ce, cn = self.center
+        half, speed = self.half, m.speed_mps
         sd = float(m.area.signed_distance_m(pos[None, :2])[0])
-        agent = np.array([
-            (pos[0] - self.center[0]) / self.half, (pos[1] - self.center[1]) / self.half,
-            (pos[2] - ground) / m.height_m - 1.0,
-            *(np.asarray(a.velocity_enu_mps, dtype=float) / m.speed_mps),
-            obs.t_s / obs.budget_s, obs.time_left_s / obs.budget_s,
-            -sd / self.half, float(a.segment_done),
-        ])
+        ve, vn, vu = (float(v) / speed for v in a.velocity_enu_mps)
+        buf = np.zeros(self._high.shape[0])
+        (_, _, na), (_, _, nr), (_, _, nm), (_, _, ng), *_ = self._parts
+        agl = z - self.ground_m(a.position_enu_m)
+        buf[:na] = [(e - ce) / half, (n - cn) / half, agl / m.height_m - 1.0, ve, vn, vu,
+                    obs.t_s / obs.budget_s, obs.time_left_s / obs.budget_s, -sd / half,
+                    float(a.segment_done)]
         views = {r.bssid: r for r in obs.responders}
-        k, nf = c.max_responders, len(SLOT_FEATURES)
-        slots = np.zeros((k, nf))
-        mask = np.zeros(k)
-        for i, b in enumerate(self.slots[:k]):
-            mask[i] = 1.0
-            slots[i] = self._slot(views[b], pos, obs)
-        cov = 1.0 - np.exp(self.log_miss)
-        cov[~self.cell_inside] = 1.0
-        out = {
-            "agent": agent,
-            "responders": slots.ravel(),
-            "responder_mask": mask,
-            "coverage": cov,
-        }
+        slots = buf[na:nr].reshape(c.max_responders, len(SLOT_FEATURES))
+        for i, b in enumerate(self.slots[: c.max_responders]):
+            buf[nr + i] = 1.0
+            self._slot(slots[i], views[b], pos, obs)
+        cov = buf[nm:ng]
+        cov[:] = self.coverage
+        cov[self._cell_outside] = 1.0
         if self.n_others:
-            rows = np.zeros((self.n_others, 4))
+            rows = buf[ng:].reshape(self.n_others, 4)
             for j, o in enumerate(others[: self.n_others]):
-                rows[j] = [(o.position_enu_m[0] - pos[0]) / self.half,
-                           (o.position_enu_m[1] - pos[1]) / self.half,
-                           o.velocity_enu_mps[0] / m.speed_mps,
-                           o.velocity_enu_mps[1] / m.speed_mps]
-            out["others"] = rows.ravel()
-        return {key: np.clip(v, self.space[key].low, self.space[key].high).astype(np.float32)
-                for key, v in out.items()}
+                rows[j] = [(o.position_enu_m[0] - pos[0]) / half,
+                           (o.position_enu_m[1] - pos[1]) / half,
+                           o.velocity_enu_mps[0] / speed, o.velocity_enu_mps[1] / speed]
+        out = np.clip(buf, self._low, self._high, out=buf).astype(np.float32)
+        return {key: out[lo:hi] for key, lo, hi in self._parts}
 
-    def _slot(self, r: ResponderView, pos: np.ndarray, obs: Observation) -> np.ndarray:
+    def _slot(self, s: np.ndarray, r: ResponderView, pos: np.ndarray, obs: Observation
+              ) -> None:
+        """Fill one responder slot ``s`` (zeros, :data:`SLOT_FEATURES`)."""
         m = self.mission
-        s = np.zeros(len(SLOT_FEATURES))
         if r.mean_enu_m is not None and r.cov_m2 is not None:
             s[0] = 1.0
             s[1] = (r.mean_enu_m[0] - pos[0]) / self.half
@@ -276,14 +312,12 @@ class Encoder:
         s[11] = math.log1p(r.n_acc) / math.log(1000.0)
         s[12] = float(r.bssid in self.tracker.localised)
         if r.heard_enu_m:
-            h = np.asarray(r.heard_enu_m, dtype=float)
-            w = 1.0 / np.maximum(np.asarray(r.heard_range_m, dtype=float), 5.0) ** 2
-            cx, cy = (h[:, :2] * w[:, None]).sum(axis=0) / w.sum()
+            cx, cy = self._kept("heard", r.bssid, (r.heard_enu_m, r.heard_range_m),
+                                lambda: _heard_center(r))
             s[13] = (cx - pos[0]) / self.half
             s[14] = (cy - pos[1]) / self.half
         s[15] = (obs.t_s - r.detected_at_s) / obs.budget_s
         s[16] = float(r.bssid == self.target)
-        return s
 
 
 # ----------------------------------------------------------------------------- actions
@@ -430,51 +464,59 @@ class WaypointActions:
         return q
 
     def decide(self, action, obs: Observation) -> Decision:
-        from estimator.records import Trajectory
-
         m = self.mission
         area = m.area
         loc = self.enc.tracker.frozen()
-        act = np.clip(np.asarray(action, dtype=float).reshape(3), -1.0, 1.0)
+        ax, ay, az = (min(max(v, -1.0), 1.0)  # np.clip's values, NaN kept
+                      for v in np.asarray(action, dtype=float).reshape(3).tolist())
         a = obs.agents[self.enc.agent]
         here = np.asarray(a.position_enu_m, dtype=float)
+        he, hn, hz = here.tolist()
+        here = here[:2]
         reach = self.speed * self.cfg.decision_period_s
-        want = here[:2] + reach * act[:2]
+        want = np.array([he + reach * ax, hn + reach * ay])
         if self.halfplanes is not None:  # convex: the nearest point inside the margin
             wp = self._inside(want)
         else:
             wp = np.asarray(area._pull_inside(want), dtype=float)
-        self.penalty = min(1.0, float(np.linalg.norm(want - wp)) / reach)
-        ground = float(np.asarray(m.terrain.height_m(here[0], here[1])))
+        self.penalty = min(1.0, _norm(want - wp) / reach)
         if self.ground:
             agl = 0.0
         else:
-            agl = float(np.clip(here[2] - ground + self.climb_m * act[2], *self.band))
+            lo, hi = self.band
+            agl = min(max(hz - self.enc.ground_m(a.position_enu_m) + self.climb_m * az, lo), hi)
         i = self.enc.agent
-        if float(np.linalg.norm(wp - here[:2])) < 1.0:
-            pts = [tuple(here[:2])]
+        if _norm(wp - here) < 1.0:
+            pts = [(he, hn)]
         elif self.halfplanes is not None:  # on along the same line, up to the margin
-            on = self._inside(2.0 * wp - here[:2])
-            pts = [tuple(here[:2]), tuple(wp)]
-            if float(np.linalg.norm(on - wp)) > 1.0:
-                pts.append(tuple(on))
+            on = self._inside(2.0 * wp - here)
+            pts = [(he, hn), tuple(wp.tolist())]
+            if _norm(on - wp) > 1.0:
+                pts.append(tuple(on.tolist()))
         else:
-            pts = area.route(here[:2], wp)
+            pts = area.route(here, wp)
             on = wp + (wp - np.asarray(pts[-2], dtype=float))
             if area.path_inside(np.array([wp, on]), area.margin_m, step_m=5.0):
                 pts = [*pts, (float(on[0]), float(on[1]))]
-        p = np.asarray(pts, dtype=float)
-        if len(p) == 1:
-            p = np.vstack([p, p])
-            t = np.array([0.0, self.cfg.decision_period_s])
-        else:
-            seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
-            keep = np.concatenate([[True], seg > 1e-6])
-            t = np.concatenate([[0.0], np.cumsum(seg / self.speed)])[keep]
-            p = p[keep]
-        enu = np.column_stack([p, np.full(len(p), agl)])
-        traj = Trajectory(t, enu, m.origin, "terrain", "waypoint")
+        if len(pts) == 1:
+            t, kept = [0.0, self.cfg.decision_period_s], pts * 2
+        else:  # the legs' lengths and times as NumPy's norm and cumsum give them
+            t, kept, elapsed = [0.0], [pts[0]], 0.0
+            for (x0, y0), (x1, y1) in itertools.pairwise(pts):
+                dx, dy = x1 - x0, y1 - y0
+                seg = math.sqrt(dx * dx + dy * dy)
+                elapsed += seg / self.speed
+                if seg > 1e-6:
+                    t.append(elapsed)
+                    kept.append((x1, y1))
+        enu = np.array([(x, y, agl) for x, y in kept], dtype=float)
+        traj = Trajectory(np.array(t), enu, m.origin, "terrain", "waypoint")
         return Decision(plans={i: traj}, localised=loc)
+
+
+def _norm(v: np.ndarray) -> float:
+    """``np.linalg.norm`` of a vector (its square root of ``v . v``), without its checks."""
+    return math.sqrt(v.dot(v))
 
 
 class Pilot:
