@@ -45,7 +45,7 @@ from planner.policy import (
 from sim.ftm import FtmLink
 from sim.realisation import Realisation, realise
 from sim.scenario import Scenario
-from sim.stepper import Emitted, LogSink, Stepper
+from sim.stepper import REPLAY_ORDER, Emitted, LogSink, Stepper
 
 DEFAULT_MODE = "best"  # the recommended estimator mode (its real name: refined)
 
@@ -355,12 +355,12 @@ class ClosedLoop(SearchLoopBase):
 
     def _ingest(self, out: list[list[Emitted]]) -> None:
         est = self.estimator
-        push = est.push
         self._estimates.clear()
         for i, (a, emitted) in enumerate(zip(self.stepper.agents, out, strict=True)):
-            for e in sorted(emitted, key=Emitted.replay_key):
+            ordered = sorted(emitted, key=REPLAY_ORDER)
+            est.push_many([e.record for e in ordered], i)
+            for e in ordered:  # what the policy hears (the estimator does not read it)
                 r = e.record
-                push(r, i)
                 if isinstance(r, RangeSample) and r.ok:
                     t = float(a.clock.to_s(np.array([r.t_ns]))[0])
                     v = a.vehicle

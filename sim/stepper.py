@@ -78,6 +78,9 @@ class Emitted(NamedTuple):
         return self.t_ns, self.write_s
 
 
+REPLAY_ORDER = operator.itemgetter(0, 1)  # Emitted.replay_key as a fast sort key
+
+
 @dataclass
 class AgentSim:
     """One agent: its vehicle, GNSS receiver, FTM radio, phone clock and what it logged."""
