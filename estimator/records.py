@@ -7,6 +7,7 @@ monotonic clock; inside the estimator time is float seconds (``t_s``).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Literal
 
@@ -40,15 +41,20 @@ def records_from_columns(cls: type, columns: dict[str, list]) -> list:
     without the dataclass ``__init__`` (a fifth of its cost) for producers of checked
     values by the thousand (the simulator's phone)."""
     names = tuple(columns)
-    if set(names) != {f.name for f in fields(cls)}:
+    if set(names) != _field_names(cls):
         raise ValueError(f"columns {sorted(names)} are not the fields of {cls.__name__}")
     new = object.__new__
     out = []
     for row in zip(*columns.values(), strict=True):
         rec = new(cls)
-        rec.__dict__.update(zip(names, row, strict=True))
+        rec.__dict__.update(zip(names, row))  # noqa: B905 (rows have one value per name)
         out.append(rec)
     return out
+
+
+@functools.cache
+def _field_names(cls: type) -> frozenset[str]:
+    return frozenset(f.name for f in fields(cls))
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -837,3 +837,25 @@ def test_reading_closes_the_file_under_the_gzip_stream(tmp_path: Path, name: str
         it.close()  # an abandoned reader closes too
         gc.collect()
     assert [w for w in caught if issubclass(w.category, ResourceWarning)] == []
+
+
+def test_records_from_columns_are_the_dataclass_records() -> None:
+    """The simulator's fast construction gives records equal to cls(**row), frozen,
+    hashable, and refuses columns that are not the class's fields."""
+    import dataclasses
+
+    import pytest
+
+    from estimator.records import GnssFix, RangeSample, records_from_columns
+
+    cols = {"t_ns": [1, 2], "bssid": ["aa:bb:cc:dd:ee:ff"] * 2, "status": ["ok", "fail"],
+            "range_m": [12.5, None], "range_std_m": [0.4, None], "rssi_dbm": [-61.0, None],
+            "attempted": [8, 8], "successful": [7, 0]}
+    got = records_from_columns(RangeSample, cols)
+    want = [RangeSample(**dict(zip(cols, row, strict=True)))
+            for row in zip(*cols.values(), strict=True)]
+    assert got == want and hash(got[0]) == hash(want[0]) and got[0].ok and not got[1].ok
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        got[0].range_m = 3.0  # type: ignore[misc]
+    with pytest.raises(ValueError, match="not the fields of GnssFix"):
+        records_from_columns(GnssFix, {"t_ns": [1], "lat_deg": [0.0]})
