@@ -144,27 +144,28 @@ def _enu2geodetic_wgs84(terms: tuple, east, north, up):
     u_ = clon0 * t - slon0 * east
     v = slon0 * t + clon0 * east
     x, y, z = x0 + u_, y0 + v, z0 + w
-    r = np.sqrt(x**2 + y**2 + z**2)
+    x2, y2, z2 = x**2, y**2, z**2  # each subexpression once: the same values
+    r = np.sqrt(x2 + y2 + z2)
     E = np.sqrt(a**2 - b**2)
-    u = np.sqrt(0.5 * (r**2 - E**2) + 0.5 * np.hypot(r**2 - E**2, 2 * E * z))
+    r2e = r**2 - E**2
+    u = np.sqrt(0.5 * r2e + 0.5 * np.hypot(r2e, 2 * E * z))
     hxy = np.hypot(x, y)
     huE = np.hypot(u, E)
     if np.any(np.abs(u) <= 1e-8) or np.any(np.abs(hxy) <= 1e-8):  # pymap3d's isclose(., 0)
         return pymap3d.ecef2geodetic(x, y, z)
-    Beta = np.empty_like(r)
-    Beta[:] = np.arctan(huE / u * z / hxy)
-    Beta += ((b * u - a * huE + E**2) * np.sin(Beta)) / (a * huE * 1 / np.cos(Beta)
-                                                       - E**2 * np.cos(Beta))
+    Beta = np.arctan(huE / u * z / hxy)
+    cos0 = np.cos(Beta)
+    Beta += ((b * u - a * huE + E**2) * np.sin(Beta)) / (a * huE / cos0 - E**2 * cos0)
     lat = np.arctan(a / b * np.tan(Beta))
     lim_pi2 = math.pi / 2 - np.finfo(Beta.dtype).eps
-    lat = np.where(Beta >= lim_pi2, math.pi / 2, lat)
-    lat = np.where(Beta <= -lim_pi2, -math.pi / 2, lat)
     lon = np.arctan2(y, x)
     cosBeta = np.cos(Beta)
-    cosBeta = np.where(Beta >= lim_pi2, 0, cosBeta)
-    cosBeta = np.where(Beta <= -lim_pi2, 0, cosBeta)
+    top, bottom = Beta >= lim_pi2, Beta <= -lim_pi2
+    if top.any() or bottom.any():
+        lat = np.where(top, math.pi / 2, np.where(bottom, -math.pi / 2, lat))
+        cosBeta = np.where(top | bottom, 0, cosBeta)
     alt = np.hypot(z - b * np.sin(Beta), hxy - a * cosBeta)
-    inside = x**2 / a**2 + y**2 / a**2 + z**2 / b**2 < 1
+    inside = x2 / a**2 + y2 / a**2 + z2 / b**2 < 1
     if inside.any():
         alt[inside] = -alt[inside]
     return np.degrees(lat), np.degrees(lon), alt
