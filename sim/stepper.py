@@ -61,7 +61,7 @@ from sim.vehicle import (
 )
 
 GNSS_SOURCE, RTT_SOURCE = 0, 1
-_DELIVERY_ORDER = operator.itemgetter(1, 3, 4)  # (t_ns, source, index) of a pending row
+_DELIVERY_ORDER = operator.itemgetter(0, 2, 3)  # (t_ns, source, index) of an Emitted
 
 
 class Emitted(NamedTuple):
@@ -72,6 +72,7 @@ class Emitted(NamedTuple):
     source: int  # GNSS_SOURCE | RTT_SOURCE
     index: int  # row in the agent's fix or result arrays
     record: GnssFix | RangeSample
+    delivery_s: float = 0.0  # when the phone delivered it (simulated seconds)
 
     def replay_key(self) -> tuple[int, float]:
         """The order a log reader gives: by t_ns, ties in file (write) order."""
@@ -96,7 +97,7 @@ class AgentSim:
     gnss_steps: list[GnssTrack] = field(default_factory=list)
     ftm_steps: list[FtmTrack] = field(default_factory=list)
     emitted: list[Emitted] = field(default_factory=list)
-    _pending: list[tuple[float, int, float, int, int, GnssFix | RangeSample]] = field(
+    _pending: list[Emitted] = field(
         default_factory=list
     )
     _n_fix: int = 0
@@ -269,10 +270,9 @@ class Stepper:
         # emit what was delivered by now, but not past the earliest callback of a
         # request still to be processed: every agent's records leave in delivery order
         limit = math.inf if flush else min(t_end, a.radio.horizon_s)
-        ready = [p for p in a._pending if p[0] <= limit]
-        a._pending = [p for p in a._pending if p[0] > limit]
-        ready.sort(key=_DELIVERY_ORDER)
-        out = [Emitted(*p[1:]) for p in ready]
+        out = [e for e in a._pending if e.delivery_s <= limit]
+        a._pending = [e for e in a._pending if e.delivery_s > limit]
+        out.sort(key=_DELIVERY_ORDER)
         a.emitted.extend(out)
         return out
 
@@ -296,7 +296,7 @@ class Stepper:
                 "fix": [a.spec.gnss.fix] * n,
                 "sats": g.sats.tolist(),
             })
-            a._pending.extend(self._pending_rows(a, g.t_delivery_s, t_ns, GNSS_SOURCE,
+            a._pending.extend(self._to_emit(a, g.t_delivery_s, t_ns, GNSS_SOURCE,
                                                  a._n_fix, recs))
             a._n_fix += n
         n = len(f.t_s)
@@ -318,18 +318,18 @@ class Stepper:
                 "attempted": [a.radio.cfg.attempted] * n,
                 "successful": f.successful.tolist(),
             })
-            a._pending.extend(self._pending_rows(a, f.t_delivery_s, t_ns, RTT_SOURCE,
+            a._pending.extend(self._to_emit(a, f.t_delivery_s, t_ns, RTT_SOURCE,
                                                  a._n_rtt, recs))
             a._n_rtt += n
 
-    def _pending_rows(self, a: AgentSim, t_delivery_s: np.ndarray, t_ns: list[int],
-                      source: int, first: int, recs: list) -> list[tuple]:
-        """(delivery s, t_ns, write s, source, index, record) of new records."""
+    def _to_emit(self, a: AgentSim, t_delivery_s: np.ndarray, t_ns: list[int],
+                      source: int, first: int, recs: list) -> list[Emitted]:
+        """New records as they will be emitted (write time: delivery + writer delay)."""
         n = len(recs)
         t_del = t_delivery_s.tolist()
         delay = a.write_delays_s(source, first, n,
                                  self.realisation.scenario.clock.write_delay_s)
-        return [(t_del[j], t_ns[j], t_del[j] + delay[j], source, first + j, recs[j])
+        return [Emitted(t_ns[j], t_del[j] + delay[j], source, first + j, recs[j], t_del[j])
                 for j in range(n)]
 
     # ------------------------------------------------------------------ traces
