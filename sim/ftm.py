@@ -25,7 +25,7 @@ Per result, with d the true slant range from the drone's antenna to the responde
 
 from __future__ import annotations
 
-import bisect
+import functools
 import math
 from dataclasses import dataclass, field, fields
 
@@ -339,6 +339,11 @@ class FtmRadio:
 
     GRID_S = 0.1
     BLOCK = 256
+    # a block's draws per (request, responder): these, then attempted - 1 frame uniforms
+    # and as many chi^2(1) draws (the spread estimate's)
+    DRAWS = ("fading", "u_status", "u_fail", "gauss", "u_nlos", "u_outlier", "outlier")
+    BOUND_MARGIN_DB = 1e-6  # covers the rounding of the shadowing bounds
+    NEAR_M = 2.0  # grid points this near a shadowing anchor in reach need no anchor of their own
 
     def __init__(
         self,
@@ -347,7 +352,7 @@ class FtmRadio:
         responders_enu_m: np.ndarray,
         models: tuple[ConcealmentModel, ...],
         offsets_m: np.ndarray,
-        shadowing: tuple,
+        shadowing: tuple[RandomFourierField, ...],
         seq: np.random.SeedSequence,
     ) -> None:
         self.cfg = cfg
@@ -357,6 +362,8 @@ class FtmRadio:
         self.models = models
         self.offsets_m = np.asarray(offsets_m, dtype=float)
         self.shadowing = shadowing
+        # the shadowing fields' Lipschitz constants: |grad f| <= amplitude * sum_m |w_m|
+        self.shadow_lipschitz = [f.amplitude * float(np.hypot(*f.w.T).sum()) for f in shadowing]
         self.seq = seq
         self.att = np.array([m.attenuation_db for m in models])
         self.scale = np.array([m.response_scale for m in models])
@@ -369,65 +376,80 @@ class FtmRadio:
         self.burst_max_s = cfg.burst_base_s + max(1, min(self.k_n, cfg.max_peers)) * cfg.per_peer_s
         self.tau_next = float(child_rng(seq, 0).uniform(0.0, hi))  # first request, warped time
         self.k_req = 0  # index of the next request
-        # warp on the absolute grid: w_grid[g] = warped time at t = g GRID_S
+        # the grid from g0 on (earlier points lie before the next request): w[i] is the
+        # warped time at t = (g0 + i) GRID_S, i <= g_done - g0; peers[i] and rssi[i] (the
+        # in-reach RSSI per responder, -inf out of reach) those of grid point g0 + i
+        self.g0 = 0
+        self.g_next = 0  # the next request's grid point (from g0)
         self.g_done = 0  # grid points evaluated: 0..g_done-1
-        self.w_grid: list[float] = [0.0]
-        self.peers_grid: list[int] = []
-        self.rssi_grid: list[np.ndarray] = []
-        self._blocks: dict[int, dict[str, np.ndarray]] = {}
+        self.w = np.zeros(1)
+        self.peers = np.zeros(0, dtype=np.int64)
+        self.rssi = np.zeros((0, self.k_n))
+        self._blocks: dict[int, dict] = {}
+        self._nothing = _empty(self.k_n, cfg.attempted, self.offsets_m)
+        self._maybe_reached, self._warp, self._scan = map(_compiled, (_maybe_reached, _warp, _scan))
         # no request still to be processed can deliver a result before this time
         self.horizon_s = 0.0
 
     # -------------------------------------------------------------- link at positions
-    def mean_rssi(self, p_enu: np.ndarray) -> np.ndarray:
-        """(K, M) mean RSSI with shadowing of every responder at drone positions (M, 3)."""
-        d = np.linalg.norm(p_enu[None, :, :] - self.resp[:, None, :], axis=2)
-        rssi = self.cfg.mean_rssi_dbm(d, self.att[:, None])
+    def reach_rssi(self, p_enu: np.ndarray) -> np.ndarray:
+        """(K, M) mean RSSI with shadowing of every responder at drone positions (M, 3)
+        where it is in reach (>= ``reach_rssi_dbm``), -inf elsewhere.
+
+        The shadowing is evaluated (exactly) only where a bound lets it lift the RSSI
+        into reach (:func:`_maybe_reached`).
+        """
+        reach = self.cfg.reach_rssi_dbm
+        diff = p_enu[None, :, :] - self.resp[:, None, :]  # the norm as np.linalg.norm sums it
+        base = self.cfg.mean_rssi_dbm(np.sqrt(np.add.reduce(diff * diff, axis=2)),
+                                      self.att[:, None])
+        need = reach - self.BOUND_MARGIN_DB - base  # (K, M) shadowing that reaches
+        out = np.full(base.shape, -np.inf)
         for k, f in enumerate(self.shadowing):
-            rssi[k] += f(p_enu[:, 0], p_enu[:, 1])
-        return rssi
+            todo = self._maybe_reached(p_enu, need[k], f.w, f.phase, f.amplitude,
+                                       self.shadow_lipschitz[k], self.NEAR_M)
+            if len(todo):
+                rssi = base[k, todo] + f(p_enu[todo, 0], p_enu[todo, 1])
+                out[k, todo] = np.where(rssi >= reach, rssi, -np.inf)
+        return out
 
     def _extend_grid(self, t_end_s: float, position_at) -> None:
-        """Evaluate reach and the time warp on grid points up to ``t_end_s``."""
+        """Evaluate reach and the time warp on grid points up to ``t_end_s``; drop the
+        points before the next request's."""
         g_last = math.floor(t_end_s / self.GRID_S + 1e-9)
-        if g_last < self.g_done or self.k_n == 0:
+        if g_last < self.g_done:
             return
         g = np.arange(self.g_done, g_last + 1)
-        p = position_at(g * self.GRID_S)
-        rssi = self.mean_rssi(p)
-        reach = rssi >= self.cfg.reach_rssi_dbm
-        peers = np.minimum(reach.sum(axis=0), self.cfg.max_peers)
-        slow = 1.0 + self.cfg.per_peer_s * np.maximum(peers - 1, 0) / self.mean_gap
-        w = self.w_grid[-1]
-        for sl in slow.tolist():  # the warp over each grid step uses its start's peers
-            w += self.GRID_S / sl
-            self.w_grid.append(w)
-        self.peers_grid.extend(peers.tolist())
-        self.rssi_grid.extend(np.where(reach, rssi, -np.inf).T)
+        rssi = self.reach_rssi(position_at(g * self.GRID_S))
+        c, i = self.cfg, self.g_next
+        self.w, self.peers = self._warp(self.w, self.peers, i, rssi, c.max_peers, self.GRID_S,
+                                        c.per_peer_s, self.mean_gap)
+        self.rssi = np.concatenate((self.rssi[i:], rssi.T))
+        self.g0 += i
+        self.g_next = 0
         self.g_done = g_last + 1
 
-    def _block(self, b: int) -> dict[str, np.ndarray]:
+    def _block(self, b: int, *, draws: bool = False) -> dict:
+        """Block b of the requests' draws: the gaps, and with ``draws`` the rest (drawn
+        next from the same stream, when a request of the block first has results)."""
         blk = self._blocks.get(b)
         if blk is None:
             rng = child_rng(self.seq, 1, b)
-            n, k, a = self.BLOCK, max(self.k_n, 1), self.cfg.attempted - 1
-            c = self.cfg
-            blk = {
-                "gap": rng.uniform(self.lo, self.hi, n),
-                "jitter": exponential_delays(rng, self.clock.rtt_jitter_s, n),
-                "fading": rng.standard_normal((n, k)),
-                "u_status": rng.random((n, k)),
-                "u_fail": rng.random((n, k)),
-                "gauss": rng.standard_normal((n, k)),
-                "u_nlos": rng.standard_exponential((n, k)),
-                "u_outlier": rng.random((n, k)),
-                "outlier": c.outlier_median_m * np.exp(
-                    c.outlier_log_sigma * rng.standard_normal((n, k))),
-                "u_frames": rng.random((n, k, a)),
-                "chi": rng.standard_normal((n, k, a)) ** 2,
-            }
+            blk = {"gap": rng.uniform(self.lo, self.hi, self.BLOCK), "rng": rng}
             self._blocks = {bb: v for bb, v in self._blocks.items() if bb >= b - 1}
             self._blocks[b] = blk
+        if draws and "rng" in blk:
+            rng = blk.pop("rng")
+            n, k, a = self.BLOCK, max(self.k_n, 1), self.cfg.attempted - 1
+            c = self.cfg
+            blk["jitter"] = exponential_delays(rng, self.clock.rtt_jitter_s, n)
+            per = [rng.standard_normal((n, k)), rng.random((n, k)), rng.random((n, k)),
+                   rng.standard_normal((n, k)), rng.standard_exponential((n, k)),
+                   rng.random((n, k)),
+                   c.outlier_median_m * np.exp(c.outlier_log_sigma * rng.standard_normal((n, k)))]
+            frames = rng.random((n, k, a))
+            chi = rng.standard_normal((n, k, a)) ** 2
+            blk["draws"] = np.concatenate((np.stack(per, axis=2), frames, chi), axis=2)
         return blk
 
     # -------------------------------------------------------------- stepping
@@ -436,73 +458,48 @@ class FtmRadio:
         cfg = self.cfg
         if self.k_n == 0:
             self.horizon_s = math.inf
-            return _empty(self.k_n, cfg.attempted, self.offsets_m)
+            return self._nothing
         self._extend_grid(t_end_s, position_at)
-        w_last = self.w_grid[-1]  # the warped time at t = g_done GRID_S >= t_end
-        reqs: list[tuple[int, float, int]] = []  # (request index, t_req, grid index)
         first_result = cfg.burst_base_s + cfg.per_peer_s  # earliest callback after a request
         self.horizon_s = self.g_done * self.GRID_S + first_result
+        reqs = []  # per block with requests in reach: indices, t_req, grid points (from g0)
         while True:
-            tau = self.tau_next
-            if tau > w_last:
+            b, r = divmod(self.k_req, self.BLOCK)
+            r, self.tau_next, self.g_next, t_stop, rows, t_req, g = self._scan(
+                self.w, self.peers, self._block(b)["gap"], r, self.tau_next, self.g0, t_end_s,
+                self.burst_max_s, self.GRID_S)
+            if len(rows):
+                reqs.append((b * self.BLOCK + rows, t_req, g))
+            self.k_req = b * self.BLOCK + r
+            if r < self.BLOCK:
+                if not math.isnan(t_stop):
+                    self.horizon_s = t_stop + first_result
                 break
-            # t = inverse warp: w_grid[g] <= tau < w_grid[g + 1]
-            g = self._grid_index(tau)
-            w0, w1 = self.w_grid[g], self.w_grid[g + 1]
-            t_req = (g + (tau - w0) / (w1 - w0)) * self.GRID_S
-            if t_req + self.burst_max_s > t_end_s:
-                self.horizon_s = t_req + first_result
-                break
-            k = self.k_req
-            blk = self._block(k // self.BLOCK)
-            if self.peers_grid[g] >= 1:
-                reqs.append((k, t_req, g))
-            self.tau_next = tau + float(blk["gap"][k % self.BLOCK])
-            self.k_req = k + 1
-        return self._results(reqs, antenna_at)
-
-    def _grid_index(self, tau: float) -> int:
-        """The last g <= len(w) - 2 with w[g] <= tau (0 if none): w increases."""
-        return max(0, min(bisect.bisect_right(self.w_grid, tau) - 1, len(self.w_grid) - 2))
-
-    def _results(self, reqs: list[tuple[int, float, int]], antenna_at) -> FtmTrack:
-        cfg = self.cfg
         if not reqs:
-            return _empty(self.k_n, cfg.attempted, self.offsets_m)
-        rows_req, rows_resp, rows_slot, t_req_l, n_peers_l = [], [], [], [], []
-        for i, (_k, t_req, g) in enumerate(reqs):
-            score = self.rssi_grid[g]
-            order = np.argsort(-score, kind="stable")
-            chosen = [j for j in order.tolist() if np.isfinite(score[j])][: cfg.max_peers]
-            for slot, j in enumerate(chosen):
-                rows_req.append(i)
-                rows_resp.append(j)
-                rows_slot.append(slot)
-            t_req_l.append(t_req)
-            n_peers_l.append(len(chosen))
-        ri = np.array(rows_req, dtype=np.intp)
-        rj = np.array(rows_resp, dtype=np.intp)
-        slot = np.array(rows_slot)
-        t_req = np.array(t_req_l)
-        n_peers = np.array(n_peers_l)
-        kidx = np.array([r[0] for r in reqs], dtype=np.int64)
+            return self._nothing
+        return self._results(*(np.concatenate(x) for x in zip(*reqs, strict=True)), antenna_at)
+
+    def _results(self, kidx: np.ndarray, t_req: np.ndarray, g: np.ndarray, antenna_at) -> FtmTrack:
+        """The results of requests ``kidx`` at ``t_req`` (grid points g0 + ``g``)."""
+        cfg = self.cfg
+        # each request ranges its in-reach responders, strongest first
+        n_peers = self.peers[g]
+        order = np.argsort(-self.rssi[g], axis=1, kind="stable")
+        ri, slot = np.nonzero(np.arange(self.k_n) < n_peers[:, None])
+        rj = order[ri, slot]
         # the draws of (request k, responder j)
-        draws: dict[str, list] = {}
-        for key in ("fading", "u_status", "u_fail", "gauss", "u_nlos", "u_outlier", "outlier",
-                    "u_frames", "chi"):
-            draws[key] = []
-        jit = []
-        for k in kidx.tolist():
-            blk = self._block(k // self.BLOCK)
-            jit.append(blk["jitter"][k % self.BLOCK])
-        for i, j in zip(ri.tolist(), rj.tolist(), strict=True):
-            k = int(kidx[i])
-            blk = self._block(k // self.BLOCK)
-            row = k % self.BLOCK
-            for key in draws:
-                draws[key].append(blk[key][row, j])
-        d = {key: np.array(v) for key, v in draws.items()}
-        cb_jitter = np.array(jit)
+        bk, rk = np.divmod(kidx, self.BLOCK)
+        jitter, draws = [], []
+        for b in dict.fromkeys(bk.tolist()):
+            blk = self._block(b, draws=True)
+            jitter.append(blk["jitter"][rk[bk == b]])
+            sel = bk[ri] == b
+            draws.append(blk["draws"][rk[ri[sel]], rj[sel]])
+        cb_jitter = np.concatenate(jitter)
+        dr = np.concatenate(draws)
+        fading, u_status, u_fail, gauss, u_nlos, u_outlier, outlier = dr[:, : len(self.DRAWS)].T
+        a = len(self.DRAWS) + cfg.attempted - 1
+        u_frames, chi = dr[:, len(self.DRAWS) : a], dr[:, a:]
         t_meas = t_req[ri] + cfg.burst_base_s + (slot + 0.5) * cfg.per_peer_s
         t_cb = t_req + cfg.burst_base_s + n_peers * cfg.per_peer_s + cb_jitter
         ant = antenna_at(t_meas)
@@ -513,28 +510,28 @@ class FtmRadio:
             if sel.any():
                 sh[sel] = self.shadowing[k](ant[sel, 0], ant[sel, 1])
         rssi_mean = cfg.mean_rssi_dbm(d_true, self.att[rj]) + sh
-        rssi = np.clip(np.rint(rssi_mean + cfg.fading_sigma_db * d["fading"]), -127, -1).astype(
+        rssi = np.clip(np.rint(rssi_mean + cfg.fading_sigma_db * fading), -127, -1).astype(
             np.int64
         )
         p_ok = cfg.response_probability(rssi, self.scale[rj])
-        ok = d["u_status"] < p_ok
+        ok = u_status < p_ok
         status = np.where(
             ok, STATUS_OK,
-            np.where(d["u_fail"] < cfg.no_response_fraction, STATUS_NO_RESPONSE, STATUS_FAIL),
+            np.where(u_fail < cfg.no_response_fraction, STATUS_NO_RESPONSE, STATUS_FAIL),
         )
         sigma = cfg.range_sigma_m(d_true, rssi)
-        noise = sigma * d["gauss"]
-        nlos = self.nlos_min[rj] + self.nlos_mean[rj] * d["u_nlos"]
-        is_outlier = d["u_outlier"] < self.p_outlier[rj]
-        excess = np.where(is_outlier, d["outlier"], 0.0)
+        noise = sigma * gauss
+        nlos = self.nlos_min[rj] + self.nlos_mean[rj] * u_nlos
+        is_outlier = u_outlier < self.p_outlier[rj]
+        excess = np.where(is_outlier, outlier, 0.0)
         rng_m = d_true + self.offsets_m[rj] + nlos + noise + excess
         x = (rssi - cfg.response_rssi50_dbm + cfg.frame_margin_db) / cfg.response_slope_db
         p_frame = 1.0 / (1.0 + np.exp(-x))
-        extra = d["u_frames"] < p_frame[:, None]
+        extra = u_frames < p_frame[:, None]
         successful = np.where(ok, 1 + extra.sum(axis=1), 0)
         dof = np.maximum(successful - 1, 1)
         col = np.arange(cfg.attempted - 1)[None, :]
-        chi_mean = np.where(col < dof[:, None], d["chi"], 0.0).sum(axis=1) / dof
+        chi_mean = np.where(col < dof[:, None], chi, 0.0).sum(axis=1) / dof
         spread = np.where(successful >= 2, sigma * np.sqrt(chi_mean), 0.0)
         return FtmTrack(
             attempted=cfg.attempted,
@@ -560,6 +557,106 @@ class FtmRadio:
             request_t_s=t_req,
             request_peers=n_peers.astype(np.int64),
         )
+
+
+# ----------------------------------------------------------------------------- compiled loops
+
+
+@functools.cache
+def _compiled(f):
+    """``f`` compiled with numba on first use (numba is not imported with :mod:`sim`).
+    The values the loops below compute are plain float arithmetic, the same interpreted
+    (``NUMBA_DISABLE_JIT=1``); the cosines of :func:`_maybe_reached` only place a bound."""
+    from numba import njit
+
+    return njit(cache=True)(f)
+
+
+def _maybe_reached(p: np.ndarray, need: np.ndarray, w: np.ndarray, phase: np.ndarray,
+                   amplitude: float, lip: float, near_m: float) -> np.ndarray:
+    """Indices i where the shadowing field (random Fourier features ``w``, ``phase``,
+    ``amplitude``) may reach ``need[i]`` at ``p[i]``: it is at most amplitude times its
+    features, and at most its value at an anchor point plus ``lip`` (a Lipschitz
+    constant) times the horizontal distance. Where that bound fails a new anchor is
+    placed, except within ``near_m`` of an anchor that reaches: points there are taken.
+    Anchor values are summed here, with libm's cos: they differ from NumPy's by far less
+    than :attr:`FtmRadio.BOUND_MARGIN_DB`, which ``need`` includes."""
+    out = np.empty(len(need), dtype=np.int64)
+    n = 0
+    fa, ax, ay, reaches = np.inf, 0.0, 0.0, False
+    for i in range(len(need)):
+        x, y = p[i, 0], p[i, 1]
+        r = math.hypot(x - ax, y - ay)
+        if need[i] > amplitude * len(phase) or fa + lip * r < need[i]:
+            continue
+        if not (reaches and r <= near_m):
+            s = 0.0
+            for m in range(len(phase)):
+                s += math.cos(x * w[m, 0] + y * w[m, 1] + phase[m])
+            fa, ax, ay = amplitude * s, x, y
+            reaches = fa >= need[i]
+            if not reaches:
+                continue
+        out[n] = i
+        n += 1
+    return out[:n]
+
+
+def _warp(w: np.ndarray, peers: np.ndarray, i: int, rssi: np.ndarray, max_peers: int,
+          grid_s: float, per_peer_s: float, mean_gap: float):
+    """The grid's warped times ``w`` and ``peers`` from point i on, extended by the grid
+    points of ``rssi`` (K, M): their peers in reach (finite RSSI, at most ``max_peers``)
+    and w[g + 1] = w[g] + grid_s / (1 + per_peer_s max(peers[g] - 1, 0) / mean_gap), the
+    warp over a grid step using its start's peers."""
+    k_n, m = rssi.shape
+    n0 = len(peers) - i
+    p = np.empty(n0 + m, dtype=np.int64)
+    p[:n0] = peers[i:]
+    wn = np.empty(n0 + m + 1)
+    wn[: n0 + 1] = w[i:]
+    for j in range(m):
+        n = 0
+        for k in range(k_n):
+            n += rssi[k, j] > -np.inf
+        g = n0 + j
+        p[g] = min(n, max_peers)
+        wn[g + 1] = wn[g] + grid_s / (1.0 + per_peer_s * max(p[g] - 1, 0) / mean_gap)
+    return wn, p
+
+
+def _scan(w: np.ndarray, peers: np.ndarray, gaps: np.ndarray, r: int, tau: float, g0: int,
+          t_end_s: float, burst_s: float, grid_s: float):
+    """The requests of one block from row r (warped time ``tau``; row i's gap to the
+    next ``gaps[i]``) up to the first past the grid ``w`` (of points g0, g0 + 1, ...) or
+    whose bursts (``burst_s``) end after ``t_end_s``. Returns the row and warped time
+    reached, a grid point (from g0) at or before it, the stopping request's time (NaN
+    past the grid), and the rows, times and grid points of the requests with peers in
+    reach."""
+    rows = np.empty(len(gaps) - r, dtype=np.int64)
+    t_req = np.empty(len(gaps) - r)
+    g_req = np.empty(len(gaps) - r, dtype=np.int64)
+    n = 0
+    g = len(w) - 2
+    t_stop = np.nan
+    while r < len(gaps) and tau <= w[-1]:
+        lo, hi = 0, len(w)  # bisect_right: the first w[lo] > tau
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if tau < w[mid]:
+                hi = mid
+            else:
+                lo = mid + 1
+        g = min(max(lo - 1, 0), len(w) - 2)  # t = inverse warp: w[g] <= tau < w[g + 1]
+        t = (g0 + g + (tau - w[g]) / (w[g + 1] - w[g])) * grid_s
+        if t + burst_s > t_end_s:
+            t_stop = t
+            break
+        if peers[g] >= 1:
+            rows[n], t_req[n], g_req[n] = r, t, g
+            n += 1
+        tau += gaps[r]
+        r += 1
+    return r, tau, g, t_stop, rows[:n], t_req[:n], g_req[:n]
 
 
 _STEP_FIELDS = (

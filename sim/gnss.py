@@ -144,6 +144,13 @@ def _in_windows(t: np.ndarray, windows: tuple[tuple[float, float], ...]) -> np.n
     return inside
 
 
+# the columns of GnssErrorProcess.epochs
+EPOCH_COLUMNS = ("t", "bias_e", "bias_n", "bias_u", "white_e", "white_n", "white_u", "sats",
+                 "acc", "vacc", "drop", "delivery")
+_T, _BIAS, _WHITE, _SATS, _ACC, _VACC, _DROP, _DELIVERY = (0, slice(1, 4), slice(4, 7), 7, 8,
+                                                          9, 10, 11)
+
+
 class GnssErrorProcess:
     """One receiver's epochs and errors as functions of time (common random numbers).
 
@@ -166,7 +173,7 @@ class GnssErrorProcess:
                                        block=self.BLOCK)
         self.sats = BlockedGaussMarkov(child_seed(seq, 2), self.dt_s, [cfg.sats_sigma],
                                        cfg.sats_tau_s, block=self.BLOCK)
-        self._noise: list[dict[str, np.ndarray]] = []
+        self._epochs: list[np.ndarray] = []
 
     def epoch_time_s(self, k: np.ndarray | int) -> np.ndarray | float:
         return self.phase_s + np.asarray(k) * self.dt_s
@@ -175,29 +182,45 @@ class GnssErrorProcess:
         """Index of the last epoch at or before ``t_s`` (-1 if none)."""
         return math.floor((t_s - self.phase_s) / self.dt_s + 1e-9)
 
-    def _noise_block(self, b: int) -> dict[str, np.ndarray]:
-        while len(self._noise) <= b:
-            rng = child_rng(self.seq, 3, len(self._noise))
+    def _epoch_block(self, b: int) -> np.ndarray:
+        cfg = self.cfg
+        while len(self._epochs) <= b:
+            k0 = len(self._epochs) * self.BLOCK
+            rng = child_rng(self.seq, 3, len(self._epochs))
             n = self.BLOCK
-            self._noise.append({
-                "white": rng.standard_normal((n, 3)),
-                "acc": rng.standard_normal(n),
-                "vacc": rng.standard_normal(n),
-                "drop": rng.random(n),
-                "jitter": exponential_delays(rng, self.clock.gnss_jitter_s, n),
-            })
-        return self._noise[b]
+            white = rng.standard_normal((n, 3)) * np.array(
+                [cfg.white_sigma_h_m, cfg.white_sigma_h_m, cfg.white_sigma_v_m])
+            acc_noise, vacc_noise = rng.standard_normal(n), rng.standard_normal(n)
+            drop = rng.random(n)
+            jitter = exponential_delays(rng, self.clock.gnss_jitter_s, n)
+            sats = np.clip(np.rint(cfg.sats_ref + self.sats.values(k0, k0 + n)[:, 0]),
+                           cfg.sats_min, cfg.sats_max)
+            hdop_scale = np.sqrt(cfg.sats_ref / sats)
+            acc = np.maximum(
+                np.round(cfg.acc_ref_m * hdop_scale * (1.0 + cfg.acc_noise_rel * acc_noise), 3),
+                0.001,
+            )
+            vacc = np.maximum(
+                np.round(acc * cfg.vacc_ratio * (1.0 + cfg.acc_noise_rel * vacc_noise), 3), 0.001
+            )
+            t = self.epoch_time_s(np.arange(k0, k0 + n))
+            self._epochs.append(np.column_stack([t, self.bias.values(k0, k0 + n), white, sats,
+                                                 acc, vacc, drop, t + self.clock.gnss_latency_s
+                                                 + jitter]))
+        return self._epochs[b]
 
-    def noise(self, k0: int, k1: int) -> dict[str, np.ndarray]:
-        """The iid draws of epochs k0 <= k < k1."""
+    def epochs(self, k0: int, k1: int) -> np.ndarray:
+        """What epochs k0 <= k < k1 report besides the truth, (k1 - k0, 12), columns
+        :data:`EPOCH_COLUMNS`: time, bias, white noise (sigma applied), satellites, accM,
+        vaccM (with their HDOP proxy), the drop draw (uniform) and the delivery time
+        (time, latency and jitter, before callbacks are kept in order)."""
         if k1 <= k0:
-            return {"white": np.zeros((0, 3)), "acc": np.zeros(0), "vacc": np.zeros(0),
-                    "drop": np.zeros(0), "jitter": np.zeros(0)}
+            return np.zeros((0, len(EPOCH_COLUMNS)))
         b0, b1 = k0 // self.BLOCK, (k1 - 1) // self.BLOCK
-        blocks = [self._noise_block(b) for b in range(b0, b1 + 1)]
+        blocks = [self._epoch_block(b) for b in range(b0, b1 + 1)]
         off = b0 * self.BLOCK
-        return {key: np.concatenate([blk[key] for blk in blocks])[k0 - off : k1 - off]
-                for key in blocks[0]}
+        x = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+        return x[k0 - off : k1 - off]
 
     def bias_at(self, t_s: ArrayLike) -> np.ndarray:
         """The correlated error (M, 3) at times ``t_s`` (interpolated between epochs)."""
@@ -229,40 +252,34 @@ class GnssReceiver:
         k0 = self._k_next
         k1 = max(k0, proc.last_epoch_at_or_before(t_end_s) + 1)
         self._k_next = k1
-        k = np.arange(k0, k1)
-        t_all = proc.epoch_time_s(k)
-        nz = proc.noise(k0, k1)
-        step = max(1, round(cfg.rate_hz / cfg.fallback_rate_hz))
-        keep = ~(nz["drop"] < cfg.drop_prob) & ~_in_windows(t_all, cfg.outage_windows_s)
-        keep &= ~(_in_windows(t_all, cfg.fallback_windows_s) & (k % step != 0))
-        t = t_all[keep]
+        ep = proc.epochs(k0, k1)
+        keep = ep[:, _DROP] >= cfg.drop_prob
+        if cfg.outage_windows_s:
+            keep &= ~_in_windows(ep[:, _T], cfg.outage_windows_s)
+        if cfg.fallback_windows_s:
+            step = max(1, round(cfg.rate_hz / cfg.fallback_rate_hz))
+            keep &= ~(_in_windows(ep[:, _T], cfg.fallback_windows_s)
+                      & (np.arange(k0, k1) % step != 0))
+        ep = ep[keep]  # a copy: the step's arrays are its own
+        t = ep[:, _T]
         truth = truth_at(t) if len(t) else np.zeros((0, 3))
-        bias = proc.bias.values(k0, k1)[keep]
-        meas = truth + bias + nz["white"][keep] * np.array(
-            [cfg.white_sigma_h_m, cfg.white_sigma_h_m, cfg.white_sigma_v_m]
-        )
-        sats = np.clip(np.rint(cfg.sats_ref + proc.sats.values(k0, k1)[keep, 0]),
-                       cfg.sats_min, cfg.sats_max)
-        hdop_scale = np.sqrt(cfg.sats_ref / sats)
-        acc = np.maximum(
-            np.round(cfg.acc_ref_m * hdop_scale * (1.0 + cfg.acc_noise_rel * nz["acc"][keep]), 3),
-            0.001,
-        )
-        vacc = None
-        if cfg.report_vacc:
-            vacc = np.maximum(
-                np.round(acc * cfg.vacc_ratio * (1.0 + cfg.acc_noise_rel * nz["vacc"][keep]), 3),
-                0.001,
-            )
-        raw = t + self.clock.gnss_latency_s + nz["jitter"][keep]
-        deliver = np.empty_like(raw)
-        last = self._last_delivery_s
-        for i, v in enumerate(raw.tolist()):  # in order, at least 1 ms apart
-            last = v if v > last + 1e-3 else last + 1e-3
-            deliver[i] = last
-        self._last_delivery_s = last
-        return GnssTrack(t, deliver, meas, truth, bias, acc, vacc, sats.astype(np.int64),
-                         cfg.fix, len(k))
+        bias = ep[:, _BIAS]
+        # in order, at least 1 ms apart: each waits for the one before from the first
+        # that would come too soon on
+        deliver = ep[:, _DELIVERY]
+        prev = np.concatenate(([self._last_delivery_s], deliver[:-1]))
+        wait = np.flatnonzero(deliver <= prev + 1e-3)
+        if len(wait):
+            i0 = int(wait[0])
+            last = float(prev[i0])
+            for i, v in enumerate(deliver[i0:].tolist(), i0):
+                last = v if v > last + 1e-3 else last + 1e-3
+                deliver[i] = last
+        if len(deliver):
+            self._last_delivery_s = float(deliver[-1])
+        return GnssTrack(t, deliver, truth + bias + ep[:, _WHITE], truth, bias, ep[:, _ACC],
+                         ep[:, _VACC] if cfg.report_vacc else None, ep[:, _SATS].astype(np.int64),
+                         cfg.fix, k1 - k0)
 
 
 def gnss_track(steps: list[GnssTrack], fix: str) -> GnssTrack:
