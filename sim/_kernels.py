@@ -282,6 +282,19 @@ def lerp_after(v: np.ndarray, f: np.ndarray, k0: int) -> np.ndarray:
     return out
 
 
+@njit(cache=True)
+def extent(p: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(e_min, e_max, n_min, n_max, z_min) of the (N >= 1, 3) positions ``p``."""
+    e0 = e1 = p[0, 0]
+    n0 = n1 = p[0, 1]
+    z0 = p[0, 2]
+    for i in range(1, p.shape[0]):
+        e0, e1 = min(e0, p[i, 0]), max(e1, p[i, 0])
+        n0, n1 = min(n0, p[i, 1]), max(n1, p[i, 1])
+        z0 = min(z0, p[i, 2])
+    return e0, e1, n0, n1, z0
+
+
 # ----------------------------------------------------------------------------- path
 
 

@@ -19,6 +19,7 @@ order :meth:`Emitted.replay_key` gives.
 
 from __future__ import annotations
 
+import itertools
 import math
 import operator
 import os
@@ -106,13 +107,13 @@ class AgentSim:
 
     WRITE_BLOCK = 1024
 
-    def write_delays_s(self, source: int, first: int, n: int, mean_s: float) -> list[float]:
+    def write_delays_s(self, source: int, first: int, n: int, mean_s: float) -> np.ndarray:
         """The writer's delays of records ``first .. first + n - 1`` of ``source``: drawn
         by the records' identity (blocks of :attr:`WRITE_BLOCK` per source, each from
         its own stream), so they do not depend on how the flight was stepped."""
         if mean_s <= 0.0:
-            return [0.0] * n
-        out: list[float] = []
+            return np.zeros(n)
+        out: list[np.ndarray] = []
         k, end = first, first + n
         while k < end:
             b = k // self.WRITE_BLOCK
@@ -126,9 +127,9 @@ class AgentSim:
                 for key in [q for q in self._delays if q[0] == source and q[1] < b - 1]:
                     del self._delays[key]
             stop = min(end, (b + 1) * self.WRITE_BLOCK)
-            out.extend(blk[k - b * self.WRITE_BLOCK : stop - b * self.WRITE_BLOCK].tolist())
+            out.append(blk[k - b * self.WRITE_BLOCK : stop - b * self.WRITE_BLOCK])
             k = stop
-        return out
+        return out[0] if len(out) == 1 else np.concatenate(out) if out else np.zeros(0)
 
     @property
     def name(self) -> str:
@@ -326,11 +327,12 @@ class Stepper:
                       source: int, first: int, recs: list) -> list[Emitted]:
         """New records as they will be emitted (write time: delivery + writer delay)."""
         n = len(recs)
-        t_del = t_delivery_s.tolist()
         delay = a.write_delays_s(source, first, n,
                                  self.realisation.scenario.clock.write_delay_s)
-        return [Emitted(t_ns[j], t_del[j] + delay[j], source, first + j, recs[j], t_del[j])
-                for j in range(n)]
+        write = (t_delivery_s + delay).tolist()
+        return list(map(Emitted._make, zip(t_ns, write, itertools.repeat(source, n),
+                                           range(first, first + n), recs,
+                                           t_delivery_s.tolist(), strict=True)))
 
     # ------------------------------------------------------------------ traces
     def vehicle_track(self, agent: int | str = 0) -> VehicleTrack:

@@ -537,14 +537,15 @@ class Multirotor:
         """Raise :class:`FlightError` if the last ``len(t_s)`` outputs went below the
         terrain by more than the tolerance (skipped when the terrain's upper bound over
         their box, if it has one, shows they cannot have)."""
+        from sim import _kernels
+
         out = self.out_log.view[-len(t_s):]
-        e, n, z = out[:, 0], out[:, 1], out[:, 2]
         bound = getattr(self.world.terrain, "max_height_m", None)
-        if bound is not None and (float(z.min()) - bound(float(e.min()), float(e.max()),
-                                                         float(n.min()), float(n.max()))
-                                  > 0.01 - UNDERGROUND_TOLERANCE_M):
-            return
-        agl = z - self.world.ground_m(e, n)
+        if bound is not None:
+            e0, e1, n0, n1, z0 = _kernels.extent(out)
+            if z0 - bound(e0, e1, n0, n1) > 0.01 - UNDERGROUND_TOLERANCE_M:
+                return
+        agl = out[:, 2] - self.world.ground_m(out[:, 0], out[:, 1])
         i = int(np.argmin(agl))
         if agl[i] < -UNDERGROUND_TOLERANCE_M:
             raise FlightError(
