@@ -295,7 +295,34 @@ def extent(p: np.ndarray) -> tuple[float, float, float, float, float]:
     return e0, e1, n0, n1, z0
 
 
-# ----------------------------------------------------------------------------- path
+@njit(cache=True)
+def hill_exponents(e: np.ndarray, n: np.ndarray, hc: np.ndarray) -> np.ndarray:
+    """(K, N) exponents -r^2 / (2 sigma^2) of the K Gaussian hills ``hc`` (rows: centre
+    e, centre n, height, sigma^2) at the N points (e, n)."""
+    out = np.empty((hc.shape[1], len(e)))
+    for k in range(hc.shape[1]):
+        for j in range(len(e)):
+            de, dn = e[j] - hc[0, k], n[j] - hc[1, k]
+            out[k, j] = -0.5 * (de * de + dn * dn) / hc[3, k]
+    return out
+
+
+@njit(cache=True)
+def hills_terrain(e: np.ndarray, n: np.ndarray, base: float, slope_e: float, slope_n: float,
+                  hc: np.ndarray, bumps: np.ndarray, cos_a: float, sin_a: float,
+                  k: float) -> tuple[np.ndarray, np.ndarray]:
+    """The hilly terrain's plane plus its hills (``bumps``: exp of :func:`hill_exponents`,
+    added hill by hill) at the points (e, n), and the ripple's phase there,
+    k (cos a e + sin a n)."""
+    h = np.empty(len(e))
+    phase = np.empty(len(e))
+    for j in range(len(e)):
+        v = base + slope_e * e[j] + slope_n * n[j]
+        for i in range(hc.shape[1]):
+            v = v + hc[2, i] * bumps[i, j]
+        h[j] = v
+        phase[j] = k * (cos_a * e[j] + sin_a * n[j])
+    return h, phase
 
 
 @njit(cache=True)

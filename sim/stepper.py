@@ -19,6 +19,7 @@ order :meth:`Emitted.replay_key` gives.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import operator
@@ -81,6 +82,7 @@ class Emitted(NamedTuple):
 
 
 REPLAY_ORDER = operator.itemgetter(0, 1)  # Emitted.replay_key as a fast sort key
+_EMITTED = functools.partial(tuple.__new__, Emitted)  # Emitted of a full row, unchecked
 
 
 @dataclass
@@ -287,10 +289,11 @@ class Stepper:
         if n:
             lat, lon, alt = frame.to_geodetic(g.enu_m[:, 0], g.enu_m[:, 1], g.enu_m[:, 2])
             t_ns = a.clock.to_ns(g.t_delivery_s).tolist()
+            lat_lon = np.round(np.vstack([lat, lon]), 9)
             recs = records_from_columns(GnssFix, {
                 "t_ns": t_ns,
-                "lat_deg": np.round(np.atleast_1d(lat), 9).tolist(),
-                "lon_deg": np.round(np.atleast_1d(lon), 9).tolist(),
+                "lat_deg": lat_lon[0].tolist(),
+                "lon_deg": lat_lon[1].tolist(),
                 "alt_m": np.round(np.atleast_1d(alt), 3).tolist(),
                 "acc_m": g.acc_m.tolist(),
                 "vacc_m": g.vacc_m.tolist() if g.vacc_m is not None else [None] * n,
@@ -330,7 +333,7 @@ class Stepper:
         delay = a.write_delays_s(source, first, n,
                                  self.realisation.scenario.clock.write_delay_s)
         write = (t_delivery_s + delay).tolist()
-        return list(map(Emitted._make, zip(t_ns, write, itertools.repeat(source, n),
+        return list(map(_EMITTED, zip(t_ns, write, itertools.repeat(source, n),
                                            range(first, first + n), recs,
                                            t_delivery_s.tolist(), strict=True)))
 

@@ -129,29 +129,34 @@ class HillsTerrain:
             n = np.asarray(n_m, dtype=float)
             if e.ndim == 0 and n.ndim == 0:
                 return self._height_scalar(float(e), float(n))
-        h = self.base_m + self.slope_e * e + self.slope_n * n
-        if exp is np.exp and self.hills and np.ndim(h) == 1:  # every hill in one go
+        a = math.radians(self.ripple_direction_deg)
+        k = 2.0 * math.pi / self.ripple_wavelength_m
+        if exp is np.exp and e.ndim == 1 and e.shape == n.shape and len(e):
+            # the arithmetic compiled (sim._kernels), NumPy's own exp and sin
+            from sim import _kernels
+
             hc = self._hill_columns()
-            r2 = (e - hc[0]) ** 2 + (n - hc[1]) ** 2
-            bumps = hc[2] * exp(-0.5 * r2 / hc[3])
-            for row in bumps:  # summed hill by hill, in order
-                h = h + row
-        else:
-            for hill in self.hills:
-                r2 = (e - hill.e_m) ** 2 + (n - hill.n_m) ** 2
-                h = h + hill.height_m * exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
+            h, phase = _kernels.hills_terrain(
+                np.ascontiguousarray(e), np.ascontiguousarray(n), self.base_m, self.slope_e,
+                self.slope_n, hc, np.exp(_kernels.hill_exponents(e, n, hc)),
+                math.cos(a), math.sin(a), k)
+            if self.ripple_amplitude_m > 0:
+                h = h + self.ripple_amplitude_m * np.sin(phase)
+            return h
+        h = self.base_m + self.slope_e * e + self.slope_n * n
+        for hill in self.hills:
+            r2 = (e - hill.e_m) ** 2 + (n - hill.n_m) ** 2
+            h = h + hill.height_m * exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
         if self.ripple_amplitude_m > 0:
-            a = math.radians(self.ripple_direction_deg)
-            k = 2.0 * math.pi / self.ripple_wavelength_m
             h = h + self.ripple_amplitude_m * sin(k * (math.cos(a) * e + math.sin(a) * n))
         return h
 
     def _hill_columns(self) -> np.ndarray:
-        """(4, K, 1): the hills' centres e and n, heights and sigma^2, as columns."""
+        """(4, K): the hills' centres e and n, heights and sigma^2."""
         hc = self.__dict__.get("_hc")
         if hc is None:
             hc = np.array([[g.e_m, g.n_m, g.height_m, g.sigma_m * g.sigma_m]
-                           for g in self.hills]).T[:, :, None]
+                           for g in self.hills]).reshape(-1, 4).T.copy()
             object.__setattr__(self, "_hc", hc)
         return hc
 

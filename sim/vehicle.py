@@ -31,7 +31,6 @@ height above the terrain.
 from __future__ import annotations
 
 import math
-import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -352,8 +351,11 @@ def _median_speed(t: np.ndarray, p: np.ndarray) -> float:
     dt = t[1:] - t[:-1]
     dp = p[1:, :2] - p[:-1, :2]
     dd = np.sqrt((dp * dp).sum(axis=1))
-    ok = dt > 0
-    return float(statistics.median((dd[ok] / dt[ok]).tolist())) if ok.any() else 5.0
+    v = sorted((dd[dt > 0] / dt[dt > 0]).tolist())
+    if not v:
+        return 5.0
+    mid = len(v) // 2  # statistics.median's rule, without its generality
+    return v[mid] if len(v) % 2 else (v[mid - 1] + v[mid]) / 2
 
 
 # ----------------------------------------------------------------------------- vehicle
@@ -455,9 +457,9 @@ class Multirotor:
             w = np.array([we, wn])
             w_along = u @ w
             out[:, :2] += cfg.wind_drift_s * (w[None, :] - w_along[:, None] * u)
-        if self.wander is not None and cfg.tracking_sigma_m > 0:
-            k = np.rint(rows[:, 0] / self.dt).astype(np.int64)
-            wv = self.wander.values(int(k[0]), int(k[-1]) + 1)[k - k[0]]
+        if self.wander is not None and cfg.tracking_sigma_m > 0:  # rows: consecutive ticks
+            k0 = round(float(rows[0, 0]) / self.dt)
+            wv = self.wander.values(k0, k0 + len(rows))
             if cfg.ground_height_m is not None:
                 wv[:, 2] = 0.0
             out += wv

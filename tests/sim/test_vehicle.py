@@ -162,10 +162,11 @@ def test_compiled_speed_passes_equal_the_plain_loops_bit_for_bit() -> None:
         assert got.tolist() == _plain_passes((v * v).tolist(), step.tolist(), start)
 
 
-def test_scalar_terrain_height_equals_the_array_path_bit_for_bit() -> None:
+@pytest.mark.parametrize("kw", [{}, {"hills": (), "ripple_amplitude_m": 0.0}])
+def test_scalar_terrain_height_equals_the_array_path_bit_for_bit(kw) -> None:
     from sim.terrain import HillsTerrain
 
-    t = HillsTerrain()
+    t = HillsTerrain(**kw)
     rng = np.random.default_rng(3)
     e, n = rng.uniform(-700, 700, 40000), rng.uniform(-700, 700, 40000)
     arr = t.height_m(e, n)
