@@ -18,7 +18,7 @@ memory is bounded by the samples waiting for their next fix (at most 2 T_sync).
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from estimator.records import GNSS_FIX_TYPES, GnssFix, RangeSample
@@ -87,6 +87,18 @@ class Associator:
         self._expire(rec.t_ns, out)
         prev = self._last_fix
         self._pending.append((rec, prev))
+        return out
+
+    def push_fixes(self, fixes: Sequence[GnssFix]) -> list[GeoRange]:
+        """:meth:`push` of consecutive fixes: the first valid one resolves the waiting
+        ranges, the last valid one is the latest fix."""
+        valid = [f for f in fixes if f.fix != "none"]
+        out: list[GeoRange] = []
+        if valid:
+            for sample, prev in self._pending:
+                self._resolve(sample, prev, valid[0], out)
+            self._pending.clear()
+            self._last_fix = valid[-1]
         return out
 
     def earliest_pending_ns(self) -> int | None:

@@ -246,23 +246,38 @@ class OnlineEstimator:
 
     def push_many(self, recs: Iterable[GnssFix | RangeSample],
                   agent: int | str = 0) -> list[Published]:
-        """:meth:`push` of each of ``agent``'s records in turn (the same effects and
-        publications, with one agent lookup): what a stream of many fixes costs less."""
+        """:meth:`push` of each of ``agent``'s records in turn: the same effects and
+        publications, with one agent lookup, and a run of fixes taken at once (only its
+        first valid fix can resolve waiting ranges; the heap's releases keep their
+        order): what a stream of 10 Hz fixes costs less."""
         if not self._started:
             self._start()
         a = self.agent(agent)
         if a.finished:
             raise RuntimeError(f"agent {a.name} has finished")
         out: list[Published] = []
-        associate, queue = a.associator.push, self._queue
-        for rec in recs:
+        fixes: list[GnssFix] = []  # a run of fixes: one associator call, one release
+
+        def take(batch: list, resolved: list[GeoRange]) -> None:
             if a.offset_s is None:
-                self._place(a, rec.t_ns)
-            a.last_t_s = max(a.last_t_s, rec.t_ns * 1e-9 + a.offset_s)
-            for g in associate(rec):
-                queue(a, g)
+                self._place(a, batch[0].t_ns)
+            # max of t * 1e-9 + offset over the batch: the (monotone) map of the max
+            a.last_t_s = max(a.last_t_s, max(r.t_ns for r in batch) * 1e-9 + a.offset_s)
+            for g in resolved:
+                self._queue(a, g)
             if self._heap:
                 out.extend(self._release())
+
+        for rec in recs:
+            if isinstance(rec, GnssFix):
+                fixes.append(rec)
+                continue
+            if fixes:
+                take(fixes, a.associator.push_fixes(fixes))
+                fixes = []
+            take([rec], a.associator.push(rec))
+        if fixes:
+            take(fixes, a.associator.push_fixes(fixes))
         return out
 
     def mark_time(self, agent: int | str, t_ns: int) -> list[Published]:

@@ -252,3 +252,27 @@ def test_fix_at_the_same_time_as_sample() -> None:
     out, _ = run([fix(1.0, 36.0), rtt(1.0), fix(1.1, 36.1)])
     assert len(out) == 1
     assert out[0].interpolated and out[0].lat_deg == 36.0
+
+
+def test_push_fixes_equals_pushing_each_fix() -> None:
+    """Runs of fixes (some with fix "none") between ranges: push_fixes gives the ranges
+    and the latest fix that pushing the fixes one by one gives."""
+    rnd = random.Random(4)
+    for _ in range(200):
+        recs, t = [], 0.0
+        for _ in range(60):
+            t += rnd.uniform(0.02, 0.6)
+            if rnd.random() < 0.3:
+                recs.append(rtt(t, rnd.uniform(10.0, 90.0)))
+            else:
+                recs.append(fix(t, 36.715 + 1e-5 * t, kind="none" if rnd.random() < 0.2 else "3d"))
+        one, a1 = run(recs)
+        a2, two, run_fixes = Associator(), [], []
+        for r in recs:
+            if isinstance(r, GnssFix):
+                run_fixes.append(r)
+                continue
+            two += a2.push_fixes(run_fixes) + a2.push(r)
+            run_fixes = []
+        two += a2.push_fixes(run_fixes) + a2.flush()
+        assert one == two and a1._last_fix == a2._last_fix and len(one) > 5
