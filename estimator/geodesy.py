@@ -151,7 +151,7 @@ def _enu2geodetic_wgs84(terms: tuple, east, north, up):
     u = np.sqrt(0.5 * r2e + 0.5 * np.hypot(r2e, 2 * E * z))
     hxy = np.hypot(x, y)
     huE = np.hypot(u, E)
-    if np.any(np.abs(u) <= 1e-8) or np.any(np.abs(hxy) <= 1e-8):  # pymap3d's isclose(., 0)
+    if (np.abs(u) <= 1e-8).any() or (np.abs(hxy) <= 1e-8).any():  # pymap3d's isclose(., 0)
         return pymap3d.ecef2geodetic(x, y, z)
     Beta = np.arctan(huE / u * z / hxy)
     cos0 = np.cos(Beta)

@@ -218,9 +218,9 @@ class Trajectory:
         p = np.asarray(self.enu_m, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3 or t.shape != (p.shape[0],):
             raise ValueError("Trajectory needs t_s (N,) and enu_m (N, 3)")
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
+        if not (np.isfinite(t).all() and np.isfinite(p).all()):
             raise ValueError("Trajectory holds non-finite values")
-        if len(t) > 1 and np.any(np.diff(t) < 0):
+        if len(t) > 1 and (t[1:] < t[:-1]).any():
             raise ValueError("Trajectory times must be non-decreasing")
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "enu_m", p)

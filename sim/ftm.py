@@ -299,11 +299,14 @@ class FtmLink:
         c = self.cfg
         model = c.concealment(concealment)
         spread = math.hypot(model.shadowing_sigma_db, c.fading_sigma_db) / c.response_slope_db
-        x = (self.mean_rssi_dbm(slant_m, concealment) - c.response_rssi50_dbm) / c.response_slope_db
-        x = x / math.sqrt(1.0 + math.pi * spread * spread / 8.0)
+        symbolic = _is_symbolic(slant_m)
         mean = self.mean_rssi_dbm(slant_m, concealment)
+        x = (mean - c.response_rssi50_dbm) / c.response_slope_db
+        x = x / math.sqrt(1.0 + math.pi * spread * spread / 8.0)
+        if symbolic:  # CasADi: a second copy of the subexpression, so the planner's graphs
+            mean = self.mean_rssi_dbm(slant_m, concealment)  # (and solutions) stay as built
         reach = (mean - c.reach_rssi_dbm) / max(model.shadowing_sigma_db, 1e-3) / math.sqrt(2.0)
-        if _is_symbolic(slant_m):
+        if symbolic:
             import casadi as ca
 
             tanh, erf = ca.tanh, ca.erf

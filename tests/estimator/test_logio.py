@@ -859,3 +859,22 @@ def test_records_from_columns_are_the_dataclass_records() -> None:
         got[0].range_m = 3.0  # type: ignore[misc]
     with pytest.raises(ValueError, match="not the fields of GnssFix"):
         records_from_columns(GnssFix, {"t_ns": [1], "lat_deg": [0.0]})
+
+
+def test_trajectory_refuses_bad_paths() -> None:
+    import numpy as np
+    import pytest
+
+    from estimator.records import Trajectory
+
+    o = (36.7, -4.4, 0.0)
+    ok = Trajectory([0.0, 1.0, 1.0], np.zeros((3, 3)), o)  # a hover: equal times allowed
+    assert ok.t_s.dtype == float and ok.enu_m.shape == (3, 3)
+    with pytest.raises(ValueError, match="non-finite"):
+        Trajectory([0.0, 1.0], [[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], o)
+    with pytest.raises(ValueError, match="non-finite"):
+        Trajectory([0.0, np.inf], np.zeros((2, 3)), o)
+    with pytest.raises(ValueError, match="non-decreasing"):
+        Trajectory([0.0, 2.0, 1.0], np.zeros((3, 3)), o)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        Trajectory([0.0, 1.0], np.zeros((2, 2)), o)
