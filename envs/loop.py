@@ -359,15 +359,17 @@ class ClosedLoop(SearchLoopBase):
         for i, (a, emitted) in enumerate(zip(self.stepper.agents, out, strict=True)):
             ordered = sorted(emitted, key=REPLAY_ORDER)
             est.push_many([e.record for e in ordered], i)
-            for e in ordered:  # what the policy hears (the estimator does not read it)
-                r = e.record
-                if isinstance(r, RangeSample) and r.ok:
-                    t = float(a.clock.to_s(np.array([r.t_ns]))[0])
-                    v = a.vehicle
-                    pos = v.position_at([t])[0]  # where the autopilot believed it was
-                    if v.nav_error is not None:
-                        pos = pos + v.nav_error(np.array([t]))[0]
-                    self._hear(r.bssid, t, pos, r.range_m)
+            # what the policy hears (the estimator does not read it): each ok range with
+            # where the autopilot believed it was then
+            ok = [e.record for e in ordered if isinstance(e.record, RangeSample) and e.record.ok]
+            if ok:
+                v = a.vehicle
+                t = a.clock.to_s(np.array([r.t_ns for r in ok]))
+                pos = v.position_at(t)
+                if v.nav_error is not None:
+                    pos = pos + v.nav_error(t)
+                for r, t_s, p in zip(ok, t.tolist(), pos.tolist(), strict=True):
+                    self._hear(r.bssid, t_s, p, r.range_m)
             if emitted:
                 est.mark_time(i, emitted[-1].t_ns)
             if self.sinks:
