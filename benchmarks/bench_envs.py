@@ -6,7 +6,9 @@ For each env: one env stepped in this process (decisions per CPU-second of this 
 "per core"; and per wall second), and vectorised with ``gymnasium.make_vec`` (``sync``,
 4 copies in this process; ``async``, one worker process per core, per wall second).
 Random actions; episodes reset as they end (the reset is counted in the time). Each
-figure is the median of ``--repeats`` runs of ``--steps`` decisions.
+figure is the median of ``--repeats`` runs of ``--steps`` decisions; the envs take turns
+within each repeat, and the ratio to CartPole is the median of the per-repeat ratios
+(this machine's speed drifts by 10-20 % over minutes). One BLAS thread.
 
     python benchmarks/bench_envs.py --steps 2000 --repeats 5
 """
@@ -18,8 +20,11 @@ import os
 import statistics
 import time
 
-import gymnasium
-import numpy as np
+# one BLAS thread: per-core figures (a BLAS pool spinning on another core would count in
+# this process's CPU time); an env per core is how vectorised training runs them
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import gymnasium  # (numpy loads here, after the BLAS setting)
 
 import envs  # noqa: F401  (registers the envs)
 
@@ -62,32 +67,32 @@ def main() -> None:
     ap.add_argument("--envs", default=",".join(ENVS))
     a = ap.parse_args()
     cores = os.cpu_count() or 1
-    rows = []
-    for env_id in a.envs.split(","):
-        steps = a.steps * (20 if env_id == "CartPole-v1" else 1)
-        cpu, wall, sync, asyn = [], [], [], []
-        for r in range(a.repeats):
+    ids = a.envs.split(",")
+    runs: dict[str, list[tuple[float, float, float, float]]] = {e: [] for e in ids}
+    for r in range(a.repeats):  # the envs take turns, so each repeat sees one machine state
+        for env_id in ids:
+            steps = a.steps * (20 if env_id == "CartPole-v1" else 1)
             c, w = single(env_id, steps, r)
-            cpu.append(c)
-            wall.append(w)
-            sync.append(vector(env_id, steps, r, "sync", 4))
-            asyn.append(vector(env_id, steps, r, "async", cores))
-        rows.append((env_id, *(statistics.median(x) for x in (cpu, wall, sync, asyn))))
-        print(f"{env_id}: done", flush=True)
+            runs[env_id].append((c, w, vector(env_id, steps, r, "sync", 4),
+                                 vector(env_id, steps, r, "async", cores)))
+        print(f"repeat {r + 1}/{a.repeats} done", flush=True)
     load = os.getloadavg()[0]
     print(f"\n{a.repeats} runs of {a.steps} decisions (CartPole 20x more), medians; "
           f"{cores} cores, load average {load:.1f} at the end\n")
     print(f"{'env':<18}{'per CPU-s':>12}{'per wall-s':>12}{'sync x4':>12}"
           f"{'async x' + str(cores):>12}{'vs CartPole':>13}")
-    base = rows[0][1] if rows and rows[0][0] == "CartPole-v1" else None
-    for env_id, c, w, s, y in rows:
-        ratio = f"{c / base:.4f}" if base else "-"
+    base = runs.get("CartPole-v1")
+    for env_id, rs in runs.items():
+        c, w, s, y = (statistics.median(x) for x in zip(*rs, strict=True))
+        # the ratio per repeat (same machine state), then its median
+        ratio = (f"{statistics.median(q[0] / b[0] for q, b in zip(rs, base, strict=True)):.5f}"
+                 if base else "-")
         print(f"{env_id:<18}{c:>12.0f}{w:>12.0f}{s:>12.0f}{y:>12.0f}{ratio:>13}")
-    for env_id, c, *_ in rows:
         if env_id == "osa/Waypoint-v0":
-            print(f"\nosa/Waypoint-v0 (5 s decisions): {c:.0f} decisions per CPU-second "
-                  f"(target 1000): {1e3 / c:.2f} ms of CPU per decision")
-    np.set_printoptions()
+            last = (f"\nosa/Waypoint-v0 (5 s decisions): {c:.0f} decisions per CPU-second "
+                    f"(target 1000): {1e3 / c:.2f} ms of CPU per decision")
+    if "osa/Waypoint-v0" in runs:
+        print(last)
 
 
 if __name__ == "__main__":
