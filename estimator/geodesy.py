@@ -15,6 +15,8 @@ from typing import Protocol
 import numpy as np
 import pymap3d
 
+from estimator._jit import compiled
+
 EARTH_RADIUS_M = 6378137.0  # R_earth in eq. (1)
 
 
@@ -137,38 +139,86 @@ def _origin_terms_wgs84(lat0_deg: float, lon0_deg: float, h0_m: float) -> tuple:
 
 
 def _enu2geodetic_wgs84(terms: tuple, east, north, up):
+    """pymap3d's enu2geodetic, bit for bit: the arithmetic of each point in compiled
+    loops (:func:`_geodetic_prep`, :func:`_geodetic_step`, :func:`_geodetic_finish`:
+    the same operations in the same order), NumPy's own arctan, sin, cos, tan and
+    arctan2 between them (their SIMD rounding differs from libm's)."""
+    prep = compiled(_geodetic_prep)(east, north, up, *terms, _WGS84_A, _WGS84_B, _E, _E2)
+    if prep is None:  # a point at the centre or on the axis: pymap3d's own branches
+        x, y, z = _ecef_of(terms, east, north, up)
+        return pymap3d.ecef2geodetic(x, y, z)
+    x, y, z, u, hxy, huE, beta_arg, inside = prep
+    beta0 = np.arctan(beta_arg)
+    beta = compiled(_geodetic_step)(beta0, np.sin(beta0), np.cos(beta0), u, huE,
+                                    _WGS84_A, _WGS84_B, _E2)
+    lat = np.arctan(_WGS84_A / _WGS84_B * np.tan(beta))
+    return compiled(_geodetic_finish)(beta, lat, np.arctan2(y, x), np.sin(beta), np.cos(beta),
+                                      z, hxy, inside, _WGS84_A, _WGS84_B)
+
+
+_E = float(np.sqrt(_WGS84_A**2 - _WGS84_B**2))  # the ellipsoid's linear eccentricity
+_E2 = float(np.float64(_E) ** 2)
+
+
+def _ecef_of(terms: tuple, east, north, up):
     x0, y0, z0, clat0, slat0, clon0, slon0 = terms
-    a, b = _WGS84_A, _WGS84_B
     t = clat0 * up - slat0 * north
     w = slat0 * up + clat0 * north
-    u_ = clon0 * t - slon0 * east
-    v = slon0 * t + clon0 * east
-    x, y, z = x0 + u_, y0 + v, z0 + w
-    x2, y2, z2 = x**2, y**2, z**2  # each subexpression once: the same values
-    r = np.sqrt(x2 + y2 + z2)
-    E = np.sqrt(a**2 - b**2)
-    r2e = r**2 - E**2
-    u = np.sqrt(0.5 * r2e + 0.5 * np.hypot(r2e, 2 * E * z))
-    hxy = np.hypot(x, y)
-    huE = np.hypot(u, E)
-    if (np.abs(u) <= 1e-8).any() or (np.abs(hxy) <= 1e-8).any():  # pymap3d's isclose(., 0)
-        return pymap3d.ecef2geodetic(x, y, z)
-    Beta = np.arctan(huE / u * z / hxy)
-    cos0 = np.cos(Beta)
-    Beta += ((b * u - a * huE + E**2) * np.sin(Beta)) / (a * huE / cos0 - E**2 * cos0)
-    lat = np.arctan(a / b * np.tan(Beta))
-    lim_pi2 = math.pi / 2 - np.finfo(Beta.dtype).eps
-    lon = np.arctan2(y, x)
-    cosBeta = np.cos(Beta)
-    top, bottom = Beta >= lim_pi2, Beta <= -lim_pi2
-    if top.any() or bottom.any():
-        lat = np.where(top, math.pi / 2, np.where(bottom, -math.pi / 2, lat))
-        cosBeta = np.where(top | bottom, 0, cosBeta)
-    alt = np.hypot(z - b * np.sin(Beta), hxy - a * cosBeta)
-    inside = x2 / a**2 + y2 / a**2 + z2 / b**2 < 1
-    if inside.any():
-        alt[inside] = -alt[inside]
-    return np.degrees(lat), np.degrees(lon), alt
+    return x0 + (clon0 * t - slon0 * east), y0 + (slon0 * t + clon0 * east), z0 + w
+
+
+def _geodetic_prep(east, north, up, x0, y0, z0, clat0, slat0, clon0, slon0, a, b, E, E2):
+    """ENU to ECEF and You's algorithm up to the reduced latitude's argument, per point:
+    rows x, y, z, u, hypot(x, y), hypot(u, E), the argument, inside the ellipsoid (1/0);
+    None if a point is degenerate (u or hypot(x, y) within 1e-8 of 0)."""
+    n = len(east)
+    out = np.empty((8, n))
+    a2, b2 = a**2, b**2
+    for i in range(n):
+        t = clat0 * up[i] - slat0 * north[i]
+        w = slat0 * up[i] + clat0 * north[i]
+        x = x0 + (clon0 * t - slon0 * east[i])
+        y = y0 + (slon0 * t + clon0 * east[i])
+        z = z0 + w
+        x2, y2, z2 = x * x, y * y, z * z
+        r = math.sqrt(x2 + y2 + z2)
+        r2e = r * r - E2
+        u = math.sqrt(0.5 * r2e + 0.5 * np.hypot(r2e, 2 * E * z))
+        hxy = np.hypot(x, y)
+        if abs(u) <= 1e-8 or abs(hxy) <= 1e-8:
+            return None
+        huE = np.hypot(u, E)
+        out[0, i], out[1, i], out[2, i], out[3, i] = x, y, z, u
+        out[4, i], out[5, i], out[6, i] = hxy, huE, huE / u * z / hxy
+        out[7, i] = 1.0 if x2 / a2 + y2 / a2 + z2 / b2 < 1 else 0.0
+    return out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7]
+
+
+def _geodetic_step(beta, sin_b, cos_b, u, huE, a, b, E2):
+    """One Newton step on the reduced latitude (You's eq.)."""
+    out = np.empty(len(beta))
+    for i in range(len(beta)):
+        out[i] = beta[i] + ((b * u[i] - a * huE[i] + E2) * sin_b[i]) / (
+            a * huE[i] / cos_b[i] - E2 * cos_b[i])
+    return out
+
+
+def _geodetic_finish(beta, lat, lon, sin_b, cos_b, z, hxy, inside, a, b):
+    """Latitude (clamped at the poles), longitude and height, in degrees and metres."""
+    lim = math.pi / 2 - 2.220446049250313e-16
+    n = len(beta)
+    lat_deg, lon_deg, alt = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(n):
+        la, cb = lat[i], cos_b[i]
+        if beta[i] >= lim:
+            la, cb = math.pi / 2, 0.0
+        elif beta[i] <= -lim:
+            la, cb = -math.pi / 2, 0.0
+        h = np.hypot(z[i] - b * sin_b[i], hxy[i] - a * cb)
+        alt[i] = -h if inside[i] else h
+        lat_deg[i] = la * (180.0 / math.pi)
+        lon_deg[i] = lon[i] * (180.0 / math.pi)
+    return lat_deg, lon_deg, alt
 
 
 PROJECTIONS = {"tangent": TangentPlaneENU, "wgs84": ExactENU}

@@ -5,9 +5,11 @@ One tick of the point-mass dynamics (:func:`tick`), the path and hold guidance l
 (:func:`fly`) are plain Python on floats and float arrays; numba compiles them on first
 use and caches the machine code (``cache=True``: next to this file, or in numba's
 user cache directory when that is read-only). ``NUMBA_DISABLE_JIT=1`` runs the same
-source interpreted, with the same values bit for bit: the only operation whose
-compiled and interpreted forms differ, ``math.hypot`` (CPython rounds it its own way),
-is :func:`hypot` here, CPython's algorithm written out.
+source interpreted, with the same values bit for bit: the one operation whose
+compiled and interpreted forms differ, ``math.hypot`` (CPython rounds it its own way,
+numba calls libm), is never called: :func:`hypot` is CPython's algorithm written out
+(where the Python code this replaced called ``math.hypot``) and ``np.hypot`` is libm's
+in both forms (where it called NumPy).
 
 This module is imported on a vehicle's first tick, not with :mod:`sim`, so commands
 that never fly pay nothing for numba.
@@ -334,7 +336,7 @@ def densify(t: np.ndarray, en: np.ndarray, z: np.ndarray,
     pieces = np.empty(n, np.int64)
     total = 0
     for i in range(n):
-        seg = max(math.hypot(en[i + 1, 0] - en[i, 0], en[i + 1, 1] - en[i, 1]),
+        seg = max(np.hypot(en[i + 1, 0] - en[i, 0], en[i + 1, 1] - en[i, 1]),
                   abs(z[i + 1] - z[i]))
         pieces[i] = int(max(1.0, np.ceil(seg / step_m)))
         total += pieces[i]
@@ -443,7 +445,7 @@ def path_profile(pts: np.ndarray, s: np.ndarray, dwell: np.ndarray, t_move: np.n
         v_ref = c / t_cell if t_cell > 0 else np.inf
         v_climb = vz * c / max(abs(dz), 1e-12)
         v_cell[i] = min(min(v_ref, v_climb), vmax)
-        h_len[i] = math.hypot(dx, dy)
+        h_len[i] = np.hypot(dx, dy)
     out[4, m - 1], out[5, m - 1], out[6, m - 1] = out[4, m - 2], out[5, m - 2], out[6, m - 2]
     # the course, held over vertical steps, unwrapped (numpy.unwrap's rule)
     psi = np.empty(m - 1)

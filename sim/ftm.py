@@ -25,12 +25,12 @@ Per result, with d the true slant range from the drone's antenna to the responde
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from estimator._jit import compiled
 from sim._config import check_finite, check_positive, check_probability
 from sim._random import RandomFourierField, as_seed_sequence, child_rng
 from sim.clock import ClockConfig, exponential_delays
@@ -390,7 +390,7 @@ class FtmRadio:
         self.rssi = np.zeros((0, self.k_n))
         self._blocks: dict[int, dict] = {}
         self._nothing = _empty(self.k_n, cfg.attempted, self.offsets_m)
-        self._maybe_reached, self._warp, self._scan = map(_compiled, (_maybe_reached, _warp, _scan))
+        self._maybe_reached, self._warp, self._scan = map(compiled, (_maybe_reached, _warp, _scan))
         # no request still to be processed can deliver a result before this time
         self.horizon_s = 0.0
 
@@ -563,16 +563,7 @@ class FtmRadio:
 
 
 # ----------------------------------------------------------------------------- compiled loops
-
-
-@functools.cache
-def _compiled(f):
-    """``f`` compiled with numba on first use (numba is not imported with :mod:`sim`).
-    The values the loops below compute are plain float arithmetic, the same interpreted
-    (``NUMBA_DISABLE_JIT=1``); the cosines of :func:`_maybe_reached` only place a bound."""
-    from numba import njit
-
-    return njit(cache=True)(f)
+# (estimator._jit.compiled: numba on first use; the same values interpreted)
 
 
 def _maybe_reached(p: np.ndarray, need: np.ndarray, w: np.ndarray, phase: np.ndarray,
@@ -589,7 +580,7 @@ def _maybe_reached(p: np.ndarray, need: np.ndarray, w: np.ndarray, phase: np.nda
     fa, ax, ay, reaches = np.inf, 0.0, 0.0, False
     for i in range(len(need)):
         x, y = p[i, 0], p[i, 1]
-        r = math.hypot(x - ax, y - ay)
+        r = np.hypot(x - ax, y - ay)
         if need[i] > amplitude * len(phase) or fa + lip * r < need[i]:
             continue
         if not (reaches and r <= near_m):

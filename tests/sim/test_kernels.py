@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from estimator.geodesy import ExactENU
 from sim import _kernels as kn
 from sim.terrain import HillsTerrain
 from sim.vehicle import WALKER, HoldGuidance, Multirotor, PathGuidance, VehicleConfig, VehicleState
@@ -67,6 +68,12 @@ def flights_digest() -> str:
         v.set_guidance(HoldGuidance(tuple(p[0]), cfg))
         v.advance(60.0)
         for a in (g._path, g._dwell, g._stop_after, g._gs, v.state_log.view):
+            h.update(np.ascontiguousarray(a).tobytes())
+    # the GNSS records' geodesy (estimator.geodesy's compiled pymap3d path) and terrain
+    frame = ExactENU(36.72, -4.48, 60.0)
+    for _ in range(20):
+        e, n, u = rng.normal(0.0, 10.0 ** rng.uniform(0, 5), (3, 200))
+        for a in (*frame.to_geodetic(e, n, u), WORLD.ground_m(e, n)):
             h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
 
