@@ -326,16 +326,15 @@ class ClosedLoop(SearchLoopBase):
         if tuple(traj.origin) != tuple(self.mission.origin):
             return False
         here = np.asarray(self.stepper.navigation_position_m(agent)[:2])[None, :]
-        pts = traj.enu_m[:, :2]
-        if self.mission.area.contains(here, 0.0)[0]:
-            pts = np.concatenate((here, pts))
-        else:  # outside: the segment from its first point inside on (the rest comes back)
-            inside = self.mission.area.contains(pts, 0.0)
-            if not inside.any():
+        pts = np.concatenate((here, traj.enu_m[:, :2]))
+        inside = self.mission.area.contains(pts, 0.0)  # point by point: one call for all
+        if not inside[0]:  # outside: the segment from its first point inside on (the rest
+            if not inside.any():  # comes back)
                 return False
-            pts = pts[int(np.argmax(inside)):]
+            first = int(np.argmax(inside))
+            pts, inside = pts[first:], inside[first:]
         if self._convex:  # straight legs between inside points stay inside a convex area
-            return bool(np.all(self.mission.area.contains(pts, 0.0)))
+            return bool(inside.all())
         return self.mission.area.path_inside(pts, 0.0)
 
     # ------------------------------------------------------------------ advance
@@ -345,8 +344,8 @@ class ClosedLoop(SearchLoopBase):
         out = self.stepper.step_to(t_next)
         self.t_s = self.stepper.t_s
         self._ingest(out)
-        for i in range(len(self.stepper.agents)):
-            p = self.stepper.state(i).position_m
+        for i, a in enumerate(self.stepper.agents):
+            p = tuple(a.vehicle._p)  # the true position (evaluation: path flown)
             self._path_m[i] += math.dist(p, self._last_pos[i])
             self._last_pos[i] = p
             self.nav_track[i].append((self.t_s, *self.stepper.navigation_position_m(i)))

@@ -225,10 +225,9 @@ class Stepper:
         """Fly ``traj`` from where the agent is (a leg to its start is added if needed);
         the segment is done within :attr:`ARRIVE_M` of its end."""
         a = self.agent(agent)
-        st = a.vehicle.state
         nav = self.navigation_position_m(agent)
         # the path is flown on the autopilot's estimate: start the leg where it believes
-        speed = math.hypot(st.velocity_mps[0], st.velocity_mps[1])
+        speed = math.hypot(a.vehicle._v[0], a.vehicle._v[1])
         g = path_guidance(traj, self.world, a.spec.vehicle, start_speed_mps=speed, from_m=nav,
                           arrive_m=self.ARRIVE_M)
         a.vehicle.set_guidance(g)
