@@ -106,13 +106,20 @@ def test_mavsdk_mission_action_and_telemetry() -> None:
             assert progress[-1] == (3, 3)
             currents = [c for c, _ in progress]
         assert currents == sorted(currents)  # progress only goes forward
-        # MAVSDK's position follows the vehicle: at the end, above the last waypoint
+        # MAVSDK's position follows the vehicle: it came within the acceptance radius (2 m,
+        # plus a telemetry sample's travel) of the last waypoint and holds near it at 25 m
+        # (when the mission reports finished it may still be braking past the point)
         with lock:
-            last = positions[-1]
-        assert last.relative_altitude_m == pytest.approx(25.0, abs=1.5)
-        d_n = (last.latitude_deg - wps[2][0]) * 111_320.0
-        d_e = (last.longitude_deg - wps[2][1]) * 111_320.0 * math.cos(math.radians(wps[2][0]))
-        assert math.hypot(d_e, d_n) < 3.0
+            seen = list(positions)
+
+        def off_m(q) -> float:
+            d_n = (q.latitude_deg - wps[2][0]) * 111_320.0
+            d_e = (q.longitude_deg - wps[2][1]) * 111_320.0 * math.cos(math.radians(wps[2][0]))
+            return math.hypot(d_e, d_n)
+
+        assert min(off_m(q) for q in seen) < 2.6
+        assert off_m(seen[-1]) < 10.0
+        assert seen[-1].relative_altitude_m == pytest.approx(25.0, abs=1.5)
         assert telemetry.in_air()
         # Action: hold, then a take-off in the air is refused, then return and land
         action.hold()
