@@ -143,11 +143,10 @@ def _enu2geodetic_wgs84(terms: tuple, east, north, up):
     loops (:func:`_geodetic_prep`, :func:`_geodetic_step`, :func:`_geodetic_finish`:
     the same operations in the same order), NumPy's own arctan, sin, cos, tan and
     arctan2 between them (their SIMD rounding differs from libm's)."""
-    prep = compiled(_geodetic_prep)(east, north, up, *terms, _WGS84_A, _WGS84_B, _E, _E2)
-    if prep is None:  # a point at the centre or on the axis: pymap3d's own branches
-        x, y, z = _ecef_of(terms, east, north, up)
+    x, y, z, u, hxy, huE, beta_arg, inside, degenerate = compiled(_geodetic_prep)(
+        east, north, up, *terms, _WGS84_A, _WGS84_B, _E, _E2)
+    if degenerate:  # a point at the centre or on the axis: pymap3d's own branches
         return pymap3d.ecef2geodetic(x, y, z)
-    x, y, z, u, hxy, huE, beta_arg, inside = prep
     beta0 = np.arctan(beta_arg)
     beta = compiled(_geodetic_step)(beta0, np.sin(beta0), np.cos(beta0), u, huE,
                                     _WGS84_A, _WGS84_B, _E2)
@@ -160,20 +159,15 @@ _E = float(np.sqrt(_WGS84_A**2 - _WGS84_B**2))  # the ellipsoid's linear eccentr
 _E2 = float(np.float64(_E) ** 2)
 
 
-def _ecef_of(terms: tuple, east, north, up):
-    x0, y0, z0, clat0, slat0, clon0, slon0 = terms
-    t = clat0 * up - slat0 * north
-    w = slat0 * up + clat0 * north
-    return x0 + (clon0 * t - slon0 * east), y0 + (slon0 * t + clon0 * east), z0 + w
-
-
 def _geodetic_prep(east, north, up, x0, y0, z0, clat0, slat0, clon0, slon0, a, b, E, E2):
     """ENU to ECEF and You's algorithm up to the reduced latitude's argument, per point:
-    rows x, y, z, u, hypot(x, y), hypot(u, E), the argument, inside the ellipsoid (1/0);
-    None if a point is degenerate (u or hypot(x, y) within 1e-8 of 0)."""
+    x, y, z, u, hypot(x, y), hypot(u, E), the argument, inside the ellipsoid (1/0), and
+    whether a point is degenerate (u or hypot(x, y) within 1e-8 of 0; the rest is then
+    not computed beyond x, y, z)."""
     n = len(east)
-    out = np.empty((8, n))
+    out = np.zeros((8, n))
     a2, b2 = a**2, b**2
+    degenerate = False
     for i in range(n):
         t = clat0 * up[i] - slat0 * north[i]
         w = slat0 * up[i] + clat0 * north[i]
@@ -185,13 +179,15 @@ def _geodetic_prep(east, north, up, x0, y0, z0, clat0, slat0, clon0, slon0, a, b
         r2e = r * r - E2
         u = math.sqrt(0.5 * r2e + 0.5 * np.hypot(r2e, 2 * E * z))
         hxy = np.hypot(x, y)
-        if abs(u) <= 1e-8 or abs(hxy) <= 1e-8:
-            return None
+        out[0, i], out[1, i], out[2, i] = x, y, z
+        degenerate = degenerate or abs(u) <= 1e-8 or abs(hxy) <= 1e-8
+        if degenerate:
+            continue
         huE = np.hypot(u, E)
-        out[0, i], out[1, i], out[2, i], out[3, i] = x, y, z, u
+        out[3, i] = u
         out[4, i], out[5, i], out[6, i] = hxy, huE, huE / u * z / hxy
         out[7, i] = 1.0 if x2 / a2 + y2 / a2 + z2 / b2 < 1 else 0.0
-    return out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7]
+    return out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], degenerate
 
 
 def _geodetic_step(beta, sin_b, cos_b, u, huE, a, b, E2):

@@ -72,9 +72,6 @@ class FlatTerrain:
             return 0.0 * e_m + self.level_m
         return np.zeros(np.broadcast(np.asarray(e_m), np.asarray(n_m)).shape) + self.level_m
 
-    def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
-        return self.level_m
-
     def sag_curvature(self) -> tuple[float, float]:
         return 0.0, 0.0
 

@@ -14,7 +14,7 @@ the phone's monotonic clock (``t_ns`` = delivery time). Each carries the time it
 reaches the log file (delivery plus a small writer delay), so a log written from them
 (:class:`LogSink`) is slightly out of ``t_ns`` order, as real logs are; a reader
 sorting by ``t_ns`` (stable) sees them in (``t_ns``, write time) order, which is the
-order :meth:`Emitted.replay_key` gives.
+order :data:`REPLAY_ORDER` sorts them in.
 """
 
 from __future__ import annotations
@@ -76,12 +76,9 @@ class Emitted(NamedTuple):
     record: GnssFix | RangeSample
     delivery_s: float = 0.0  # when the phone delivered it (simulated seconds)
 
-    def replay_key(self) -> tuple[int, float]:
-        """The order a log reader gives: by t_ns, ties in file (write) order."""
-        return self.t_ns, self.write_s
 
-
-REPLAY_ORDER = operator.itemgetter(0, 1)  # Emitted.replay_key as a fast sort key
+# the sort key of the order a log reader gives: by t_ns, ties in file (write) order
+REPLAY_ORDER = operator.itemgetter(0, 1)  # (Emitted.t_ns, Emitted.write_s)
 _EMITTED = functools.partial(tuple.__new__, Emitted)  # Emitted of a full row, unchecked
 
 

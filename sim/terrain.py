@@ -118,38 +118,34 @@ class HillsTerrain:
         """Ground height at (e, n): NumPy arrays in, array out; CasADi symbols in, symbol out."""
         if isinstance(e_m, float | int) and isinstance(n_m, float | int):
             return self._height_scalar(float(e_m), float(n_m))
+        a = math.radians(self.ripple_direction_deg)
+        k = 2.0 * math.pi / self.ripple_wavelength_m
         if _is_symbolic(e_m) or _is_symbolic(n_m):
             import casadi as ca
 
-            exp, sin = ca.exp, ca.sin
-            e, n = e_m, n_m
-        else:
-            exp, sin = np.exp, np.sin
-            e = np.asarray(e_m, dtype=float)
-            n = np.asarray(n_m, dtype=float)
-            if e.ndim == 0 and n.ndim == 0:
-                return self._height_scalar(float(e), float(n))
-        a = math.radians(self.ripple_direction_deg)
-        k = 2.0 * math.pi / self.ripple_wavelength_m
-        if exp is np.exp and e.ndim == 1 and e.shape == n.shape and len(e):
-            # the arithmetic compiled (sim._kernels), NumPy's own exp and sin
-            from sim import _kernels
-
-            hc = self._hill_columns()
-            h, phase = _kernels.hills_terrain(
-                np.ascontiguousarray(e), np.ascontiguousarray(n), self.base_m, self.slope_e,
-                self.slope_n, hc, np.exp(_kernels.hill_exponents(e, n, hc)),
-                math.cos(a), math.sin(a), k)
+            h = self.base_m + self.slope_e * e_m + self.slope_n * n_m
+            for hill in self.hills:
+                r2 = (e_m - hill.e_m) ** 2 + (n_m - hill.n_m) ** 2
+                h = h + hill.height_m * ca.exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
             if self.ripple_amplitude_m > 0:
-                h = h + self.ripple_amplitude_m * np.sin(phase)
+                h = h + self.ripple_amplitude_m * ca.sin(
+                    k * (math.cos(a) * e_m + math.sin(a) * n_m))
             return h
-        h = self.base_m + self.slope_e * e + self.slope_n * n
-        for hill in self.hills:
-            r2 = (e - hill.e_m) ** 2 + (n - hill.n_m) ** 2
-            h = h + hill.height_m * exp(-0.5 * r2 / (hill.sigma_m * hill.sigma_m))
+        e, n = np.broadcast_arrays(np.asarray(e_m, dtype=float), np.asarray(n_m, dtype=float))
+        if e.ndim == 0:
+            return self._height_scalar(float(e), float(n))
+        # the arithmetic compiled (sim._kernels), NumPy's own exp and sin, point by point
+        from sim import _kernels
+
+        shape = e.shape
+        e, n = np.ascontiguousarray(e.ravel()), np.ascontiguousarray(n.ravel())
+        hc = self._hill_columns()
+        h, phase = _kernels.hills_terrain(e, n, self.base_m, self.slope_e, self.slope_n, hc,
+                                          np.exp(_kernels.hill_exponents(e, n, hc)),
+                                          math.cos(a), math.sin(a), k)
         if self.ripple_amplitude_m > 0:
-            h = h + self.ripple_amplitude_m * sin(k * (math.cos(a) * e + math.sin(a) * n))
-        return h
+            h = h + self.ripple_amplitude_m * np.sin(phase)
+        return h.reshape(shape)
 
     def _hill_columns(self) -> np.ndarray:
         """(4, K): the hills' centres e and n, heights and sigma^2."""
