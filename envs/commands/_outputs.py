@@ -1,0 +1,122 @@
+"""The one rule every ``osa`` command follows for what it writes (docs/cli.md, "Outputs").
+
+- An output file that exists is refused unless ``--force``; an output is never one
+  of the command's inputs (not even with ``--force``).
+- An output folder is created when missing; one that the same command wrote before
+  (it holds the marker file ``.osa-output`` naming the command) is reused, its files
+  replaced, and the command says so on stderr; any other non-empty folder needs
+  ``--force``.
+- Everything is checked before the work starts: a folder that cannot be created or
+  written is refused then, not after an hour of simulation.
+
+Problems are :class:`OutputRefusedError` with a one-line message (exit status 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+MARKER = ".osa-output"  # in an output folder: the name of the command that wrote it
+
+
+class OutputRefusedError(ValueError):
+    """An output that must not be written (one line, exit status 2)."""
+
+
+def add_force_option(parser: argparse.ArgumentParser) -> None:
+    """``--force``: replace existing outputs (never an input)."""
+    parser.add_argument("--force", action="store_true",
+                        help="replace existing output files (never one of the inputs)")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _check_not_input(path: Path, inputs: Iterable[str | os.PathLike]) -> None:
+    for src in inputs:
+        s = Path(src)
+        if _same_file(path, s) or path.resolve() == s.resolve():
+            raise OutputRefusedError(f"{path} is also an input: refusing to write over it")
+
+
+def _check_writable_dir(folder: Path, what: Path) -> None:
+    """Try it: a file created and removed (``os.access`` says yes to root on a
+    read-only file system and to folders whose ACLs say no)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".osa-write-check-")
+    except OSError as exc:
+        raise OutputRefusedError(f"cannot write {what}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def claim_output_file(path: str | os.PathLike, *, force: bool,
+                      inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Check that ``path`` may be written now (see the module docstring); its parent
+    folders are created. Returns it as a :class:`Path`."""
+    p = Path(path)
+    _check_not_input(p, inputs)
+    if p.is_dir():
+        raise OutputRefusedError(f"cannot write {p}: is a directory")
+    if p.exists() or p.is_symlink():
+        if not force:
+            raise OutputRefusedError(f"{p} exists (use --force to replace it)")
+        if not os.access(p, os.W_OK):
+            raise OutputRefusedError(f"cannot write {p}: permission denied")
+    parent = p.parent if str(p.parent) else Path(".")
+    blocker = next((a for a in (parent, *parent.parents) if a.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise OutputRefusedError(f"cannot write {p}: {blocker} is not a folder")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputRefusedError(f"cannot write {p}: {exc.strerror or exc}") from None
+    _check_writable_dir(parent, p)
+    return p
+
+
+def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
+                     inputs: Iterable[str | os.PathLike] = (),
+                     quiet: bool = False) -> Path:
+    """Check and create the output folder ``path`` of ``osa COMMAND`` (see the module
+    docstring) and mark it as that command's. Returns it as a :class:`Path`."""
+    p = Path(path)
+    inputs = list(inputs)
+    for src in inputs:
+        s = Path(src).resolve()
+        if s == p.resolve() or p.resolve() in s.parents:
+            raise OutputRefusedError(f"{p} holds an input ({src}): choose another output folder")
+    if p.exists() and not p.is_dir():
+        raise OutputRefusedError(f"cannot write into {p}: it is a file, not a folder")
+    marker = p / MARKER
+    if p.is_dir():
+        entries = [e for e in p.iterdir() if e.name != MARKER]
+        owner = marker.read_text(errors="replace").strip() if marker.is_file() else None
+        if entries and owner != command and not force:
+            who = f"osa {owner}" if owner else "something else"
+            raise OutputRefusedError(f"{p} is not empty and was written by {who} "
+                                "(use --force to write into it)")
+        if entries and not quiet:
+            print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
+    blocker = next((a for a in (p, *p.parents) if a.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise OutputRefusedError(f"cannot create {p}: {blocker} is not a folder")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputRefusedError(f"cannot create {p}: {exc.strerror or exc}") from None
+    _check_writable_dir(p, p)
+    try:
+        marker.write_text(command + "\n")
+    except OSError as exc:
+        raise OutputRefusedError(f"cannot write into {p}: {exc.strerror or exc}") from None
+    return p
