@@ -53,8 +53,6 @@ from estimator.records import (
 )
 from estimator.refined import make_track
 
-_ASSOCIATION_STATS = ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated")
-
 
 def utc_epoch_s(text: str | None) -> float | None:
     """Seconds since the epoch of an ISO 8601 time (``Z`` allowed); None if unreadable."""
@@ -374,8 +372,7 @@ class OnlineEstimator:
         """Association counts summed over the agents."""
         total = AssociationStats()
         for a in self.agents:
-            for name in _ASSOCIATION_STATS:
-                getattr(total, name).update(getattr(a.associator.stats, name))
+            total.merge(a.associator.stats)
         return total
 
     def seen_bssids(self) -> list[str]:

@@ -31,6 +31,18 @@ def non_negative_float(text: str) -> float:
     return v
 
 
+def float_in(lo: float, hi: float, *, lo_open: bool = False):
+    """An argparse type: a finite number in [lo, hi] ((lo, hi] with ``lo_open``)."""
+    def parse(text: str) -> float:
+        v = finite_float(text)
+        if not (lo < v if lo_open else lo <= v) or v > hi:
+            interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+            raise argparse.ArgumentTypeError(f"must be in {interval}: {text!r}")
+        return v
+
+    return parse
+
+
 def positive_int(text: str) -> int:
     v = non_negative_int(text)
     if v < 1:

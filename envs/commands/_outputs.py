@@ -10,11 +10,17 @@
   written is refused then, not after an hour of simulation.
 
 Problems are :class:`OutputRefusedError` with a one-line message (exit status 2).
+
+JSON that a command prints or writes goes through :func:`json_text`: a non-finite
+number (an error against an absurd truth, a sigma that overflowed) becomes ``null``
+instead of a crash after the work is done.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import sys
 import tempfile
@@ -22,6 +28,25 @@ from collections.abc import Iterable
 from pathlib import Path
 
 MARKER = ".osa-output"  # in an output folder: the name of the command that wrote it
+
+
+def _finite(obj: object) -> object:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def json_text(obj: object, *, indent: int | None = None) -> str:
+    """``json.dumps`` that never fails on a non-finite float: NaN and infinities are
+    written as ``null`` (JSON has neither)."""
+    try:
+        return json.dumps(obj, indent=indent, allow_nan=False)
+    except ValueError:
+        return json.dumps(_finite(obj), indent=indent, allow_nan=False)
 
 
 class OutputRefusedError(ValueError):
