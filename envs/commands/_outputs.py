@@ -19,12 +19,13 @@ instead of a crash after the work is done.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 MARKER = ".osa-output"  # in an output folder: the name of the command that wrote it
@@ -145,3 +146,20 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     except OSError as exc:
         raise OutputRefusedError(f"cannot write into {p}: {exc.strerror or exc}") from None
     return p
+
+
+@contextlib.contextmanager
+def written_whole(path: str | os.PathLike) -> Iterator[Path]:
+    """``with written_whole(out) as tmp: write(tmp)``: the file appears at ``out`` only
+    once written in full (a temporary name in the same folder, then renamed), so an
+    interrupted or failed write leaves the previous file, or nothing, never half a
+    file. The temporary name ends with the real one (a ``.gz`` stays ``.gz``)."""
+    p = Path(path)
+    tmp = p.with_name(f".osa-tmp-{os.getpid()}-{p.name}")
+    try:
+        yield tmp
+        os.replace(tmp, p)
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
