@@ -135,7 +135,13 @@ def run(args: argparse.Namespace) -> int:
     steps = 3 + bool(args.rerun)
     progress = StepProgress("osa run", steps, enabled=not args.no_progress)
     progress.step(f"simulating {args.scenario} (seed {args.seed})")
-    sim.simulate(scenario, args.seed, log_path)
+    from sim.vehicle import FlightError
+
+    try:
+        sim.simulate(scenario, args.seed, log_path)
+    except FlightError as exc:  # the scenario's path cannot be flown (below the ground...)
+        progress.close()
+        return _fail(f"{args.scenario}: {exc}")
     progress.step(f"replaying {len(modes)} modes")
     report = replay_logs([log_path], ReplayOptions(modes=modes))
     (out / "report.json").write_text(json_text(report.to_json(), indent=1))

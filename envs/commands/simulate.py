@@ -61,8 +61,12 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
 
     from sim.simulate import run_scenario, write_log
+    from sim.vehicle import FlightError
 
-    result = run_scenario(scenario, args.seed)
+    try:
+        result = run_scenario(scenario, args.seed)
+    except FlightError as exc:  # the scenario's path cannot be flown (below the ground...)
+        return _fail(f"{args.scenario}: {exc}")
     try:
         with written_whole(out) as tmp:
             write_log(result, tmp)
