@@ -124,6 +124,7 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     if p.exists() and not p.is_dir():
         raise OutputRefusedError(f"cannot write into {p}: it is a file, not a folder")
     marker = p / MARKER
+    entries = []
     if p.is_dir():
         entries = [e for e in p.iterdir() if e.name != MARKER]
         owner = marker.read_text(errors="replace").strip() if marker.is_file() else None
@@ -131,8 +132,6 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
             who = f"osa {owner}" if owner else "something else"
             raise OutputRefusedError(f"{p} is not empty and was written by {who} "
                                 "(use --force to write into it)")
-        if entries and not quiet:
-            print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
     blocker = next((a for a in (p, *p.parents) if a.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise OutputRefusedError(f"cannot create {p}: {blocker} is not a folder")
@@ -145,6 +144,8 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
         marker.write_text(command + "\n")
     except OSError as exc:
         raise OutputRefusedError(f"cannot write into {p}: {exc.strerror or exc}") from None
+    if entries and not quiet:  # said once the folder is known to be writable
+        print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
     return p
 
 
