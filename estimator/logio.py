@@ -65,7 +65,7 @@ RANGE_MAX_M = 10_000.0  # |range_m|: FTM reaches a few hundred metres
 ACC_MAX_M = 10_000.0  # acc_m, vacc_m, range_std_m
 RSSI_MIN_DBM, RSSI_MAX_DBM = -200.0, 100.0
 COUNT_MAX = 65_535  # sats, attempted, successful
-AGL_MAX_M = 1_000.0  # header config.agl_m in (0, AGL_MAX_M]
+AGL_MIN_M, AGL_MAX_M = 0.1, 1_000.0  # header config.agl_m: a height above the ground
 RANGE_OFFSET_MAX_M = 100.0  # header config.range_offset_m in [-max, max]
 BOUNDS = {
     "t_ns": (0, T_NS_MAX),
@@ -73,7 +73,7 @@ BOUNDS = {
     "range_m": (-RANGE_MAX_M, RANGE_MAX_M),
     "acc_m": (0.0, ACC_MAX_M),
     "rssi_dbm": (RSSI_MIN_DBM, RSSI_MAX_DBM),
-    "agl_m": (0.0, AGL_MAX_M),
+    "agl_m": (AGL_MIN_M, AGL_MAX_M),
     "range_offset_m": (-RANGE_OFFSET_MAX_M, RANGE_OFFSET_MAX_M),
 }
 MAX_LINE_BYTES = 1 << 20  # a record is ~200 bytes; a longer line is skipped unread
@@ -285,8 +285,8 @@ def _parse_header(obj: dict) -> tuple[LogHeader, list[str]]:
     agl = _num(config, "agl_m", required=False)
     off = _num(config, "range_offset_m", required=False)
     bad = []  # out-of-range settings: dropped (the defaults apply), the line counted
-    if agl is not None and not 0.0 < agl <= AGL_MAX_M:
-        bad.append(f"config.agl_m {agl:g} outside (0, {AGL_MAX_M:g}] m")
+    if agl is not None and not AGL_MIN_M <= agl <= AGL_MAX_M:
+        bad.append(f"config.agl_m {agl:g} outside [{AGL_MIN_M:g}, {AGL_MAX_M:g}] m")
         agl = None
     if off is not None and not abs(off) <= RANGE_OFFSET_MAX_M:
         bad.append(f"config.range_offset_m {off:g} outside [-{RANGE_OFFSET_MAX_M:g}, "

@@ -336,7 +336,7 @@ def _warn_same_agent(streams: Sequence[LogStream]) -> None:
             agent = st.header.agent
             if agent in agents:
                 warnings.warn(f"{display_name(st.path)} and {agents[agent]} name the same "
-                              f"agent {agent!r}: fused as two logs (if one is a copy of the "
+                              f"agent '{agent}': fused as two logs (if one is a copy of the "
                               "other, every range counts twice)", LogWarning, stacklevel=3)
             agents.setdefault(agent, display_name(st.path))
 

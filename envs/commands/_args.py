@@ -31,13 +31,12 @@ def non_negative_float(text: str) -> float:
     return v
 
 
-def float_in(lo: float, hi: float, *, lo_open: bool = False):
-    """An argparse type: a finite number in [lo, hi] ((lo, hi] with ``lo_open``)."""
+def float_in(lo: float, hi: float):
+    """An argparse type: a finite number in [lo, hi]."""
     def parse(text: str) -> float:
         v = finite_float(text)
-        if not (lo < v if lo_open else lo <= v) or v > hi:
-            interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
-            raise argparse.ArgumentTypeError(f"must be in {interval}: {text!r}")
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be in [{lo:g}, {hi:g}]: {text!r}")
         return v
 
     return parse

@@ -18,7 +18,7 @@ import sys
 import warnings
 
 from envs.commands._args import float_in
-from estimator.logio import AGL_MAX_M, RANGE_OFFSET_MAX_M
+from estimator.logio import AGL_MAX_M, AGL_MIN_M, RANGE_OFFSET_MAX_M
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -37,9 +37,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "robust or refined (ours), best (the recommended mode: refined), or a list joined "
         "by ',' or '+', e.g. all+refined (default: baseline)",
     )
-    p.add_argument("--agl", type=float_in(0.0, AGL_MAX_M, lo_open=True), default=None,
-                   metavar="M", help=f"configured flight height above ground (m, in (0, "
-                   f"{AGL_MAX_M:g}]); default: header, else 45")
+    p.add_argument("--agl", type=float_in(AGL_MIN_M, AGL_MAX_M), default=None,
+                   metavar="M", help=f"configured flight height above ground (m, in "
+                   f"[{AGL_MIN_M:g}, {AGL_MAX_M:g}]); default: header, else 45")
     p.add_argument("--range-offset", type=float_in(-RANGE_OFFSET_MAX_M, RANGE_OFFSET_MAX_M),
                    default=None, metavar="M", help="pre-flight range calibration offset b0 "
                    f"(m, |b0| <= {RANGE_OFFSET_MAX_M:g}); default: header, else 0")
