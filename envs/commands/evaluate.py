@@ -120,14 +120,14 @@ def _check_policy(spec: str, scenario) -> str | None:
 
 def connect(address: str, timeout_s: float):
     """A Dask client of the scheduler at ``address`` (ValueError if unreachable)."""
+    if "://" not in address:  # a malformed address is said whether Dask is installed or not
+        raise ValueError(f"--scheduler: {address!r} is not an address like "
+                         "tcp://127.0.0.1:8786")
     try:
         from distributed import Client
     except ModuleNotFoundError:
         raise ValueError("--scheduler needs Dask distributed: pip install "
                          "'osa-testbed[dist]'") from None
-    if "://" not in address:
-        raise ValueError(f"--scheduler: {address!r} is not an address like "
-                         "tcp://127.0.0.1:8786")
     try:
         return Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError) as exc:

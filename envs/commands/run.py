@@ -125,10 +125,12 @@ def run(args: argparse.Namespace) -> int:
     )
 
     inputs = [args.scenario] if Path(args.scenario).exists() else []
+    if args.rerun and (problem := writable_file_problem(args.rerun)):
+        return _fail(problem)  # its folder must exist: a typo creates no folder tree
     try:  # the one output rule (docs/cli.md "Outputs"), before anything is simulated
-        out = claim_output_dir(args.out, command="run", force=args.force, inputs=inputs)
         if args.rerun:
             claim_output_file(args.rerun, force=args.force, inputs=inputs)
+        out = claim_output_dir(args.out, command="run", force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         return _fail(exc)
     log_path = out / "flight.jsonl"

@@ -6,7 +6,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from envs.commands._args import non_negative_int
 from envs.commands._outputs import add_force_option
 
 
@@ -22,8 +21,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="preset name or .toml path")
     p.add_argument("-o", "--output", metavar="LOG", help="log file to write (.jsonl, .jsonl.gz)")
-    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
-                   help="random seed, >= 0 (default 0)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
     p.add_argument("--list", action="store_true", help="list the scenario presets and exit")
     add_force_option(p)
     p.set_defaults(func=run)
@@ -48,6 +46,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail("a SCENARIO is required (see osa simulate --list)")
     if not args.output:
         return _fail("-o LOG is required")
+    if args.seed < 0:
+        return _fail(f"--seed must be >= 0, got {args.seed}")
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
