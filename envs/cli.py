@@ -25,6 +25,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -34,6 +35,7 @@ EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what a shell reports for `yes | head`
 EXIT_SOFTWARE = 70  # sysexits.h EX_SOFTWARE: an internal error (a bug), see crash_report
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
 EXIT_TERMINATED = 143  # 128 + SIGTERM
+FLOAT_NOTES = r"(overflow|invalid value|divide by zero|underflow) encountered"
 # the libraries whose versions a crash report lists
 REPORTED_PACKAGES = ("osa-testbed", "numpy", "scipy", "casadi", "numba", "pymap3d",
                      "pymavlink", "mavsdk", "gymnasium", "matplotlib", "pyarrow")
@@ -179,7 +181,12 @@ def _main(argv: Sequence[str] | None) -> int:
             return 2
         args = parser.parse_args(join_negative_values(parser, argv))
         command = args.command
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            # NumPy's floating-point notes (an overflow inside a dot product of absurd
+            # input) are not for the user: results are checked to be finite where used
+            warnings.filterwarnings("ignore", category=RuntimeWarning,
+                                    message=FLOAT_NOTES)
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print(f"osa{' ' + command if command else ''}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

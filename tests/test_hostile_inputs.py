@@ -156,6 +156,16 @@ def test_a_scenario_with_a_tiny_spacing_is_refused_before_allocating(tmp_path,
     assert "vehicle.path_step_m 0.001 m would need" in one_line(capsys)
 
 
+@pytest.mark.parametrize("args", [["lawnmower", "--spacing", "1e-9"],
+                                  ["expanding-square", "--spacing", "1e-6"],
+                                  ["lawnmower", "--radius", "1e9"],
+                                  ["lawnmower", "--overlap", "0.999999999"]])
+def test_a_pattern_that_would_need_absurd_memory_is_refused(tmp_path, capsys, args) -> None:
+    assert status_of(["plan", *args, "--center", CENTER, "-o", str(tmp_path / "m.plan")]) == 2
+    assert "tracks (more than 100000): widen --spacing or reduce --radius" in one_line(capsys)
+    assert not (tmp_path / "m.plan").exists()
+
+
 @pytest.fixture
 def plan_file(tmp_path) -> Path:
     path = tmp_path / "m.plan"
