@@ -16,6 +16,7 @@ restart at zero (``n_restarts`` counts restarts), so the identity holds and ``n_
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -344,7 +345,8 @@ class FilterRun:
         self.spec = spec
         self.cfg = cfg
         self.front = front
-        self._noise_factory = noise_factory or (lambda: make_noise(spec, cfg))
+        # a partial, not a lambda: a track (and every env holding one) must pickle
+        self._noise_factory = noise_factory or functools.partial(make_noise, spec, cfg)
         self.iekf_cfg = iekf if iekf is not None else cfg.iekf
         self.ground_prior = ground_prior and cfg.ground.enabled
         self.shared_bootstrap = shared_bootstrap

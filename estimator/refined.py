@@ -25,6 +25,7 @@ mixture mean and covariance, and :attr:`RefinedTrack.candidates` lists them.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -125,7 +126,8 @@ class RefinedTrack(Track):
             self.spec,
             cfg,
             self._agent_gates,  # type: ignore[arg-type]  # index and gated() only
-            noise_factory=lambda: CalibratedR(cfg.empirical, self.scales),
+            # the scales dict is updated in place: the partial sees every calibration
+            noise_factory=functools.partial(CalibratedR, cfg.empirical, self.scales),
             iekf=self.rcfg.front,
             ground_prior=False,
             shared_bootstrap=False,

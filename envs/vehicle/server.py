@@ -49,8 +49,10 @@ from envs.vehicle.px4 import (
     mode_from_main_sub,
     mode_name,
 )
+from envs.vehicle.relay import RecordRelay
 from envs.vehicle.telemetry import (
     MSG_EXTENDED_SYS_STATE,
+    MSG_GLOBAL_POSITION_INT,
     MSG_HOME_POSITION,
     MSG_MISSION_CURRENT,
     REQUESTABLE,
@@ -187,7 +189,8 @@ class VirtualVehicle:
                  params: dict[str, float] | None = None, sysid: int = 1, compid: int = 1,
                  step_s: float | None = None, status: Callable[[str], None] | None = None,
                  transfer_timeout_s: float = 5.0,
-                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 lockstep_s: float | None = None) -> None:
         if not connections:
             raise ConnectionURLError("a vehicle needs at least one --connection")
         if not speedup > 0:
@@ -211,6 +214,9 @@ class VirtualVehicle:
             if why is not None:
                 raise ValueError(why)
         self.telemetry = Telemetry(self.autopilot)
+        # the phone's records to the ground stations (TUNNEL), lockstep pacing
+        self.relay = RecordRelay(self._broadcast, self.stepper.agents[0].header,
+                                 lockstep_s=lockstep_s, tick_s=self.autopilot.dt)
         self.protocol = MissionServer(self._send_to, self._on_commit,
                                       lambda: self.autopilot.mission.seq,
                                       timeout_s=transfer_timeout_s, clock=wall_clock)
@@ -293,8 +299,11 @@ class VirtualVehicle:
             if not window or now - window[-1][0] >= 0.5:
                 window.append((now, self.t_s))
             self._receive(now)
+            limit = self.relay.limit_s
             if math.isfinite(self.speedup):
                 target = sim0 + (now - wall0) * self.speedup
+                if target > limit:  # lockstep: waiting for the ground station is not lag
+                    target, sim0, wall0 = limit, self.t_s, now
                 if (target - self.t_s) / self.speedup > self.BEHIND_WALL_S:
                     self.stats.behind_events += 1
                     if now >= next_report:
@@ -307,7 +316,7 @@ class VirtualVehicle:
                     target = self.t_s + self.step_s
                     sim0, wall0 = target, now
             else:
-                target = self.t_s + self.step_s
+                target = min(self.t_s + self.step_s, limit)
             try:
                 self._advance_to(target)
             except FlightError as exc:
@@ -327,7 +336,8 @@ class VirtualVehicle:
             self._publish_events()
             self.stats.wall_s = self.clock() - start_wall
             self.stats.sim_s = self.t_s - start_sim
-            self._wait(0.0 if not math.isfinite(self.speedup) else self.LOOP_PERIOD_S)
+            waiting = self.t_s >= limit - 1e-9
+            self._wait(self.LOOP_PERIOD_S if math.isfinite(self.speedup) or waiting else 0.0)
 
     def _advance_to(self, target_s: float) -> None:
         """Step towards ``target_s``, for at most STEP_WALL_S of wall time (the ports
@@ -338,6 +348,7 @@ class VirtualVehicle:
         while math.floor(target_s / dt + 1e-9) > ap.vehicle.k and self.clock() < until:
             t = min(target_s, self.t_s + self.step_s)
             emitted = ap.step_to(t)
+            self.relay.relay(emitted)
             self.stats.steps += 1
             for e in emitted:
                 if isinstance(e.record, GnssFix):
@@ -346,6 +357,8 @@ class VirtualVehicle:
                 self._sink.add(emitted, self.t_s)
             self._publish_events()
             self._publish_streams()
+        if self.relay.held(self.t_s):  # lockstep: where it waits, at that instant
+            self._broadcast(self.telemetry.build(MSG_GLOBAL_POSITION_INT))
 
     def _publish_streams(self) -> None:
         for msg_id in self.telemetry.streams.due(self.t_s):
@@ -453,6 +466,9 @@ class VirtualVehicle:
             if kind not in self._bad_kinds:
                 self._bad_kinds.add(kind)
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
+
+    def _on_tunnel(self, peer: Peer, msg: Any) -> None:
+        self.relay.on_tunnel(msg)
 
     def _on_heartbeat(self, peer: Peer, msg: Any) -> None:
         if msg.type == MAV_TYPE_GCS:

@@ -1,0 +1,111 @@
+"""The vehicle's side of the phone's record relay, and lockstep pacing.
+
+The phone on the drone produces its records inside the vehicle process (the stepper's
+:class:`sim.stepper.Emitted`). :class:`RecordRelay` sends them to the ground stations
+on the MAVLink link itself, in TUNNEL messages of the private payload type
+:data:`envs.phone.PAYLOAD_RECORDS` (the byte layout is in :mod:`envs.phone` and
+docs/vehicle.md): each record's log line in chunks with a sequence number, then a mark
+saying up to which phone time the stream is complete. A ground station asks for the
+records by sending a TUNNEL of type :data:`envs.phone.PAYLOAD_PACE` (its
+acknowledgement of the vehicle time it has processed); from then on every record the
+phone delivers is relayed, the log header first.
+
+Lockstep (``osa vehicle --lockstep S``): the vehicle never runs more than ``S`` seconds
+of simulated time ahead of the ground station's last acknowledgement. It waits there
+(saying so once with a ``held`` payload, with its position), so a loop that
+acknowledges after each decision meets the vehicle at the same simulated instants
+whatever the wall clock does: a run is reproducible under any load.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from envs.phone import (
+    PAYLOAD_RECORDS,
+    held_payload,
+    mark_payload,
+    read_pace,
+    record_chunks,
+)
+from estimator.records import LogHeader
+from planner.mavlink import mavutil
+from sim.stepper import REPLAY_ORDER, Emitted
+
+mavlink = mavutil.mavlink
+
+
+class RecordRelay:
+    """Relays the phone's records in TUNNEL messages; paces the vehicle in lockstep."""
+
+    def __init__(self, broadcast: Callable[[Any], None], header: LogHeader, *,
+                 lockstep_s: float | None = None, tick_s: float = 0.05) -> None:
+        if lockstep_s is not None and not (math.isfinite(lockstep_s) and lockstep_s > 0):
+            raise ValueError(f"lockstep must be > 0 s, got {lockstep_s!r}")
+        self.broadcast = broadcast
+        self.header = header
+        self.lockstep_s = lockstep_s
+        self.tick_s = tick_s
+        self.active = False  # a ground station asked for the records
+        self.seq = 0
+        self.ack_s = 0.0
+        self.sent_chunks = 0
+        self.skipped = 0  # records whose line is too long for 255 chunks
+        self._held_at: float | None = None
+
+    # ------------------------------------------------------------------ ground station
+    def on_tunnel(self, msg: Any) -> None:
+        """A TUNNEL from a ground station: an acknowledgement (PAYLOAD_PACE)."""
+        ms = read_pace(bytes(msg.payload[: msg.payload_length]))
+        if ms is None:
+            return
+        if not self.active:
+            self.active = True
+            self._send_record(self.header)
+        # the vehicle's ticks: the acknowledged time_boot_ms (truncated) names a tick
+        ack = round(ms / 1000.0 / self.tick_s) * self.tick_s
+        self.ack_s = max(self.ack_s, ack)
+
+    # ------------------------------------------------------------------ pacing
+    @property
+    def limit_s(self) -> float:
+        """The simulated time the vehicle may run to (inf without lockstep)."""
+        return math.inf if self.lockstep_s is None else self.ack_s + self.lockstep_s
+
+    def held(self, t_s: float) -> bool:
+        """True once when the vehicle has just reached its limit at ``t_s`` (it then
+        says so with a ``held`` payload)."""
+        if self.lockstep_s is None or t_s < self.limit_s - 1e-9 or self._held_at == t_s:
+            return False
+        self._held_at = t_s
+        self._tunnel(held_payload(int(t_s * 1000.0 + 0.5)))
+        return True
+
+    # ------------------------------------------------------------------ records
+    def relay(self, emitted: Sequence[Emitted]) -> None:
+        """The records the phone delivered in one step (in the order a replay reads
+        them), then a mark: the stream is complete up to the last one."""
+        if not self.active or not emitted:
+            return
+        ordered = sorted(emitted, key=REPLAY_ORDER)
+        for e in ordered:
+            self._send_record(e.record)
+        last = ordered[-1]
+        offset = last.t_ns - round(last.delivery_s * 1e9)
+        self._tunnel(mark_payload(self.seq, last.t_ns, offset))
+
+    def _send_record(self, rec: Any) -> None:
+        chunks = record_chunks(self.seq, rec)
+        self.seq += 1
+        if not chunks:
+            self.skipped += 1
+            return
+        for c in chunks:
+            self._tunnel(c)
+            self.sent_chunks += 1
+
+    def _tunnel(self, payload: bytes) -> None:
+        self.broadcast(mavlink.MAVLink_tunnel_message(
+            0, 0, PAYLOAD_RECORDS, len(payload), payload.ljust(128, b"\0")))
