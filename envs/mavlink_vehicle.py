@@ -45,10 +45,12 @@ import numpy as np
 from envs.phone import (
     PAYLOAD_PACE,
     PAYLOAD_RECORDS,
+    FileRecords,
     PhoneBatch,
     PhoneFeed,
     RecordSource,
     TunnelRecords,
+    UdpRecords,
     pace_payload,
 )
 from envs.vehicle.px4 import Mode
@@ -66,6 +68,7 @@ from sim.scenario import Scenario
 mavlink = mavutil.mavlink
 END_DELIVERY_S = 0.5  # records delivered this long after the end still belong to it
 CLOCK_TOLERANCE_S = 0.002  # time_boot_ms is truncated to the millisecond
+ACK_AGAIN_S = 0.5  # the vehicle's clock still for this long (wall): acknowledge again
 
 
 class VehicleLinkError(RuntimeError):
@@ -133,7 +136,9 @@ class MavlinkVehicle:
         self.seed_label = seed if seed is not None else realisation.seed.entropy
         self.world = realisation.world
         self.link_config = link
-        self.tunnel = TunnelRecords() if phone is None else None
+        # the vehicle's TUNNEL payloads: its pacing, and its relay of the phone's
+        # records unless they come another way
+        self.tunnel = TunnelRecords(keep_records=phone is None)
         self.feed = PhoneFeed(phone if phone is not None else self.tunnel,
                               lag_s=link.release_lag_s)
         self.log_paths = [Path(log_path)] if log_path is not None else []
@@ -182,9 +187,9 @@ class MavlinkVehicle:
             return
         deadline = time.monotonic() + self.link_config.connect_timeout_s
         self._pace(0)  # ask for the phone's records (and hold a lockstep vehicle)
-        self._check_fingerprint(deadline)
+        ours = self._check_fingerprint(deadline)
         asked = -math.inf
-        while self.position is None or self.home is None or self._boot_s is None:
+        while not self._ready(ours):
             if time.monotonic() > deadline:
                 raise VehicleLinkError("no position or home from the vehicle within "
                                        f"{self.link_config.connect_timeout_s:g} s")
@@ -192,9 +197,11 @@ class MavlinkVehicle:
                 asked = time.monotonic()
                 if self.home is None:
                     self._send_command(mavlink.MAV_CMD_GET_HOME_POSITION)
-                if self.position is None:  # a lockstep vehicle waiting says it on request
-                    self._send_command(mavlink.MAV_CMD_REQUEST_MESSAGE,
-                                       mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+                # a lockstep vehicle waiting tells its position on request
+                self._send_command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                                   mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+                if ours and self.tunnel.pacing is None:
+                    self._pace(0, again=True)
             self._pump(0.1)
         self._pump(0.0)
         self.feed.skip_before()  # the records of before the search
@@ -212,9 +219,23 @@ class MavlinkVehicle:
         self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, what="arm")
         self.started = True
 
-    def _check_fingerprint(self, deadline: float) -> None:
+    def _ready(self, ours: bool) -> bool:
+        """Position, home and clock known; an ``osa vehicle`` has told its pacing, and
+        in lockstep it waits at its limit and the position is of that instant (the
+        search then starts at the same simulated time whatever the wall clock did)."""
+        if self.position is None or self.home is None or self._boot_s is None:
+            return False
+        if not ours:
+            return True
+        p = self.tunnel.pacing
+        if p is None:
+            return False
+        return not p.lockstep or (p.waiting and self._boot_s * 1000.0 >= p.now_ms - 2)
+
+    def _check_fingerprint(self, deadline: float) -> bool:
         """``osa vehicle`` puts its world's fingerprint in AUTOPILOT_VERSION.uid: it
-        must be this loop's scenario and seed (another autopilot is not checked)."""
+        must be this loop's scenario and seed (another autopilot is not checked).
+        True for an ``osa vehicle``."""
         asked = -math.inf
         while time.monotonic() < deadline:
             if time.monotonic() - asked > 0.5:
@@ -226,12 +247,12 @@ class MavlinkVehicle:
             if m is None:
                 continue
             if bytes(m.flight_custom_version).rstrip(b"\0") != VEHICLE_TAG:
-                return
+                return False
             if int(m.uid) != world_fingerprint(self.realisation):
                 raise VehicleLinkError(
                     f"the vehicle flies another world than {self.scenario.name} seed "
                     f"{self._seed_text()} (run osa vehicle on the same scenario and --seed)")
-            return
+            return True
         raise VehicleLinkError("no AUTOPILOT_VERSION from the vehicle")
 
     def _check_world(self, truth: Sequence[TruthRecord]) -> None:
@@ -281,7 +302,7 @@ class MavlinkVehicle:
         self._last_rx = time.monotonic()
         kind = m.get_type()
         if kind == "TUNNEL":
-            if m.payload_type == PAYLOAD_RECORDS and self.tunnel is not None:
+            if m.payload_type == PAYLOAD_RECORDS:
                 self.tunnel.take(bytes(m.payload[: m.payload_length]))
         elif kind == "GLOBAL_POSITION_INT":
             e, n, u = self.world.frame.to_enu(m.lat / 1e7, m.lon / 1e7, m.alt / 1e3)
@@ -335,9 +356,9 @@ class MavlinkVehicle:
                 return
         raise VehicleLinkError(f"no answer to {what} after {cfg.command_attempts} attempts")
 
-    def _pace(self, time_boot_ms: int) -> None:
+    def _pace(self, time_boot_ms: int, again: bool = False) -> None:
         """Acknowledge the vehicle's time up to ``time_boot_ms`` (and ask for records)."""
-        if time_boot_ms < self._acked_ms:
+        if time_boot_ms < self._acked_ms or (time_boot_ms == self._acked_ms and not again):
             return
         self._acked_ms = time_boot_ms
         p = pace_payload(time_boot_ms)
@@ -410,13 +431,16 @@ class MavlinkVehicle:
         assert self._boot0_s is not None, "start() first"
         target = t_s
         self._pace(self._boot_ms(self.t_s))
-        moved = time.monotonic()
+        moved = asked = time.monotonic()
         while self.t_s < target - 1e-9:
             self._pump(0.05)
-            held = self.tunnel.held_ms if self.tunnel is not None else None
-            if held is not None and held > self._acked_ms and \
-                    held / 1000.0 - self._boot0_s < target - CLOCK_TOLERANCE_S:
-                self._pace(held)  # a lockstep vehicle waits short of the target
+            if time.monotonic() - max(moved, asked) > ACK_AGAIN_S:
+                asked = time.monotonic()  # lost on the way? the same again
+                self._pace(self._acked_ms, again=True)
+            p = self.tunnel.pacing
+            if p is not None and p.waiting and p.now_ms > self._acked_ms and \
+                    p.now_ms / 1000.0 - self._boot0_s < target - CLOCK_TOLERANCE_S:
+                self._pace(p.now_ms)  # a lockstep vehicle waits short of the target
             t = self._flight_s()
             if t >= target - CLOCK_TOLERANCE_S:
                 t = target
@@ -466,9 +490,9 @@ class MavlinkVehicle:
                         if got is not None and got >= end_ns:
                             break
                         self._pump(0.05)
-                        held = self.tunnel.held_ms if self.tunnel is not None else None
-                        if held is not None and held > self._acked_ms:
-                            self._pace(held)
+                        p = self.tunnel.pacing
+                        if p is not None and p.waiting and p.now_ms > self._acked_ms:
+                            self._pace(p.now_ms)
                 except VehicleLinkError:
                     lost = True
                 batch = self.feed.final(end_ns, self._boot0_s)
@@ -494,8 +518,8 @@ class MavlinkVehicle:
     def phone_stats(self) -> dict:
         """The record path's counts (the report's ``phone`` entry)."""
         d = self.feed.stats.to_json()
-        d["source"] = ("relay" if self.tunnel is not None
-                       else type(self.feed.source).__name__)
+        d["source"] = {TunnelRecords: "relay", FileRecords: "vehicle-log",
+                       UdpRecords: "phone"}.get(type(self.feed.source), "other")
         return d
 
     # ------------------------------------------------------------------ evaluation

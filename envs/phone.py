@@ -35,10 +35,12 @@ little-endian)::
       2  u32  sequence number of the next record (every record before it was sent)
       6  i64  t_ns: every record the phone delivered up to this phone time was sent
      14  i64  clock offset (ns): phone time minus the vehicle's time since boot
-    PAYLOAD_RECORDS, kind 2, held (osa vehicle --lockstep):
+    PAYLOAD_RECORDS, kind 2, pacing (the answer to each PAYLOAD_PACE, and when a
+    lockstep vehicle reaches its limit):
       0  u8   version (1)
       1  u8   kind (2)
-      2  u32  time_boot_ms at which the vehicle waits for an acknowledgement
+      2  u32  the vehicle's time_boot_ms now
+      6  u32  time_boot_ms it may run to (0xFFFFFFFF: no lockstep); now = limit: it waits
     PAYLOAD_PACE (ground station -> vehicle):
       0  u8   version (1)
       1  u32  time_boot_ms the ground station has processed (osa vehicle --lockstep)
@@ -68,8 +70,9 @@ PAYLOAD_RECORDS = 32768  # MAVLink TUNNEL payload types >= 32768: "local experim
 PAYLOAD_PACE = 32769
 TUNNEL_PAYLOAD_BYTES = 128
 VERSION = 1
-KIND_CHUNK, KIND_MARK, KIND_HELD = 0, 1, 2
-_HELD = struct.Struct("<BBI")  # version, kind, time_boot_ms
+KIND_CHUNK, KIND_MARK, KIND_PACING = 0, 1, 2
+_PACING = struct.Struct("<BBII")  # version, kind, time_boot_ms now, limit
+NO_LIMIT_MS = 0xFFFFFFFF
 _CHUNK = struct.Struct("<BBIBB")  # version, kind, seq, index, count
 _MARK = struct.Struct("<BBIqq")  # version, kind, next seq, through t_ns, clock offset ns
 _PACE = struct.Struct("<BI")  # version, time_boot_ms
@@ -102,9 +105,28 @@ def mark_payload(next_seq: int, through_ns: int, clock_offset_ns: int) -> bytes:
     return _MARK.pack(VERSION, KIND_MARK, next_seq & 0xFFFFFFFF, through_ns, clock_offset_ns)
 
 
-def held_payload(time_boot_ms: int) -> bytes:
-    """The vehicle waits at ``time_boot_ms`` for the ground station (lockstep)."""
-    return _HELD.pack(VERSION, KIND_HELD, time_boot_ms & 0xFFFFFFFF)
+def pacing_payload(now_ms: int, limit_ms: int | None) -> bytes:
+    """The vehicle's pacing: its time now and the time it may run to (None: no
+    lockstep); ``now_ms == limit_ms``: it waits for the ground station."""
+    limit = NO_LIMIT_MS if limit_ms is None else min(limit_ms, NO_LIMIT_MS - 1)
+    return _PACING.pack(VERSION, KIND_PACING, now_ms & 0xFFFFFFFF, limit)
+
+
+@dataclass(frozen=True)
+class Pacing:
+    """What a vehicle says of its pacing (see :func:`pacing_payload`)."""
+
+    now_ms: int
+    limit_ms: int | None  # None: no lockstep
+
+    @property
+    def lockstep(self) -> bool:
+        return self.limit_ms is not None
+
+    @property
+    def waiting(self) -> bool:
+        """At its limit (within the milliseconds' truncation): it waits for us."""
+        return self.limit_ms is not None and self.now_ms >= self.limit_ms - 2
 
 
 def pace_payload(time_boot_ms: int) -> bytes:
@@ -209,7 +231,7 @@ def udp_listen_address(url: str) -> tuple[str, int]:
         p = int(port)
     except ValueError:
         raise ValueError(f"bad phone URL {url!r}: port {port!r} is not a number") from None
-    if not host or not 0 < p < 65536:
+    if not host or not 0 <= p < 65536:  # 0: a port the system picks
         raise ValueError(f"bad phone URL {url!r}: expected udpin://HOST:PORT")
     return host, p
 
@@ -266,9 +288,12 @@ class UdpRecords:
 class TunnelRecords:
     """The records ``osa vehicle`` relays on the MAVLink link (TUNNEL payload type
     :data:`PAYLOAD_RECORDS`): chunks reassembled by sequence number, lost records
-    counted, the latest mark kept. Feed it each payload with :meth:`take`."""
+    counted, the latest mark and pacing kept. Feed it each payload with :meth:`take`.
+    With ``keep_records=False`` only the pacing is read (the records come another way).
+    """
 
-    def __init__(self) -> None:
+    def __init__(self, keep_records: bool = True) -> None:
+        self.keep_records = keep_records
         self.counts = RejectCounts()
         self._parts: dict[int, dict[int, bytes]] = {}  # seq -> chunk index -> data
         self._count: dict[int, int] = {}
@@ -277,7 +302,7 @@ class TunnelRecords:
         self._seen: set[int] = set()  # delivered seqs at or above the floor
         self._lost = 0
         self._mark: Mark | None = None
-        self.held_ms: int | None = None  # the vehicle's latest "held" (lockstep)
+        self.pacing: Pacing | None = None  # the vehicle's latest pacing message
         self.chunks = 0
         self.duplicates = 0
         self.malformed = 0
@@ -288,14 +313,17 @@ class TunnelRecords:
         if len(b) < 2 or b[0] != VERSION:
             self.malformed += 1
             return
-        if b[1] == KIND_HELD and len(b) >= _HELD.size:
-            self.held_ms = int(_HELD.unpack_from(b)[2])
+        if b[1] == KIND_PACING and len(b) >= _PACING.size:
+            _, _, now, limit = _PACING.unpack_from(b)
+            self.pacing = Pacing(int(now), None if limit == NO_LIMIT_MS else int(limit))
             return
         if b[1] == KIND_MARK and len(b) >= _MARK.size:
             _, _, nxt, through, offset = _MARK.unpack_from(b)
             self._settle(nxt)
             if self._mark is None or through >= self._mark.through_ns:
                 self._mark = Mark(nxt, through, offset)
+            return
+        if not self.keep_records:
             return
         if b[1] != KIND_CHUNK or len(b) < _CHUNK.size:
             self.malformed += 1
@@ -383,8 +411,7 @@ class FeedStats:
     rejected: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        d: dict = {"received": self.received, "released": self.released, "lost": self.lost,
-                   "late": self.late}
+        d: dict = {"released": self.released, "lost": self.lost, "late": self.late}
         if self.rejected:
             d["rejected_lines"] = dict(self.rejected)
         return d

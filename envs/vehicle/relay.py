@@ -25,8 +25,8 @@ from typing import Any
 
 from envs.phone import (
     PAYLOAD_RECORDS,
-    held_payload,
     mark_payload,
+    pacing_payload,
     read_pace,
     record_chunks,
 )
@@ -56,8 +56,9 @@ class RecordRelay:
         self._held_at: float | None = None
 
     # ------------------------------------------------------------------ ground station
-    def on_tunnel(self, msg: Any) -> None:
-        """A TUNNEL from a ground station: an acknowledgement (PAYLOAD_PACE)."""
+    def on_tunnel(self, msg: Any, t_s: float) -> None:
+        """A TUNNEL from a ground station at the vehicle's time ``t_s``: an
+        acknowledgement (PAYLOAD_PACE), answered with the vehicle's pacing."""
         ms = read_pace(bytes(msg.payload[: msg.payload_length]))
         if ms is None:
             return
@@ -67,6 +68,11 @@ class RecordRelay:
         # the vehicle's ticks: the acknowledged time_boot_ms (truncated) names a tick
         ack = round(ms / 1000.0 / self.tick_s) * self.tick_s
         self.ack_s = max(self.ack_s, ack)
+        self._pacing(t_s)
+
+    def _pacing(self, t_s: float) -> None:
+        limit = None if self.lockstep_s is None else _ms(self.limit_s)
+        self._tunnel(pacing_payload(_ms(t_s), limit))
 
     # ------------------------------------------------------------------ pacing
     @property
@@ -76,11 +82,11 @@ class RecordRelay:
 
     def held(self, t_s: float) -> bool:
         """True once when the vehicle has just reached its limit at ``t_s`` (it then
-        says so with a ``held`` payload)."""
+        says so with its pacing)."""
         if self.lockstep_s is None or t_s < self.limit_s - 1e-9 or self._held_at == t_s:
             return False
         self._held_at = t_s
-        self._tunnel(held_payload(int(t_s * 1000.0 + 0.5)))
+        self._pacing(t_s)
         return True
 
     # ------------------------------------------------------------------ records
@@ -109,3 +115,8 @@ class RecordRelay:
     def _tunnel(self, payload: bytes) -> None:
         self.broadcast(mavlink.MAVLink_tunnel_message(
             0, 0, PAYLOAD_RECORDS, len(payload), payload.ljust(128, b"\0")))
+
+
+def _ms(t_s: float) -> int:
+    """time_boot_ms of a simulated time (as the vehicle's telemetry stamps it)."""
+    return int(t_s * 1000.0) & 0xFFFFFFFF

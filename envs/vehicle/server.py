@@ -468,7 +468,7 @@ class VirtualVehicle:
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
 
     def _on_tunnel(self, peer: Peer, msg: Any) -> None:
-        self.relay.on_tunnel(msg)
+        self.relay.on_tunnel(msg, self.t_s)
 
     def _on_heartbeat(self, peer: Peer, msg: Any) -> None:
         if msg.type == MAV_TYPE_GCS:
