@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import socket
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -45,6 +46,7 @@ import numpy as np
 from envs.phone import (
     PAYLOAD_PACE,
     PAYLOAD_RECORDS,
+    PAYLOAD_RESEND,
     FileRecords,
     PhoneBatch,
     PhoneFeed,
@@ -52,6 +54,7 @@ from envs.phone import (
     TunnelRecords,
     UdpRecords,
     pace_payload,
+    resend_payload,
 )
 from envs.vehicle.px4 import Mode
 from envs.vehicle.telemetry import VEHICLE_TAG, world_fingerprint
@@ -69,6 +72,20 @@ mavlink = mavutil.mavlink
 END_DELIVERY_S = 0.5  # records delivered this long after the end still belong to it
 CLOCK_TOLERANCE_S = 0.002  # time_boot_ms is truncated to the millisecond
 ACK_AGAIN_S = 0.5  # the vehicle's clock still for this long (wall): acknowledge again
+RESEND_WAIT_S = 1.0  # records missing at a mark are asked again for this long (wall)
+RESEND_EVERY_S = 0.25
+RCVBUF_BYTES = 4 << 20  # a lockstep vehicle sends a decision period's records at once
+
+
+def _runs(seqs: list[int]) -> list[tuple[int, int]]:
+    """Consecutive runs of sorted sequence numbers as (first, count)."""
+    out: list[tuple[int, int]] = []
+    for s in seqs:
+        if out and s == out[-1][0] + out[-1][1] and out[-1][1] < 0xFFFF:
+            out[-1] = (out[-1][0], out[-1][1] + 1)
+        else:
+            out.append((s, 1))
+    return out
 
 
 class VehicleLinkError(RuntimeError):
@@ -152,6 +169,10 @@ class MavlinkVehicle:
         self.conn = self.link.connection
         self.vehicle = self.link.vehicle
         self.conn.message_hooks.append(self._on_message)  # every message, also in uploads
+        sock = getattr(self.conn, "port", None)
+        if isinstance(sock, socket.socket):  # room for a decision period's records
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
         self.t_s = 0.0
         self._boot0_s: float | None = None
         self._boot_s: float | None = None
@@ -171,6 +192,7 @@ class MavlinkVehicle:
         self._track: list[tuple[float, float, float]] = []
         self.uploads = 0
         self.upload_retries = 0
+        self.asked_again = 0  # relayed records asked for again
         self.started = False
         self.finished = False
         self.closed = False
@@ -204,7 +226,8 @@ class MavlinkVehicle:
                     self._pace(0, again=True)
             self._pump(0.1)
         self._pump(0.0)
-        self.feed.skip_before()  # the records of before the search
+        self.tunnel.settle(count=False)  # the records of before the search: not fed
+        self.feed.skip_before()
         self._check_world(self.feed.truth)
         h = self.feed.header
         if h is None:  # not heard (yet): the scenario's phone
@@ -427,29 +450,41 @@ class MavlinkVehicle:
 
     def advance_to(self, t_s: float) -> list[PhoneBatch]:
         """Let flight time pass to ``t_s`` (the vehicle's clock): acknowledge the time
-        processed, read telemetry and records until the vehicle is there."""
+        processed, read telemetry and records until the vehicle is there (a lockstep
+        vehicle: waiting there), then the records complete up to its latest mark."""
         assert self._boot0_s is not None, "start() first"
         target = t_s
         self._pace(self._boot_ms(self.t_s))
         moved = asked = time.monotonic()
-        while self.t_s < target - 1e-9:
+        while True:
             self._pump(0.05)
-            if time.monotonic() - max(moved, asked) > ACK_AGAIN_S:
-                asked = time.monotonic()  # lost on the way? the same again
-                self._pace(self._acked_ms, again=True)
-            p = self.tunnel.pacing
-            if p is not None and p.waiting and p.now_ms > self._acked_ms and \
-                    p.now_ms / 1000.0 - self._boot0_s < target - CLOCK_TOLERANCE_S:
-                self._pace(p.now_ms)  # a lockstep vehicle waits short of the target
+            now = time.monotonic()
             t = self._flight_s()
-            if t >= target - CLOCK_TOLERANCE_S:
-                t = target
+            there = t >= target - CLOCK_TOLERANCE_S
+            p = self.tunnel.pacing
+            if p is not None and p.lockstep:
+                held_s = p.now_ms / 1000.0 - self._boot0_s
+                if p.waiting and held_s < target - CLOCK_TOLERANCE_S \
+                        and p.now_ms > self._acked_ms:
+                    self._pace(p.now_ms)  # it waits short of the target: go on
+                if there and p.waiting and held_s >= target - CLOCK_TOLERANCE_S:
+                    break
+            elif there:
+                break
             t = min(t, target)
             if t > self.t_s:
-                self.t_s, moved = t, time.monotonic()
-            if time.monotonic() - moved > self.link_config.telemetry_timeout_s:
+                self.t_s, moved = t, now
+            if now - max(moved, asked) > ACK_AGAIN_S:
+                asked = now  # lost on the way? the same again (answered with the pacing)
+                self._pace(self._acked_ms, again=True)
+                if p is not None and p.waiting and not there:  # where it waits
+                    self._send_command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                                       mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+            if now - moved > self.link_config.telemetry_timeout_s:
                 raise VehicleLinkError("the vehicle's clock stopped (no newer telemetry for "
                                        f"{self.link_config.telemetry_timeout_s:g} s)")
+        self.t_s = target
+        self._complete_records()
         batch = self.feed.take(self.t_s, self._boot0_s)
         self._write(batch)
         if self.position is not None:
@@ -457,6 +492,25 @@ class MavlinkVehicle:
                 self._path_m += math.dist(self.position, self._track[-1])
             self._track.append(self.position)
         return [batch]
+
+    def _complete_records(self) -> None:
+        """Ask again for the relayed records missing below the latest mark (a lost
+        datagram) for up to RESEND_WAIT_S; those still missing are counted lost."""
+        if not self.tunnel.keep_records:
+            return
+        deadline = time.monotonic() + RESEND_WAIT_S
+        asked = -math.inf
+        while (missing := self.tunnel.missing()) and time.monotonic() < deadline:
+            if time.monotonic() - asked > RESEND_EVERY_S:
+                asked = time.monotonic()
+                for first, count in _runs(missing):
+                    p = resend_payload(first, count)
+                    with contextlib.suppress(OSError):
+                        self.conn.mav.tunnel_send(*self.vehicle, PAYLOAD_RESEND, len(p),
+                                                  p.ljust(128, b"\0"))
+                    self.asked_again += count
+            self._pump(0.02)
+        self.tunnel.settle()
 
     def _boot_ms(self, flight_s: float) -> int:
         assert self._boot0_s is not None
@@ -495,6 +549,7 @@ class MavlinkVehicle:
                             self._pace(p.now_ms)
                 except VehicleLinkError:
                     lost = True
+                self._complete_records()
                 batch = self.feed.final(end_ns, self._boot0_s)
                 self._write(batch)
             if self.link_config.return_at_end and self.armed and not lost:
@@ -520,6 +575,8 @@ class MavlinkVehicle:
         d = self.feed.stats.to_json()
         d["source"] = {TunnelRecords: "relay", FileRecords: "vehicle-log",
                        UdpRecords: "phone"}.get(type(self.feed.source), "other")
+        if self.feed.source is self.tunnel:
+            d["asked_again"] = self.asked_again
         return d
 
     # ------------------------------------------------------------------ evaluation

@@ -22,32 +22,42 @@ Relay layout (one record's JSON line, UTF-8, no newline, in one or more TUNNEL
 messages; every payload is at most :data:`TUNNEL_PAYLOAD_BYTES` bytes; integers
 little-endian)::
 
-    PAYLOAD_RECORDS, kind 0, a chunk of one record:
+    PAYLOAD_RECORDS (vehicle -> ground station), kind 0, a chunk of one record:
       0  u8   version (1)
       1  u8   kind (0)
       2  u32  record sequence number (0, 1, 2, ... one per record the vehicle relays)
       6  u8   chunk index (0 .. count - 1)
       7  u8   chunk count (1 .. 255)
       8  ...  up to 120 bytes of the line
-    PAYLOAD_RECORDS, kind 1, a mark:
+    PAYLOAD_RECORDS, kind 1, a mark (after each step that delivered records):
       0  u8   version (1)
       1  u8   kind (1)
       2  u32  sequence number of the next record (every record before it was sent)
       6  i64  t_ns: every record the phone delivered up to this phone time was sent
      14  i64  clock offset (ns): phone time minus the vehicle's time since boot
-    PAYLOAD_RECORDS, kind 2, pacing (the answer to each PAYLOAD_PACE, and when a
+    PAYLOAD_RECORDS, kind 2, pacing (the answer to each PAYLOAD_PACE, and once when a
     lockstep vehicle reaches its limit):
       0  u8   version (1)
       1  u8   kind (2)
       2  u32  the vehicle's time_boot_ms now
       6  u32  time_boot_ms it may run to (0xFFFFFFFF: no lockstep); now = limit: it waits
-    PAYLOAD_PACE (ground station -> vehicle):
+     10  u32  } the latest mark (next sequence number, t_ns, clock offset), as in
+     14  i64  } kind 1 (t_ns -1: no record relayed yet)
+     22  i64  }
+    PAYLOAD_PACE (ground station -> vehicle): the acknowledgement
       0  u8   version (1)
       1  u32  time_boot_ms the ground station has processed (osa vehicle --lockstep)
+    PAYLOAD_RESEND (ground station -> vehicle): send records again
+      0  u8   version (1)
+      1  u32  first sequence number
+      5  u16  how many
 
-A record whose chunks do not all arrive is counted lost (the sequence numbers show
-it); a record arriving after later records were released is counted late and dropped
-(the estimator takes each agent's records in time order).
+A record whose chunks do not all arrive is asked for again (the vehicle keeps the
+last :data:`RESEND_KEPT` records); one still missing when the loop must go on is
+counted lost (the sequence numbers show it). Records are handed on in sequence order,
+so a record that came again is fed where it belongs. A record arriving after later
+records were released is counted late and dropped (the estimator takes each agent's
+records in time order).
 """
 
 from __future__ import annotations
@@ -68,10 +78,13 @@ from estimator.records import GnssFix, LogHeader, RangeSample, TruthRecord
 
 PAYLOAD_RECORDS = 32768  # MAVLink TUNNEL payload types >= 32768: "local experiments"
 PAYLOAD_PACE = 32769
+PAYLOAD_RESEND = 32770
+RESEND_KEPT = 8192  # records the vehicle keeps to send again
 TUNNEL_PAYLOAD_BYTES = 128
 VERSION = 1
 KIND_CHUNK, KIND_MARK, KIND_PACING = 0, 1, 2
-_PACING = struct.Struct("<BBII")  # version, kind, time_boot_ms now, limit
+_PACING = struct.Struct("<BBIIIqq")  # version, kind, now, limit, latest mark
+_RESEND = struct.Struct("<BIH")  # version, first seq, count
 NO_LIMIT_MS = 0xFFFFFFFF
 _CHUNK = struct.Struct("<BBIBB")  # version, kind, seq, index, count
 _MARK = struct.Struct("<BBIqq")  # version, kind, next seq, through t_ns, clock offset ns
@@ -105,11 +118,13 @@ def mark_payload(next_seq: int, through_ns: int, clock_offset_ns: int) -> bytes:
     return _MARK.pack(VERSION, KIND_MARK, next_seq & 0xFFFFFFFF, through_ns, clock_offset_ns)
 
 
-def pacing_payload(now_ms: int, limit_ms: int | None) -> bytes:
-    """The vehicle's pacing: its time now and the time it may run to (None: no
-    lockstep); ``now_ms == limit_ms``: it waits for the ground station."""
+def pacing_payload(now_ms: int, limit_ms: int | None, mark: Mark | None) -> bytes:
+    """The vehicle's pacing: its time now, the time it may run to (None: no lockstep;
+    ``now_ms == limit_ms``: it waits for the ground station) and its latest mark."""
     limit = NO_LIMIT_MS if limit_ms is None else min(limit_ms, NO_LIMIT_MS - 1)
-    return _PACING.pack(VERSION, KIND_PACING, now_ms & 0xFFFFFFFF, limit)
+    m = mark if mark is not None else Mark(0, -1, 0)
+    return _PACING.pack(VERSION, KIND_PACING, now_ms & 0xFFFFFFFF, limit,
+                        m.next_seq & 0xFFFFFFFF, m.through_ns, m.clock_offset_ns)
 
 
 @dataclass(frozen=True)
@@ -127,6 +142,19 @@ class Pacing:
     def waiting(self) -> bool:
         """At its limit (within the milliseconds' truncation): it waits for us."""
         return self.limit_ms is not None and self.now_ms >= self.limit_ms - 2
+
+
+def resend_payload(first_seq: int, count: int) -> bytes:
+    """The ground station asks for records ``first_seq .. first_seq + count - 1``."""
+    return _RESEND.pack(VERSION, first_seq & 0xFFFFFFFF, max(0, min(count, 0xFFFF)))
+
+
+def read_resend(payload: bytes) -> tuple[int, int] | None:
+    """(first sequence number, count) of a :data:`PAYLOAD_RESEND` payload."""
+    if len(payload) < _RESEND.size or payload[0] != VERSION:
+        return None
+    _, first, count = _RESEND.unpack_from(payload)
+    return int(first), int(count)
 
 
 def pace_payload(time_boot_ms: int) -> bytes:
@@ -287,19 +315,19 @@ class UdpRecords:
 
 class TunnelRecords:
     """The records ``osa vehicle`` relays on the MAVLink link (TUNNEL payload type
-    :data:`PAYLOAD_RECORDS`): chunks reassembled by sequence number, lost records
-    counted, the latest mark and pacing kept. Feed it each payload with :meth:`take`.
-    With ``keep_records=False`` only the pacing is read (the records come another way).
-    """
+    :data:`PAYLOAD_RECORDS`): chunks reassembled by sequence number and handed on in
+    sequence order, the missing ones known (:meth:`missing`, to ask for them again)
+    until :meth:`settle` counts them lost; the latest mark and pacing kept. Feed it
+    each payload with :meth:`take`. With ``keep_records=False`` only the pacing and the
+    marks are read (the records come another way)."""
 
     def __init__(self, keep_records: bool = True) -> None:
         self.keep_records = keep_records
         self.counts = RejectCounts()
         self._parts: dict[int, dict[int, bytes]] = {}  # seq -> chunk index -> data
-        self._count: dict[int, int] = {}
-        self._done: list[tuple[int, bytes]] = []  # complete lines (seq, line)
-        self._floor: int | None = None  # every seq below it is delivered or lost
-        self._seen: set[int] = set()  # delivered seqs at or above the floor
+        self._lines: dict[int, bytes] = {}  # complete, not handed on yet
+        self._next: int | None = None  # the next seq to hand on
+        self._gone: set[int] = set()  # given up (counted lost), not passed yet
         self._lost = 0
         self._mark: Mark | None = None
         self.pacing: Pacing | None = None  # the vehicle's latest pacing message
@@ -314,14 +342,14 @@ class TunnelRecords:
             self.malformed += 1
             return
         if b[1] == KIND_PACING and len(b) >= _PACING.size:
-            _, _, now, limit = _PACING.unpack_from(b)
+            _, _, now, limit, nxt, through, offset = _PACING.unpack_from(b)
             self.pacing = Pacing(int(now), None if limit == NO_LIMIT_MS else int(limit))
+            if through >= 0:
+                self._take_mark(Mark(int(nxt), int(through), int(offset)))
             return
         if b[1] == KIND_MARK and len(b) >= _MARK.size:
             _, _, nxt, through, offset = _MARK.unpack_from(b)
-            self._settle(nxt)
-            if self._mark is None or through >= self._mark.through_ns:
-                self._mark = Mark(nxt, through, offset)
+            self._take_mark(Mark(int(nxt), int(through), int(offset)))
             return
         if not self.keep_records:
             return
@@ -333,42 +361,64 @@ class TunnelRecords:
             self.malformed += 1
             return
         self.chunks += 1
-        if self._floor is None:
-            self._floor = seq  # the first record heard: what came before is not counted
-        if seq < self._floor or seq in self._seen:
-            self.duplicates += 1
+        if self._next is None:
+            self._next = seq  # the first record heard: what came before is not ours
+        if seq < self._next or seq in self._lines or seq in self._gone:
+            self.duplicates += 1  # (or too late: counted lost already)
             return
         parts = self._parts.setdefault(seq, {})
         if k in parts:
             self.duplicates += 1
             return
         parts[k] = b[_CHUNK.size:]
-        self._count[seq] = n
         if len(parts) == n:
-            del self._parts[seq], self._count[seq]
-            self._done.append((seq, b"".join(parts[i] for i in range(n))))
-            self._seen.add(seq)
-        if len(self._parts) > PENDING_RECORDS:
-            self._settle(min(self._parts) + 1)
+            del self._parts[seq]
+            self._lines[seq] = b"".join(parts[i] for i in range(n))
+        if len(self._parts) + len(self._lines) > PENDING_RECORDS:  # bounded memory
+            self.settle(max(self._lines, default=self._next) + 1)
 
-    def _settle(self, next_seq: int) -> None:
-        """Every record below ``next_seq`` was sent: those not complete are lost."""
-        if self._floor is None:
-            self._floor = next_seq
-            return
-        if next_seq <= self._floor:
-            return
-        for s in [s for s in self._parts if s < next_seq]:
-            del self._parts[s], self._count[s]
-        delivered = sum(1 for s in self._seen if s < next_seq)
-        self._lost += (next_seq - self._floor) - delivered
-        self._seen = {s for s in self._seen if s >= next_seq}
-        self._floor = next_seq
+    def _take_mark(self, m: Mark) -> None:
+        if self._mark is None or (m.next_seq, m.through_ns) > (self._mark.next_seq,
+                                                               self._mark.through_ns):
+            self._mark = m
+        if self._next is None and self.keep_records:
+            self._next = m.next_seq  # nothing heard yet: from here on
+
+    def missing(self, until_seq: int | None = None) -> list[int]:
+        """Sequence numbers below ``until_seq`` (default: the latest mark's next) not
+        yet complete nor settled."""
+        if self._next is None:
+            return []
+        if until_seq is None:
+            until_seq = self._mark.next_seq if self._mark is not None else self._next
+        return [s for s in range(self._next, until_seq)
+                if s not in self._lines and s not in self._gone]
+
+    def settle(self, until_seq: int | None = None, *, count: bool = True) -> int:
+        """Give up on what is still missing below ``until_seq`` (default: the latest
+        mark's next): counted lost (unless ``count`` is False: records of before the
+        search). Returns how many."""
+        gone = self.missing(until_seq)
+        for s in gone:
+            self._parts.pop(s, None)
+        self._gone.update(gone)
+        self._lost += len(gone) if count else 0
+        return len(gone)
 
     def poll(self) -> list:
-        done, self._done = self._done, []
+        """The records complete in sequence order (up to the first missing one)."""
         out = []
-        for _, line in sorted(done):
+        if self._next is None:
+            return out
+        while True:
+            line = self._lines.pop(self._next, None)
+            if line is None:
+                if self._next in self._gone:  # given up: skip it
+                    self._gone.discard(self._next)
+                    self._next += 1
+                    continue
+                break
+            self._next += 1
             rec = parse_line(line, self.counts)
             if rec is not None:
                 out.append(rec)

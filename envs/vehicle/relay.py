@@ -8,7 +8,9 @@ docs/vehicle.md): each record's log line in chunks with a sequence number, then 
 saying up to which phone time the stream is complete. A ground station asks for the
 records by sending a TUNNEL of type :data:`envs.phone.PAYLOAD_PACE` (its
 acknowledgement of the vehicle time it has processed); from then on every record the
-phone delivers is relayed, the log header first.
+phone delivers is relayed, the log header first. The last
+:data:`envs.phone.RESEND_KEPT` records are kept and sent again on request
+(:data:`envs.phone.PAYLOAD_RESEND`).
 
 Lockstep (``osa vehicle --lockstep S``): the vehicle never runs more than ``S`` seconds
 of simulated time ahead of the ground station's last acknowledgement. It waits there
@@ -20,14 +22,20 @@ whatever the wall clock does: a run is reproducible under any load.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from envs.phone import (
+    PAYLOAD_PACE,
     PAYLOAD_RECORDS,
+    PAYLOAD_RESEND,
+    RESEND_KEPT,
+    Mark,
     mark_payload,
     pacing_payload,
     read_pace,
+    read_resend,
     record_chunks,
 )
 from estimator.records import LogHeader
@@ -52,14 +60,24 @@ class RecordRelay:
         self.seq = 0
         self.ack_s = 0.0
         self.sent_chunks = 0
+        self.resent = 0  # records sent again on request
         self.skipped = 0  # records whose line is too long for 255 chunks
+        self.mark: Mark | None = None  # the latest mark sent
+        self._kept: deque[tuple[int, list[bytes]]] = deque(maxlen=RESEND_KEPT)
         self._held_at: float | None = None
 
     # ------------------------------------------------------------------ ground station
     def on_tunnel(self, msg: Any, t_s: float) -> None:
         """A TUNNEL from a ground station at the vehicle's time ``t_s``: an
-        acknowledgement (PAYLOAD_PACE), answered with the vehicle's pacing."""
-        ms = read_pace(bytes(msg.payload[: msg.payload_length]))
+        acknowledgement (PAYLOAD_PACE), answered with the vehicle's pacing, or a
+        request to send records again (PAYLOAD_RESEND)."""
+        payload = bytes(msg.payload[: msg.payload_length])
+        if msg.payload_type == PAYLOAD_RESEND:
+            asked = read_resend(payload)
+            if asked is not None:
+                self._resend(*asked)
+            return
+        ms = read_pace(payload) if msg.payload_type == PAYLOAD_PACE else None
         if ms is None:
             return
         if not self.active:
@@ -72,7 +90,19 @@ class RecordRelay:
 
     def _pacing(self, t_s: float) -> None:
         limit = None if self.lockstep_s is None else _ms(self.limit_s)
-        self._tunnel(pacing_payload(_ms(t_s), limit))
+        self._tunnel(pacing_payload(_ms(t_s), limit, self.mark))
+
+    def _resend(self, first: int, count: int) -> None:
+        """Records ``first .. first + count - 1`` again, those still kept."""
+        if not self._kept:
+            return
+        lo = self._kept[0][0]
+        for k in range(max(first, lo), min(first + count, self.seq)):
+            seq, chunks = self._kept[k - lo]
+            assert seq == k
+            for c in chunks:
+                self._tunnel(c)
+            self.resent += 1
 
     # ------------------------------------------------------------------ pacing
     @property
@@ -100,10 +130,12 @@ class RecordRelay:
             self._send_record(e.record)
         last = ordered[-1]
         offset = last.t_ns - round(last.delivery_s * 1e9)
+        self.mark = Mark(self.seq, last.t_ns, offset)
         self._tunnel(mark_payload(self.seq, last.t_ns, offset))
 
     def _send_record(self, rec: Any) -> None:
         chunks = record_chunks(self.seq, rec)
+        self._kept.append((self.seq, chunks))
         self.seq += 1
         if not chunks:
             self.skipped += 1
