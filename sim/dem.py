@@ -166,7 +166,7 @@ class DemTerrain:
                                               np.asarray(n, dtype=float),
                                               np.asarray(u, dtype=float))
         x, y = self._to_crs.transform(np.asarray(lon), np.asarray(lat))
-        col, row = self._inv * (np.asarray(x), np.asarray(y))
+        col, row = self._inv @ (np.asarray(x), np.asarray(y))
         return np.asarray(col) - 0.5, np.asarray(row) - 0.5
 
     def _exact_drop(self, e, n, u):
@@ -390,10 +390,14 @@ class DemTerrain:
         eps = 1e-9
         out = (fi < -eps) | (fj < -eps) | (fi > W - 1 + eps) | (fj > H - 1 + eps)
         win_out = (i < -eps) | (j < -eps) | (i > nx - 1 + eps) | (j > ny - 1 + eps)
-        if np.any(out | win_out):
-            k = int(np.argmax(out | win_out))
+        if np.any(out):
+            k = int(np.argmax(out))
             raise DemError(f"{self.name}: {what} leaves the DEM's extent at "
                            f"({p[k, 0]:.1f}, {p[k, 1]:.1f}) m")
+        if np.any(win_out):
+            k = int(np.argmax(win_out))
+            raise DemError(f"{self.name}: {what} reaches ({p[k, 0]:.1f}, {p[k, 1]:.1f}) m, "
+                           "beyond the part of the DEM read for the scenario")
         ci = np.clip(np.floor(i).astype(int), 0, nx - 2)
         cj = np.clip(np.floor(j).astype(int), 0, ny - 2)
         bad = self._bad_cell[cj, ci]
