@@ -4,6 +4,7 @@ following."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -57,7 +58,7 @@ def test_routes_sweeps_and_pulls_stay_out_of_blocking_keep_outs():
     assert len(leg) > 2 and area.path_inside(np.array(leg), 0.0)
     assert _clearance(np.array(leg), area.blocking) >= 5.0 - 1e-6
     # around the wall's end (x = 150 + 16) and back: about 550 m
-    assert 540.0 < sum(math.dist(a, b) for a, b in zip(leg, leg[1:], strict=False)) < 1.4 * 450
+    assert 540.0 < sum(math.dist(a, b) for a, b in itertools.pairwise(leg)) < 1.4 * 450
     # the lawnmower: tracks interrupted at the keep-outs, joined around them
     for heading in (0.0, 90.0, 30.0):
         wps = area.sweep(50.0, heading, start=(0.0, -290.0))
@@ -73,7 +74,7 @@ def test_routes_sweeps_and_pulls_stay_out_of_blocking_keep_outs():
         assert near.max() <= 50.0
     # the wires (flown over) do not interrupt a track that crosses them
     wps = area.sweep(50.0, 0.0)
-    crossing = [(a, b) for a, b in zip(wps, wps[1:], strict=False)
+    crossing = [(a, b) for a, b in itertools.pairwise(wps)
                 if a[0] == b[0] and min(a[1], b[1]) < -120 and max(a[1], b[1]) > -100]
     assert crossing
     # pulled inside: never into a keep-out

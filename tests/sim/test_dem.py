@@ -132,7 +132,7 @@ def test_srtm_hgt_posts_and_cell_centres(tmp_path):
 
 
 def test_datum_offset_and_the_earths_curvature(tmp_path):
-    tr, X, Y, _ = _utm_grid(res=50.0, n=200)
+    tr, X, _Y, _ = _utm_grid(res=50.0, n=200)
     flat = np.full(X.shape, H0)  # the ground at the origin's own height everywhere
     f = _write(tmp_path / "flat.tif", flat, UTM, tr)
     dem = DemTerrain(f, (LAT0, LON0, H0), (-3000, 3000, -3000, 3000))
@@ -212,15 +212,15 @@ def test_only_the_window_is_read_from_a_huge_file(tmp_path):
     expect = 100.0 + 0.01 * (col - 0.5 - 50_000) + 0.02 * (row - 0.5 - 50_000)
     assert u + H0 == pytest.approx(expect, abs=1e-3)
     # a scenario box beyond the written blocks touches nodata: refused, naming the file
-    with pytest.raises(DemError, match="huge.tif: the area touches nodata"):
+    with pytest.raises(DemError, match=r"huge.tif: the area touches nodata"):
         dem.require_polygon([(-100, -100), (350, -100), (350, 100)], "the area")
     # beyond the window limit: refused before anything is read
-    with pytest.raises(DemError, match="huge.tif: the scenario needs .* cells"):
+    with pytest.raises(DemError, match=r"huge.tif: the scenario needs .* cells"):
         DemTerrain(path, (LAT0, LON0, H0), (-5000, 5000, -5000, 5000))
 
 
 def test_refusals_name_the_file(tmp_path):
-    tr, X, Y, _ = _utm_grid(res=20.0, n=60)  # 1.2 km square
+    tr, X, _Y, _ = _utm_grid(res=20.0, n=60)  # 1.2 km square
     z = np.full(X.shape, 100.0, dtype="float32")
     z[:10, :10] = -9999.0
     f = _write(tmp_path / "small.tif", z, UTM, tr, nodata=-9999.0)
@@ -230,12 +230,12 @@ def test_refusals_name_the_file(tmp_path):
         dem.require_points([(0.0, 0.0), (900.0, 0.0)], "the flight")
     with pytest.raises(DemError, match=r"small.tif: the search area touches nodata"):
         dem.require_polygon([(-560, 560), (-300, 560), (-300, 300)], "the search area")
-    with pytest.raises(DemError, match="small.tif: the scenario's area lies outside"):
+    with pytest.raises(DemError, match=r"small.tif: the scenario's area lies outside"):
         DemTerrain(f, (LAT0, LON0, H0), (5000, 6000, 5000, 6000))
     bad = tmp_path / "bad.tif"
     bad.write_bytes(b"not a tiff")
-    with pytest.raises(DemError, match="bad.tif: cannot read the DEM"):
+    with pytest.raises(DemError, match=r"bad.tif: cannot read the DEM"):
         DemTerrain(bad, (LAT0, LON0, H0), (0, 1, 0, 1))
     nocrs = _write(tmp_path / "nocrs.tif", z, None, tr)
-    with pytest.raises(DemError, match="nocrs.tif: the file declares no coordinate"):
+    with pytest.raises(DemError, match=r"nocrs.tif: the file declares no coordinate"):
         DemTerrain(nocrs, (LAT0, LON0, H0), (0, 1, 0, 1))

@@ -149,36 +149,36 @@ def test_site_file_readers_refuse_what_they_cannot_use(tmp_path):
     p = tmp_path / "x.kml"
     p.write_text('<?xml version="1.0"?><!DOCTYPE kml [<!ENTITY e SYSTEM "file:///etc/passwd">]>'
                  "<kml><Document><name>&e;</name></Document></kml>", encoding="utf-8")
-    with pytest.raises(SiteFileError, match="x.kml: a document type declaration"):
+    with pytest.raises(SiteFileError, match=r"x.kml: a document type declaration"):
         read_area(p)
     two = _kml(_kml_polygon("a", _deg(AREA_ENU)) + _kml_polygon("b", _deg(AREA_ENU)))
     p.write_text(two, encoding="utf-8")
-    with pytest.raises(SiteFileError, match="x.kml: holds 2 polygons; a search area is exactly"):
+    with pytest.raises(SiteFileError, match=r"x.kml: holds 2 polygons; a search area is exactly"):
         read_area(p)
     p.write_text(_kml(_kml_polygon("a", _deg(AREA_ENU)).replace(
         "</outerBoundaryIs>", "</outerBoundaryIs><innerBoundaryIs><LinearRing><coordinates>"
         "0,0 1,0 1,1 0,0</coordinates></LinearRing></innerBoundaryIs>")), encoding="utf-8")
-    with pytest.raises(SiteFileError, match="holes are not supported"):
+    with pytest.raises(SiteFileError, match=r"holes are not supported"):
         read_area(p)
     p.write_text("<kml><Document>", encoding="utf-8")
-    with pytest.raises(SiteFileError, match="x.kml: not well-formed XML"):
+    with pytest.raises(SiteFileError, match=r"x.kml: not well-formed XML"):
         read_area(p)
     g = tmp_path / "x.geojson"
     g.write_text('{"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", '
                  '"coordinates": [[[0, 0], [1, 0], [NaN, 1], [0, 0]]]}}', encoding="utf-8")
-    with pytest.raises(SiteFileError, match="x.geojson: bare NaN"):
+    with pytest.raises(SiteFileError, match=r"x.geojson: bare NaN"):
         read_area(g)
     g.write_text('{"type": "FeatureCollection", "features": []}', encoding="utf-8")
-    with pytest.raises(SiteFileError, match="holds no keep-out"):
+    with pytest.raises(SiteFileError, match=r"holds no keep-out"):
         read_keepouts(g)
     big = tmp_path / "big.geojson"
     with big.open("wb") as fh:
         fh.truncate(25_000_000)
-    with pytest.raises(SiteFileError, match="more than the 20,000,000 a site file may hold"):
+    with pytest.raises(SiteFileError, match=r"more than the 20,000,000 a site file may hold"):
         read_area(big)
     q = tmp_path / "x.shp"
     q.write_text("", encoding="utf-8")
-    with pytest.raises(SiteFileError, match="unknown site file type '.shp'"):
+    with pytest.raises(SiteFileError, match=r"unknown site file type '.shp'"):
         read_area(q)
 
 
