@@ -33,7 +33,9 @@ CasADi. For symbols, ``height_m`` composes the same polynomial map (at the media
 ground height, no repeat) with ``casadi.interpolant(..., "bspline")`` through the
 window's values on the index grid: a smooth function Ipopt can differentiate, through
 the same nodes as the bilinear surface (the planner re-checks its paths against the
-NumPy surface, as for :class:`sim.terrain.GridTerrain`).
+NumPy surface, as for :class:`sim.terrain.GridTerrain`). A window of more than
+:data:`CASADI_MAX_CELLS` cells gives the B-spline every k-th cell in each direction
+(a 1 m LiDAR model of a 2 km area: every 5th).
 
 Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS, a
 window beyond :data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
@@ -55,6 +57,7 @@ from estimator.geodesy import ExactENU
 from sim.terrain import bilinear, map_elementwise
 
 MAX_WINDOW_CELLS = 16_000_000  # 128 MB of float64: far beyond a search area at 1 m
+CASADI_MAX_CELLS = 250_000  # the CasADi B-spline takes every k-th cell beyond this
 DEFAULT_MARGIN_M = 300.0  # read this far around the scenario's box (overshoot, figures)
 _U_SPAN_M = 1000.0  # the map is fitted over u_ref +- this (metres of ENU up)
 
@@ -350,10 +353,14 @@ class DemTerrain:
 
         f = self.__dict__.get("_ca_fn")
         if f is None:
-            h = self.values_m
-            ny, nx = h.shape
-            lut = ca.interpolant("dem", "bspline", [np.arange(nx, dtype=float).tolist(),
-                                                    np.arange(ny, dtype=float).tolist()],
+            ny, nx = self.values_m.shape
+            # every cell, or every k-th in each direction beyond CASADI_MAX_CELLS
+            k = max(1, math.ceil(math.sqrt(nx * ny / CASADI_MAX_CELLS)))
+            gi = np.unique(np.append(np.arange(0, nx, k), nx - 1))
+            gj = np.unique(np.append(np.arange(0, ny, k), ny - 1))
+            h = self.values_m[np.ix_(gj, gi)]
+            lut = ca.interpolant("dem", "bspline", [gi.astype(float).tolist(),
+                                                    gj.astype(float).tolist()],
                                  h.T.ravel(order="F").tolist())
             es, ns = ca.MX.sym("e"), ca.MX.sym("n")
             x, y = (es - self._ec) / self._L, (ns - self._nc) / self._L

@@ -186,6 +186,24 @@ def test_casadi_form_numpy_forms_and_bounds(tmp_path):
     assert np.array_equal(np.asarray(back.height_m(e, n)), arr)
 
 
+def test_casadi_form_of_a_large_window_takes_every_kth_cell(tmp_path, monkeypatch):
+    import casadi as ca
+
+    import sim.dem
+
+    tr, X, Y, (x0, y0) = _utm_grid(res=20.0, n=120)
+    z = 100 + 30 * np.sin((X - x0) / 150.0) * np.cos((Y - y0) / 210.0)
+    f = _write(tmp_path / "hills.tif", z, UTM, tr)
+    monkeypatch.setattr(sim.dem, "CASADI_MAX_CELLS", 1000)  # the window: ~2500 cells
+    dem = DemTerrain(f, (LAT0, LON0, H0), (-400, 400, -400, 400))
+    es, ns = ca.MX.sym("e"), ca.MX.sym("n")
+    fn = ca.Function("h", [es, ns], [dem.height_m(es, ns)])
+    e, n = np.random.default_rng(5).uniform(-400, 400, (2, 100))
+    sym = np.array([float(fn(a, b)) for a, b in zip(e, n, strict=True)])
+    # a smooth 30 m surface through every 2nd cell (40 m): within a metre of the bilinear
+    assert np.max(np.abs(sym - np.asarray(dem.height_m(e, n)))) < 1.0
+
+
 def test_only_the_window_is_read_from_a_huge_file(tmp_path):
     """A 100 000 x 100 000 GeoTIFF (40 GB as float32, sparse: only the scenario's blocks
     are written) is read through a small window."""
