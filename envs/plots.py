@@ -230,7 +230,7 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
     _place_labels(ax, [(r.enu_m[0], r.enu_m[1],
                         f"{r.bssid[-5:]} ({r.concealment}): {r.status}") for r in resp])
     best = _best_observed(report)
-    if best is None or best.truth_enu_m is None:
+    if best is None:
         ins.set_axis_off()
         lines = [f"{r.bssid} ({r.concealment}): {r.status}" for r in resp]
         ins.text(0.5, 0.5, "no estimates to zoom on\n\n" + "\n".join(lines[:12]),
@@ -240,7 +240,8 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
         for r in resp:
             if r.bssid == best.bssid:  # under the estimates: they stay visible
                 _responder_marker(ins, r, ms=13, zorder=3)
-        t = best.truth_enu_m
+        # centred on the surveyed position, else (a real flight) on the best estimate
+        t = best.truth_enu_m if best.truth_enu_m is not None else best.estimate.enu_m
         half = 12.0
         ests = [x for x in report.tracks if x.bssid == best.bssid and x.estimate is not None]
         if ests:
@@ -252,7 +253,8 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
         ins.set_aspect("equal")
         ins.grid(alpha=0.3)
         ins.set_xlabel("East [m]")
-        ins.set_title(f"zoom on {best.bssid}: estimates with sigma_H circles", fontsize=9)
+        ins.set_title(f"zoom on {best.bssid}: estimates with sigma_H circles"
+                      + ("" if best.truth_enu_m is not None else " (no survey)"), fontsize=9)
     fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)),
                fontsize=8, frameon=False)
     return fig
@@ -290,8 +292,11 @@ def _responder_handle(has_estimate: bool):
 
 
 def _best_observed(report: ReplayReport) -> TrackResult | None:
-    cands = [t for t in report.tracks if t.estimate is not None and t.truth_enu_m is not None]
-    return max(cands, key=lambda t: t.counts["n_acc"], default=None)
+    """The track with the most accepted ranges, among those with a surveyed truth if
+    any has one (a real flight without ``truth`` records: among all estimates)."""
+    cands = [t for t in report.tracks if t.estimate is not None]
+    surveyed = [t for t in cands if t.truth_enu_m is not None]
+    return max(surveyed or cands, key=lambda t: t.counts["n_acc"], default=None)
 
 
 def _draw_estimates(ax, report: ReplayReport, only: str | None = None) -> list[str]:
