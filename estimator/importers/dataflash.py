@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import re
+import sys
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -72,6 +74,32 @@ def gps_to_utc_ns(week: int, ms: int) -> int:
     return gps_ns
 
 
+@contextlib.contextmanager
+def quiet_output() -> Iterator[None]:
+    """Silence what pymavlink prints about bad bytes (from Python and from its compiled
+    indexer) so that it cannot mix with osa's own output; the counts say it instead."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            with contextlib.redirect_stdout(io.StringIO()) as a, \
+                    contextlib.redirect_stderr(io.StringIO()) as b:
+                yield
+                a.truncate(0)
+                b.truncate(0)
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+
+
 def _topic(text: str | None) -> int:
     if text is None:
         return 0
@@ -81,17 +109,6 @@ def _topic(text: str | None) -> int:
     if t.startswith("GPS[") and t.endswith("]") and t[4:-1].isdigit():
         return int(t[4:-1])
     raise SourceError(f"--topic {text!r}: a DataFlash log takes GPS or GPS[N] (instance N)")
-
-
-class _Lines(io.TextIOBase):
-    """Counts the lines pymavlink prints about bad bytes, keeping none of them."""
-
-    def __init__(self) -> None:
-        self.n = 0
-
-    def write(self, s: str) -> int:
-        self.n += s.count("\n")
-        return len(s)
 
 
 _NUMPY = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "q": "<i8",
@@ -115,7 +132,10 @@ class Reader:
     and describes each type from the log's own ``FMT`` messages (layout, columns,
     multipliers); the ``GPS`` and ``GPA`` messages are then unpacked in bulk with that
     description (the same values ``DFReader``'s messages give, tested), once: the
-    reader keeps the GNSS columns, as the ULog reader keeps its topic.
+    reader keeps the GNSS columns, as the ULog reader keeps its topic. pymavlink's
+    index stops at the first message header of an undefined type (a corrupt stretch);
+    the rest of the file is then read message by message with ``DFReader.recv_msg``,
+    which skips bad bytes. Bytes no message covers are counted (``corrupt_bytes``).
     """
 
     def __init__(self, path: Path, options: GnssOptions) -> None:
@@ -126,9 +146,8 @@ class Reader:
         self.source = Source(path=path, format=FORMAT, kind=KIND,
                              label=f"GPS[{self.instance}] with GPA",
                              utc_uncertainty_ns=500_000)  # GMS: 1 ms steps
-        noise = _Lines()
         try:
-            with contextlib.redirect_stdout(noise), contextlib.redirect_stderr(noise):
+            with quiet_output():  # pymavlink prints about bad bytes, from C too
                 df = DFReader.DFReader_binary(str(path), zero_time_base=True)
         except Exception as exc:  # pymavlink raises bare Exceptions on foreign data
             raise SourceError(f"{path}: not a readable DataFlash log ({exc})") from None
@@ -146,13 +165,25 @@ class Reader:
         if missing:
             raise SourceError(f"{path}: GPS messages without {', '.join(missing)} "
                               "(a log older than ArduPilot 3.3?)")
-        # bytes no indexed message covers: garbage pymavlink skipped
-        covered = sum(len(df.offsets[t]) * f.len for t, f in df.formats.items()
-                      if isinstance(t, int) and t < len(df.offsets))
-        self.corrupt_bytes = max(0, df.data_len - covered)
+        types = [t for t in df.formats if isinstance(t, int) and t < len(df.offsets)]
+        covered = sum(len(df.offsets[t]) * df.formats[t].len for t in types)
+        end = max((df.offsets[t][-1] + df.formats[t].len for t in types if df.offsets[t]),
+                  default=0)
         self.truncated = 0
         gps = self._columns(df, "GPS")
         gpa = self._columns(df, "GPA") if "GPA" in df.name_to_id else {}
+        if end < df.data_len - 3:  # the index stopped: read on message by message
+            more, n_bytes = self._read_on(df, end)
+            covered += n_bytes
+            for name, cols in (("GPS", gps), ("GPA", gpa)):
+                rows = more[name]
+                if rows:
+                    fmt = df.formats[df.name_to_id[name]]
+                    for c in fmt.columns:
+                        extra = np.array([r[c] for r in rows]).astype(
+                            cols[c].dtype if c in cols else float)
+                        cols[c] = np.concatenate([cols[c], extra]) if c in cols else extra
+        self.corrupt_bytes = max(0, df.data_len - covered)
         inst = gps.get("I", np.zeros(len(gps["TimeUS"]), dtype=np.int64))
         self.other_instances = {int(i): int(n) for i, n in zip(
             *np.unique(inst[inst != self.instance], return_counts=True), strict=True)}
@@ -174,8 +205,23 @@ class Reader:
             self.gpa_index[hit] = sel[order[pos[hit]]]
         self.gpa = gpa
 
+    @staticmethod
+    def _read_on(df, offset: int) -> tuple[dict[str, list[dict]], int]:
+        """GPS and GPA messages from ``offset`` on, parsed one by one by DFReader (which
+        skips bad bytes), and the bytes the messages parsed there cover."""
+        df.offset, df.remaining = offset, df.data_len - offset
+        out: dict[str, list[dict]] = {"GPS": [], "GPA": []}
+        n_bytes = 0
+        with quiet_output():
+            while (m := df.recv_msg()) is not None:
+                n_bytes += m.fmt.len
+                kind = m.get_type()
+                if kind in out:
+                    out[kind].append({c: getattr(m, c) for c in m.fmt.columns})
+        return out, n_bytes
+
     def _columns(self, df, name: str) -> dict[str, np.ndarray]:
-        """Every column of the ``name`` messages, scaled as DFReader scales them."""
+        """Every column of the indexed ``name`` messages, scaled as DFReader scales them."""
         type_id = df.name_to_id[name]
         fmt = df.formats[type_id]
         offs = np.asarray(df.offsets[type_id], dtype=np.int64)

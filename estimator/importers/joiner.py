@@ -271,9 +271,9 @@ def choose_axis(g: ClockStats, r: ClockStats, gs: Source, rs: Source) -> TimeAxi
                                 "both files carry the phone's elapsedRealtimeNanos of one "
                                 f"boot (their UTC offsets differ by "
                                 f"{abs(off_g - off_r) / 1e6:.1f} ms)", offsets)
-            reason = ("the phone clocks of the two files are of different boots (their UTC "
-                      f"offsets differ by {abs(off_g - off_r) / NS_PER_S:.1f} s: the phone "
-                      "restarted between them): joined on UTC")
+            reason = ("joined on UTC: the phone clocks of the two files are of different "
+                      f"boots, their UTC offsets differ by {abs(off_g - off_r) / NS_PER_S:.1f}"
+                      " s (the phone restarted between them)")
             return _utc_axis(g, r, gs, rs, reason, offsets)
         off = off_g if off_g is not None else off_r
         unc = 0
@@ -287,8 +287,8 @@ def choose_axis(g: ClockStats, r: ClockStats, gs: Source, rs: Source) -> TimeAxi
         return TimeAxis("phone", Mapping(True, off), Mapping(True, off), off, unc, 0,
                         "both files carry the phone's elapsedRealtimeNanos (the same boot "
                         "is assumed: not both have UTC to check it)", offsets)
-    reason = "joined on UTC (" + ("neither file carries the phone's clock" if not (
-        g.has_elapsed or r.has_elapsed) else "only one file carries the phone's clock") + ")"
+    reason = "joined on UTC: " + ("neither file carries the phone's clock" if not (
+        g.has_elapsed or r.has_elapsed) else "only one file carries the phone's clock")
     return _utc_axis(g, r, gs, rs, reason, offsets)
 
 
@@ -477,7 +477,7 @@ def _import(gr, rr, out: Path, options: ImportOptions,
         raise ImportRefused(
             f"{rsrc.path} and {gsrc.path} do not overlap in time: the ranges cover "
             f"{_describe_span(r_lo, r_hi, axis)}, the GNSS {_describe_span(g_lo, g_hi, axis)}"
-            f" ({axis.reason})")
+            f"; time axis: {axis.reason}")
     start, end = max(g_lo, r_lo), min(g_hi, r_hi)
     g_ordered = axis.gnss.ordered(gstats)
     before_i = before_t = after_i = None

@@ -118,6 +118,8 @@ class Reader:
                     tally.counts.lines += 1
                     tally.skip("bad_line")
                     continue
+                if event == METADATA_EVENT:  # read for the start time
+                    continue
                 if event != RTT_EVENT:
                     tally.counts.unknown_types[f"event {event}"] += 1
                     continue

@@ -16,8 +16,9 @@ not with the file. Fields, as the file's own format declares them:
 - ``time_utc_usec``: UTC; fixes before the receiver had UTC (0) are skipped as
   ``no_utc``.
 
-pyulog skips corrupt parts of a file itself; the reader counts that as one
-``corrupt_data`` (pyulog does not say how much it skipped).
+pyulog skips corrupt parts of a file itself (it resumes at the next sync message) and
+does not say how much it skipped: ``corrupt_data`` counts the GNSS messages lost,
+estimated from the gaps in the topic's timestamps (at least 1 for a corrupt file).
 """
 
 from __future__ import annotations
@@ -88,7 +89,10 @@ class Reader:
         self.options = options
         self.source = Source(path=path, format=FORMAT, kind=KIND,
                              utc_uncertainty_ns=500)  # time_utc_usec: 1 us steps
-        want, instance = (parse_topic(options.topic) if options.topic else (None, None))
+        try:
+            want, instance = parse_topic(options.topic) if options.topic else (None, None)
+        except ValueError as exc:
+            raise SourceError(f"{path}: {exc}") from None
         names = [want] if want else list(TOPICS)
         sink = _Lines()
         try:
@@ -112,9 +116,22 @@ class Reader:
         self.types = {f.field_name: f.type_str for f in d.field_data}
         self.data = d.data
         self.n = len(d.data["timestamp"]) if "timestamp" in d.data else 0
+        self.lost = self._lost() if self.corrupt else 0
         for need in ("time_utc_usec",):
             if need not in self.data:
                 raise SourceError(f"{path}: {name} has no {need} field")
+
+    def _lost(self) -> int:
+        """GNSS messages missing from the topic: gaps of more than 1.5 intervals."""
+        t = self.data.get("timestamp")
+        if t is None or len(t) < 3:
+            return 1
+        dt = np.diff(t.astype(np.int64))
+        step = float(np.median(dt))
+        if step <= 0:
+            return 1
+        gaps = dt[dt > 1.5 * step]
+        return max(1, int(np.sum(np.rint(gaps / step) - 1)))
 
     def _column(self, *names: str) -> tuple[str | None, np.ndarray | None]:
         for n in names:
@@ -142,7 +159,7 @@ class Reader:
 
     def records(self, tally: Tally) -> Iterator[Stamped]:
         if self.corrupt:
-            tally.skip("corrupt_data")
+            tally.counts.rejected["corrupt_data"] += self.lost
         lat = self._degrees("lat", "latitude_deg")
         lon = self._degrees("lon", "longitude_deg")
         ell = self._metres("alt_ellipsoid", "altitude_ellipsoid_m")

@@ -59,7 +59,7 @@ def flight_from_log(path: str | Path) -> Flight:
     return Flight(log.header, log.gnss, log.rtt, t0, int(start.timestamp()) * NS)
 
 
-def _utc_ms(utc_ns: int) -> int:
+def utc_ms(utc_ns: int) -> int:
     return (utc_ns + 500_000) // 1_000_000
 
 
@@ -87,13 +87,13 @@ def write_gnsslogger(path: Path, flight: Flight, *, elapsed_shift_ns: int = 0,
             el = str(g.t_ns + elapsed_shift_ns) if with_elapsed else ""
             vacc = "" if g.vacc_m is None else repr(g.vacc_m)
             line = (f"Fix,GPS,{g.lat_deg!r},{g.lon_deg!r},{g.alt_m!r},6.5,{g.acc_m!r},90.0,"
-                    f"{_utc_ms(utc)},0.5,10.0,{el},{vacc},0,{g.sats or ''},0.3,")
+                    f"{utc_ms(utc)},0.5,10.0,{el},{vacc},0,{g.sats or ''},0.3,")
             fh.write(line + "\n")
             if k % 10 == 0:
-                fh.write(f"Raw,{_utc_ms(utc)},{g.t_ns},18,{k % 32}\n")
-                fh.write(f"Status,{_utc_ms(utc)},20,0,1,{k % 32}\n")
+                fh.write(f"Raw,{utc_ms(utc)},{g.t_ns},18,{k % 32}\n")
+                fh.write(f"Status,{utc_ms(utc)},20,0,1,{k % 32}\n")
                 fh.write(f"Fix,FLP,{g.lat_deg + 1e-5!r},{g.lon_deg!r},{g.alt_m!r},6.5,3.9,90.0,"
-                         f"{_utc_ms(utc)},0.5,10.0,{el},5.0,0,,0.3,\n")
+                         f"{utc_ms(utc)},0.5,10.0,{el},5.0,0,,0.3,\n")
         for line in bad_lines:
             fh.write(line + "\n")
     return path
@@ -118,7 +118,7 @@ def write_android_csv(path: Path, flight: Flight, *, utc: bool = True, elapsed: 
             status = codes.get(r.status, r.status) if numeric_status else (
                 "0" if r.ok else r.status)
             row = {
-                "utc_ms": str(_utc_ms(flight.utc_ns(r.t_ns))),
+                "utc_ms": str(utc_ms(flight.utc_ns(r.t_ns))),
                 "elapsed_ns": str(r.t_ns + elapsed_shift_ns),
                 "bssid": r.bssid.upper() if upper_bssid else r.bssid,
                 "channel_mhz": "5180",
