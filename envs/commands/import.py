@@ -124,12 +124,12 @@ def run(args: argparse.Namespace) -> int:
     from estimator.importers import ImportOptions, ImportRefused, import_flight
 
     out = args.output
-    if not (out.endswith(".jsonl") or out.endswith(".jsonl.gz")):
-        return _fail(f"{out}: the log must be named .jsonl or .jsonl.gz")
     try:
         claim_output_file(out, force=args.force, inputs=[args.gnss, args.ranges])
     except OutputRefusedError as exc:
         return _fail(exc)
+    if not (out.endswith(".jsonl") or out.endswith(".jsonl.gz")):
+        return _fail(f"{out}: the log must be named .jsonl or .jsonl.gz")
     opts = ImportOptions(
         gnss_format=args.gnss_format, ranges_format=args.ranges_format, topic=args.topic,
         geoid_offset_m=args.geoid_offset, gnss_acc_m=args.gnss_acc,

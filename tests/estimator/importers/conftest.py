@@ -1,76 +1,28 @@
-"""One short simulated flight for every import test, and its replayed estimates.
-
-``three-aps`` cut to three of its circles and the close pass: 5.9 minutes, 3520 GNSS
-fixes (10 Hz), 1247 ranging results, two responders that converge (AP_1F in the open,
-AP_AB under vegetation). Simulated once per test session (about 1 s).
-"""
+"""Fixtures of the import tests: the short simulated flight (tests/estimator/importers/
+flights.py), simulated once per session (about 1 s), and its replayed estimates."""
 
 from __future__ import annotations
 
-import dataclasses
-import math
-
 import pytest
 
-import sim
-from estimator.replay import ReplayOptions, replay_logs
-from tests.estimator.importers.writers import Flight, flight_from_log
-
-MODES = ("baseline", "empirical-r", "refined")
-
-
-def short_scenario():
-    sc = sim.load_scenario("three-aps")
-    f = sc.flight
-    flight = dataclasses.replace(f, circles=(f.circles[0], f.circles[1], f.circles[6]))
-    return dataclasses.replace(sc, name="three-aps-short", flight=flight)
+from tests.estimator.importers.flights import estimates, simulate_short
+from tests.estimator.importers.writers import Flight
 
 
 @pytest.fixture(scope="session")
 def sim_log(tmp_path_factory):
     path = tmp_path_factory.mktemp("sim") / "short.jsonl"
-    sim.simulate(short_scenario(), 0, path)
+    simulate_short(path)
     return path
 
 
 @pytest.fixture(scope="session")
 def flight(sim_log) -> Flight:
+    from tests.estimator.importers.writers import flight_from_log
+
     return flight_from_log(sim_log)
-
-
-def estimates(path, modes=MODES) -> dict:
-    """{(bssid, mode): TrackResult} of a replay."""
-    report = replay_logs([str(path)], ReplayOptions(modes=modes))
-    return {(t.bssid, t.mode): t for t in report.tracks}
 
 
 @pytest.fixture(scope="session")
 def reference(sim_log) -> dict:
     return estimates(sim_log)
-
-
-def horizontal_m(a, b) -> float:
-    """Horizontal distance between two estimates (m; a local flat-earth step, exact to
-    far below a millimetre at these distances)."""
-    dn = (a.lat_deg - b.lat_deg) * 111_320.0
-    de = (a.lon_deg - b.lon_deg) * 111_320.0 * math.cos(math.radians(a.lat_deg))
-    return math.hypot(dn, de)
-
-
-def largest_differences(ref: dict, got: dict) -> tuple[float, float, float]:
-    """(horizontal, vertical, r95) largest differences (m) over every track, after
-    checking both replays have the same tracks, statuses and estimate presence."""
-    assert set(ref) == set(got)
-    dh = dz = dr = 0.0
-    for k, a in ref.items():
-        b = got[k]
-        assert (a.status, a.lat_deg is None) == (b.status, b.lat_deg is None), k
-        if a.lat_deg is None:
-            continue
-        dh = max(dh, horizontal_m(a, b))
-        dz = max(dz, abs(a.alt_m - b.alt_m))
-        ra, rb = a.estimated.r95_h_m, b.estimated.r95_h_m
-        assert (ra is None) == (rb is None), k
-        if ra is not None:
-            dr = max(dr, abs(ra - rb))
-    return dh, dz, dr

@@ -181,7 +181,7 @@ def test_rosbag_fixes_without_stamp_or_covariance(flight, tmp_path):
     rtt = write_android_csv(tmp_path / "rtt.csv", flight)
     with pytest.raises(ImportRefused, match=f"no usable fix.*no_accuracy={len(flight.gnss)}"):
         _run(bag, rtt, tmp_path)
-    j, log = _run(bag, rtt, tmp_path, gnss_acc_m=2.5)
+    _, log = _run(bag, rtt, tmp_path, gnss_acc_m=2.5)
     assert {g.acc_m for g in log.gnss} == {2.5} and {g.vacc_m for g in log.gnss} == {None}
 
 

@@ -27,7 +27,7 @@ import pytest
 
 from estimator.importers import ImportOptions, import_flight
 from estimator.logio import read_log
-from tests.estimator.importers.conftest import estimates, largest_differences
+from tests.estimator.importers.flights import estimates, largest_differences
 from tests.estimator.importers.writers import (
     NS,
     storage_file,
