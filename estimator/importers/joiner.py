@@ -24,7 +24,6 @@ streamed, and the clock offsets are medians of a bounded sample.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import heapq
 import importlib
 import os
@@ -57,6 +56,9 @@ _SNIFF_ORDER = ("ulog", "dataflash", "rosbag2", "nmea", "gnsslogger", "android-c
 SAME_BOOT_NS = NS_PER_S  # two files' UTC - elapsed offsets within 1 s: the same boot
 HEAD_BYTES = 65_536
 _SAMPLE = 4096
+# a file of at most this many records is kept from pass 1 for pass 2 (about 30 MB);
+# a longer one is read again: memory stays bounded whatever the file
+CACHE_RECORDS = 50_000
 
 
 class ImportRefused(Exception):  # noqa: N818 - a refusal with a one-line reason
@@ -400,12 +402,34 @@ class ImportReport:
 # --------------------------------------------------------------------------- import
 
 
-def _pass1(reader, step: Callable[[str], None]) -> tuple[Tally, ClockStats]:
+class _Records:
+    """A reader's records for the passes after the first: kept from pass 1 when there
+    are at most :data:`CACHE_RECORDS` of them, else read from the file again."""
+
+    def __init__(self, reader) -> None:
+        self.reader = reader
+        self.kept: list[Stamped] | None = []
+
+    def keep(self, s: Stamped) -> None:
+        if self.kept is not None:
+            if len(self.kept) < CACHE_RECORDS:
+                self.kept.append(s)
+            else:
+                self.kept = None
+
+    def __iter__(self) -> Iterator[Stamped]:
+        if self.kept is not None:
+            return iter(self.kept)
+        return self.reader.records(Tally())
+
+
+def _pass1(reader, step: Callable[[str], None]) -> tuple[Tally, ClockStats, _Records]:
     src: Source = reader.source
     step(f"reading {src.path.name} ({src.format})")
-    tally, stats = Tally(), ClockStats()
+    tally, stats, again = Tally(), ClockStats(), _Records(reader)
     for s in reader.records(tally):
         stats.add(s)
+        again.keep(s)
     if stats.n == 0:
         c = tally.counts
         why = ", ".join(f"{k}={v}" for k, v in sorted(c.rejected.items()))
@@ -415,7 +439,7 @@ def _pass1(reader, step: Callable[[str], None]) -> tuple[Tally, ClockStats]:
         what = "fix" if src.kind == "gnss" else "ranging result"
         raise ImportRefused(f"{src.path}: no usable {what} ({src.label}"
                             + (f"; {detail}" if detail else "") + ")")
-    return tally, stats
+    return tally, stats, again
 
 
 def _describe_span(lo: int | None, hi: int | None, axis: TimeAxis) -> str:
@@ -426,12 +450,12 @@ def _describe_span(lo: int | None, hi: int | None, axis: TimeAxis) -> str:
     return f"{utc_text(lo + axis.offset_ns)} to {utc_text(hi + axis.offset_ns)}"
 
 
-def _fix_before(reader, mapping: Mapping, start: int, end: int,
+def _fix_before(records: _Records, mapping: Mapping, start: int, end: int,
                 ordered: bool) -> tuple[int | None, int | None, int | None]:
     """(index and t_ns of the last fix before ``start``, index of the first fix after
     ``end`` when the stream is not in time order)."""
     best_i = best_t = after_i = after_t = None
-    for i, s in enumerate(reader.records(Tally())):
+    for i, s in enumerate(records):
         t = mapping.t_ns(s)
         if t is None:
             continue
@@ -467,8 +491,8 @@ def import_flight(gnss_path: str | os.PathLike, ranges_path: str | os.PathLike,
 
 def _import(gr, rr, out: Path, options: ImportOptions,
             say: Callable[[str], None]) -> ImportReport:
-    gtally, gstats = _pass1(gr, say)
-    rtally, rstats = _pass1(rr, say)
+    gtally, gstats, gagain = _pass1(gr, say)
+    rtally, rstats, ragain = _pass1(rr, say)
     gsrc, rsrc = gr.source, rr.source
     axis = choose_axis(gstats, rstats, gsrc, rsrc)
     g_lo, g_hi = axis.gnss.span(gstats)
@@ -483,7 +507,7 @@ def _import(gr, rr, out: Path, options: ImportOptions,
     before_i = before_t = after_i = None
     if g_lo < start or not g_ordered:
         say("finding the fixes around the overlap")
-        before_i, before_t, after_i = _fix_before(gr, axis.gnss, start, end, g_ordered)
+        before_i, before_t, after_i = _fix_before(gagain, axis.gnss, start, end, g_ordered)
     first_t = before_t if before_t is not None else start
     start_utc = None if axis.offset_ns is None else utc_text(first_t + axis.offset_ns)
     header = LogHeader(agent=options.agent, start_utc=start_utc, agl_m=options.agl_m,
@@ -493,7 +517,7 @@ def _import(gr, rr, out: Path, options: ImportOptions,
 
     def gnss_out() -> Iterator[GnssFix]:
         after_done = False
-        for i, s in enumerate(gr.records(Tally())):
+        for i, s in enumerate(gagain):
             t = axis.gnss.t_ns(s)
             if t is None:
                 grep.no_clock += 1
@@ -504,12 +528,12 @@ def _import(gr, rr, out: Path, options: ImportOptions,
                 after_done = after_done or keep
             if keep and t >= 0:
                 grep.written += 1
-                yield dataclasses.replace(s.record, t_ns=t)
+                yield _with_t_ns(s.record, t)
             else:
                 grep.outside += 1
 
     def ranges_out() -> Iterator[RangeSample]:
-        for s in rr.records(Tally()):
+        for s in ragain:
             t = axis.ranges.t_ns(s)
             if t is None:
                 rrep.no_clock += 1
@@ -517,7 +541,7 @@ def _import(gr, rr, out: Path, options: ImportOptions,
             if start <= t <= end:
                 rrep.written += 1
                 rrep.ok += s.record.status == "ok"
-                yield dataclasses.replace(s.record, t_ns=t)
+                yield _with_t_ns(s.record, t)
             else:
                 rrep.outside += 1
 
@@ -538,6 +562,15 @@ def _import(gr, rr, out: Path, options: ImportOptions,
 
 def _t_ns(rec: GnssFix | RangeSample) -> int:
     return rec.t_ns
+
+
+def _with_t_ns(rec, t_ns: int):
+    """A copy of a checked record with its time set (the frozen record built without
+    its ``__init__``, as :func:`estimator.records.records_from_columns` builds them)."""
+    new = object.__new__(type(rec))
+    new.__dict__.update(rec.__dict__)
+    new.__dict__["t_ns"] = t_ns
+    return new
 
 
 def tally_summary(counts: Counter) -> str:

@@ -14,6 +14,8 @@ A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``).
 
 from __future__ import annotations
 
+import functools
+import operator
 import re
 from collections.abc import Iterator
 from datetime import UTC, date, datetime, timedelta
@@ -39,6 +41,8 @@ KIND = "gnss"
 HDOP_TO_ACC_M = 1.5  # acc_m = 1.5 m x HDOP (documented in docs/import.md)
 QUALITY = {1: None, 2: "dgps", 3: None, 4: "rtk_fixed", 5: "rtk_float"}
 _SENTENCE = re.compile(rb"^\$[A-Z]{2}(GGA|RMC),")
+_HHMMSS = re.compile(r"(\d{2})(\d{2})(\d{2}(?:\.\d+)?)")
+_DDMMYY = re.compile(r"\d{6}")
 
 
 def sniff(head: bytes) -> bool:
@@ -54,9 +58,7 @@ def _checked(line: str) -> list[str]:
     body = body[1:]
     if "*" in body:
         body, cs = body.rsplit("*", 1)
-        want = 0
-        for ch in body.encode("ascii", "replace"):
-            want ^= ch
+        want = functools.reduce(operator.xor, body.encode("ascii", "replace"), 0)
         try:
             if int(cs[:2], 16) != want:
                 raise Skip("bad_checksum")
@@ -66,7 +68,7 @@ def _checked(line: str) -> list[str]:
 
 
 def _time_of_day_ns(text: str) -> int:
-    m = re.fullmatch(r"(\d{2})(\d{2})(\d{2}(?:\.\d+)?)", text.strip())
+    m = _HHMMSS.fullmatch(text.strip())
     if not m:
         raise Skip("bad_time")
     h, mi = int(m.group(1)), int(m.group(2))
@@ -103,7 +105,7 @@ def _rmc_date(fields: list[str]) -> date | None:
     if len(fields) < 10:
         return None
     d = fields[9].strip()
-    if not re.fullmatch(r"\d{6}", d):
+    if not _DDMMYY.fullmatch(d):
         return None
     try:
         return date(2000 + int(d[4:6]), int(d[2:4]), int(d[0:2]))

@@ -75,10 +75,6 @@ class _Lines(io.TextIOBase):
         return len(s)
 
 
-def _f32(values: np.ndarray) -> list[float]:
-    return [float32_decimal(v) for v in values.astype(np.float32)]
-
-
 class Reader:
     """The fixes of one ULog file's GNSS topic (see the module docstring)."""
 
@@ -154,7 +150,7 @@ class Reader:
         if self.types[name].startswith(("int", "uint")):  # millimetres
             return np.round(v.astype(np.float64) * 1e-3, 3)
         if self.types[name] == "float":
-            return np.array(_f32(v))
+            return np.array([float32_decimal(x) for x in v])
         return v.astype(np.float64)
 
     def records(self, tally: Tally) -> Iterator[Stamped]:
@@ -169,10 +165,8 @@ class Reader:
             for _ in range(self.n):
                 tally.skip("missing_field")
             return
-        _, eph_raw = self._column("eph")
-        _, epv_raw = self._column("epv")
-        eph = _f32(eph_raw) if eph_raw is not None else [None] * self.n
-        epv = _f32(epv_raw) if epv_raw is not None else [None] * self.n
+        _, eph = self._column("eph")
+        _, epv = self._column("epv")
         fix_type = self.data.get("fix_type")
         sats = self.data.get("satellites_used")
         utc = self.data["time_utc_usec"]
@@ -193,7 +187,8 @@ class Reader:
                                              None, self.options.geoid_offset_m)
                 fix = make_fix(
                     lat_deg=float(lat[i]), lon_deg=float(lon[i]), alt_m=alt,
-                    acc_m=eph[i], vacc_m=epv[i],
+                    acc_m=None if eph is None else float32_decimal(eph[i]),
+                    vacc_m=None if epv is None else float32_decimal(epv[i]),
                     fix=FIX_TYPES.get(ft) if ft is not None else None,
                     sats=int(sats[i]) if sats is not None else None,
                     default_acc_m=self.options.default_acc_m,

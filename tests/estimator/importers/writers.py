@@ -259,6 +259,15 @@ def _ulog_dtype(fields) -> np.dtype:
     return np.dtype(out)
 
 
+def logged_dtype(fields) -> np.dtype:
+    """The record a format's data messages carry: without the trailing padding fields,
+    which PX4's logger leaves out (and readers expect absent)."""
+    logged = list(fields)
+    while logged and logged[-1][1].startswith("_padding"):
+        logged.pop()
+    return _ulog_dtype(logged)
+
+
 def _pack(dtype: np.dtype, values: dict) -> bytes:
     """One message's payload: the named values, zeros for the rest."""
     rec = np.zeros(1, dtype=dtype)
@@ -282,15 +291,10 @@ class ULogWriter:
         self.fh.write(struct.pack("<HB", len(payload), kind[0]) + payload)
 
     def format(self, name: str, fields) -> np.dtype:
-        """Define a format; returns the record its data messages carry: without the
-        trailing padding fields, which PX4's logger leaves out (and readers expect
-        absent)."""
+        """Define a format; returns the record its data messages carry."""
         text = name + ":" + "".join(f"{t} {n};" for t, n in fields)
         self._msg(b"F", text.encode("ascii"))
-        logged = list(fields)
-        while logged and logged[-1][1].startswith("_padding"):
-            logged.pop()
-        return _ulog_dtype(logged)
+        return logged_dtype(fields)
 
     def info(self, key_type: str, key: str, value: bytes) -> None:
         k = f"{key_type} {key}".encode("ascii")
