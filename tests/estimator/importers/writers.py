@@ -369,7 +369,9 @@ def write_ulog(path: Path, flight: Flight, *, variant: str = "v1.13",
     bdt = w.format("battery_status", battery)
     w.info("char[3]", "sys_name", b"PX4")
     w.info("char[7]", "ver_hw", b"PX4_FMU")
-    w.info("char[6]", "ver_sw_release", b"1.13.3")
+    # PX4's release number: major, minor, patch, type (255: release) in a uint32
+    w.info("uint32_t", "ver_sw_release", struct.pack("<I", (1 << 24) | (13 << 16) | (3 << 8)
+                                                     | 255))
     w.param("MPC_XY_VEL_MAX", 12.0)
     gid = w.add_logged(name, 0)
     gid2 = w.add_logged(name, 1) if second_instance else None
