@@ -111,9 +111,9 @@ def format_report(j: dict) -> str:
         f"{t['offset_s']:.6f} s +- {t['offset_uncertainty_s'] * 1e3:.3f} ms")
     lines.append(f"  clock offset (UTC - t_ns): {off}; GNSS and ranges aligned within "
                  f"{t['alignment_uncertainty_s'] * 1e3:.3f} ms")
-    span = (f"{t['overlap_start_utc']} to {t['overlap_end_utc']}"
-            if t["overlap_start_utc"] else "")
-    lines.append(f"  overlap: {span} ({t['overlap_s'] / 60:.1f} min)".replace(":  (", ": ("))
+    span = (f"{t['overlap_start_utc']} to {t['overlap_end_utc']} "
+            if t["overlap_start_utc"] else "no UTC: phone clock only, ")
+    lines.append(f"  overlap: {span}({t['overlap_s'] / 60:.1f} min)")
     r = j["records"]
     lines.append(f"wrote {j['output']}: {r['gnss']} gnss, {r['rtt']} rtt ({r['rtt_ok']} ok), "
                  f"start_utc {j['start_utc'] or '-'}")

@@ -457,7 +457,7 @@ def _fix_before(records: _Records, mapping: Mapping, start: int, end: int,
     best_i = best_t = after_i = after_t = None
     for i, s in enumerate(records):
         t = mapping.t_ns(s)
-        if t is None:
+        if t is None or t < 0:
             continue
         if t < start and (best_t is None or t > best_t):
             best_i, best_t = i, t
@@ -538,7 +538,7 @@ def _import(gr, rr, out: Path, options: ImportOptions,
             if t is None:
                 rrep.no_clock += 1
                 continue
-            if start <= t <= end:
+            if start <= t <= end and t >= 0:
                 rrep.written += 1
                 rrep.ok += s.record.status == "ok"
                 yield _with_t_ns(s.record, t)

@@ -241,3 +241,22 @@ def test_detection_by_content(flight, tmp_path):
     # the report is JSON-able as it is
     j, _ = _run(files["dataflash"], files["sensorreadout"], tmp_path)
     assert json.loads(json.dumps(j)) == j
+
+
+def test_sensorreadout_start_from_the_option_when_the_file_lacks_it(flight, tmp_path):
+    from tests.estimator.importers.writers import NS
+
+    start = (flight.utc0_ns // NS - 2) * NS
+    rtt = write_sensorreadout(tmp_path / "readout.csv", flight, start)
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    lines = rtt.read_text().splitlines()
+    rtt.write_text("\n".join(lines[1:]) + "\n")  # no metadata line
+    with pytest.raises(ImportRefused, match=r"no recording start.*--ranges-start-utc"):
+        _run(gnss, rtt, tmp_path)
+    j, _ = _run(gnss, rtt, tmp_path, ranges_start_utc_ns=start)
+    # ms stamps on both sides instead of the metadata's whole seconds
+    assert j["time"]["alignment_uncertainty_s"] < 0.003
+    assert j["ranges"]["written"] == len(flight.rtt)
+    rtt.write_text(lines[0].replace("GMT+02:00", "CST") + "\n" + "\n".join(lines[1:]) + "\n")
+    with pytest.raises(ImportRefused, match="unknown time zone 'CST'"):
+        _run(gnss, rtt, tmp_path)
