@@ -494,6 +494,9 @@ def _import(gr, rr, out: Path, options: ImportOptions,
     gtally, gstats, gagain = _pass1(gr, say)
     rtally, rstats, ragain = _pass1(rr, say)
     gsrc, rsrc = gr.source, rr.source
+    if options.geoid_offset_m is not None and not gtally.heights["geoid_offset"]:
+        gsrc.warn("--geoid-offset not used: the file gives heights above the ellipsoid "
+                  "(or its own undulation)")
     axis = choose_axis(gstats, rstats, gsrc, rsrc)
     g_lo, g_hi = axis.gnss.span(gstats)
     r_lo, r_hi = axis.ranges.span(rstats)

@@ -260,3 +260,15 @@ def test_sensorreadout_start_from_the_option_when_the_file_lacks_it(flight, tmp_
     rtt.write_text(lines[0].replace("GMT+02:00", "CST") + "\n" + "\n".join(lines[1:]) + "\n")
     with pytest.raises(ImportRefused, match="unknown time zone 'CST'"):
         _run(gnss, rtt, tmp_path)
+
+
+def test_a_bag_with_two_fix_topics_needs_one_named(flight, tmp_path):
+    bag = write_rosbag(tmp_path / "bag", flight, storage="mcap", second_fix_topic="/rtk/fix")
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    with pytest.raises(ImportRefused, match=r"several NavSatFix topics \(/fix, /rtk/fix\)"):
+        _run(bag, rtt, tmp_path)
+    j, log = _run(bag, rtt, tmp_path, topic="/rtk/fix")
+    assert j["gnss"]["stream"] == "NavSatFix on /rtk/fix"
+    assert {g.acc_m for g in log.gnss} == {4.0} and {g.vacc_m for g in log.gnss} == {6.0}
+    with pytest.raises(ImportRefused, match="no NavSatFix topic '/gps'"):
+        _run(bag, rtt, tmp_path, topic="/gps")

@@ -185,6 +185,11 @@ def test_heights_above_sea_level_need_an_undulation(flight, tmp_path):
     out2 = tmp_path / "with_n.jsonl"
     report2 = import_flight(gnss, rtt, out2, ImportOptions(geoid_offset_m=50.125))
     assert report2.warnings == []
+    # a file with ellipsoidal heights does not use it, and says so
+    full = write_ulog(tmp_path / "full.ulg", flight)
+    report3 = import_flight(full, rtt, tmp_path / "o3.jsonl", ImportOptions(geoid_offset_m=50))
+    assert report3.to_json()["gnss"]["heights"] == {"ellipsoid": len(flight.gnss)}
+    assert any("--geoid-offset not used" in w for w in report3.warnings)
     assert report2.to_json()["gnss"]["heights"] == {"geoid_offset": len(flight.gnss)}
     assert read_log(out2).gnss[0].alt_m == pytest.approx(sim_alt, abs=1e-3)
 

@@ -132,6 +132,17 @@ def test_two_boots_are_joined_on_utc_onto_the_ranging_phones_clock(tmp_path):
     assert axis.gnss.t_ns(_range(boot_b + 7 * NS, boot_b + 7 * NS - boot_a)) == 7 * NS
 
 
+def test_a_phone_clock_without_utc_is_taken_as_the_same_boot(tmp_path):
+    boot = 1_749_000_000 * NS
+    g = _stats(_range(boot + t, t) for t in range(10 * NS, 20 * NS, NS))
+    r = _stats(_range(elapsed_ns=t) for t in range(12 * NS, 18 * NS, NS))  # no utc_ms
+    gs, rs = _sources(tmp_path)
+    axis = choose_axis(g, r, gs, rs)
+    assert axis.clock == "phone" and axis.offset_ns == boot
+    assert axis.ranges.t_ns(_range(elapsed_ns=13 * NS)) == 13 * NS
+    assert rs.warnings and "not checked" in rs.warnings[0] and not gs.warnings
+
+
 def test_without_a_common_clock_the_import_is_refused(tmp_path):
     g = _stats(_range(utc_ns=t) for t in range(NS, 5 * NS, NS))
     r = _stats(_range(elapsed_ns=t) for t in range(NS, 5 * NS, NS))  # phone clock only

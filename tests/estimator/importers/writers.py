@@ -542,10 +542,11 @@ def write_dataflash(path: Path, flight: Flight, *, with_und: bool = True,
 
 def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
                  topic: str = "/fix", covariance: bool = True,
-                 extra_topic: bool = True) -> Path:
+                 extra_topic: bool = True, second_fix_topic: str | None = None) -> Path:
     """A ROS 2 bag directory (rosbags' ``Writer``, version 9) with NavSatFix on
     ``topic`` stamped with the fix's UTC, a diagonal covariance (acc^2, acc^2,
-    vacc^2), recorded 30 ms after the stamp; plus a ``/battery`` topic of another type."""
+    vacc^2), recorded 30 ms after the stamp; plus a ``/battery`` topic of another type
+    and, if asked, a second NavSatFix topic (a worse receiver, every tenth fix)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -560,6 +561,8 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
         conn = w.add_connection(topic, NavSatFix.__msgtype__, typestore=ts)
         bconn = w.add_connection("/battery", Float32.__msgtype__, typestore=ts) \
             if extra_topic else None
+        conn2 = w.add_connection(second_fix_topic, NavSatFix.__msgtype__, typestore=ts) \
+            if second_fix_topic else None
         for k, g in enumerate(flight.gnss):
             utc = flight.utc_ns(g.t_ns)
             vacc = g.vacc_m if g.vacc_m is not None else 0.0
@@ -573,6 +576,10 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
                 position_covariance_type=2 if covariance else 0,
             )
             w.write(conn, utc + 30_000_000, ts.serialize_cdr(msg, NavSatFix.__msgtype__))
+            if conn2 is not None and k % 10 == 0:
+                msg.latitude += 3e-5
+                msg.position_covariance = np.array([16.0, 0, 0, 0, 16.0, 0, 0, 0, 36.0])
+                w.write(conn2, utc + 35_000_000, ts.serialize_cdr(msg, NavSatFix.__msgtype__))
             if bconn is not None and k % 10 == 0:
                 w.write(bconn, utc + 31_000_000,
                         ts.serialize_cdr(Float32(data=15.9), Float32.__msgtype__))
