@@ -588,7 +588,8 @@ def convergence_figure(report: ReplayReport, bssid: str | None = None):
         a2.set_title("(b) ground-truth 2-D error: no estimates")
         return fig
     widths = [1.0 if b in with_data else 0.32 for b in by]
-    fig = plt.figure(figsize=(1.0 + sum(4.9 * w for w in widths), 7.6), layout="constrained")
+    fig = plt.figure(figsize=(max(9.0, 1.2 + sum(4.9 * w for w in widths)), 7.6),
+                     layout="constrained")
     gs = fig.add_gridspec(2, len(by), width_ratios=widths)
     handles: dict[str, Any] = {}
     ends_by_axis: list[tuple[Any, list]] = []

@@ -21,8 +21,17 @@ LEGEND_GID = "legend"  # gid of the map's legend (tests look for it)
 
 
 def map_image(loop: ClosedLoop, pilot: Pilot, size_px: int = 480) -> np.ndarray:
-    """(size_px, 1.5 size_px, 3) uint8: the map (area, coverage, track, estimates with
-    their 95 % circles, the truth) on the left, its legend on the right."""
+    """(size_px, 1.5 size_px, 3) uint8: :func:`map_figure` rendered."""
+    fig = map_figure(loop, pilot, size_px)
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[:, :, :3]
+    return np.ascontiguousarray(img)
+
+
+def map_figure(loop: ClosedLoop, pilot: Pilot, size_px: int = 480):
+    """The map (area, coverage, track, estimates with their 95 % circles, the truth)
+    on the left, its legend and the flight time on the right (a matplotlib Figure on
+    its own Agg canvas: no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
@@ -92,9 +101,7 @@ def map_image(loop: ClosedLoop, pilot: Pilot, size_px: int = 480) -> np.ndarray:
     fig.text(0.72, 0.1, f"flight time {loop.t_s / 60:.1f} min ({loop.t_s:.0f} s)\n"
              f"localised {len(pilot.localised)} of {len(loop.truth)}", fontsize=8.5,
              va="bottom")
-    fig.canvas.draw()
-    img = np.asarray(fig.canvas.buffer_rgba())[:, :, :3]
-    return np.ascontiguousarray(img)
+    return fig
 
 
 def _polygon(area: np.ndarray):
