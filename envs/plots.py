@@ -590,6 +590,7 @@ def convergence_figure(report: ReplayReport, bssid: str | None = None):
     widths = [1.0 if b in with_data else 0.32 for b in by]
     fig = plt.figure(figsize=(max(9.0, 1.2 + sum(4.9 * w for w in widths)), 7.6),
                      layout="constrained")
+    fig.get_layout_engine().set(w_pad=0.12)  # the end labels' text keeps off the edge
     gs = fig.add_gridspec(2, len(by), width_ratios=widths)
     handles: dict[str, Any] = {}
     ends_by_axis: list[tuple[Any, list]] = []

@@ -297,6 +297,21 @@ def test_trajectory_frames_the_flight_and_zooms_on_every_estimated_responder(def
     plt.close(fig)
 
 
+def test_convergence_of_one_responder_keeps_its_labels_in_the_figure(replay):
+    import matplotlib.pyplot as plt
+
+    from envs.plots import convergence_figure
+
+    _, rep = replay
+    fig = convergence_figure(rep)
+    fig.set_dpi(130)
+    fig.canvas.draw()
+    labels = [t for a in fig.axes for t in _labels(a)]
+    assert len(labels) == 6 and _disjoint(_boxes(fig, labels))
+    assert all(b.x1 <= fig.bbox.x1 - 3 for b in _boxes(fig, labels))
+    plt.close(fig)
+
+
 def test_ground_grid_goes_through_the_frames(tmp_path):
     """A replay's frame (at its first fix) is not the world's: heights are looked up
     where the grid point is in the world."""
@@ -393,9 +408,11 @@ def test_convergence_has_a_column_per_responder(default_run):
     for lab, box in zip(labels, _boxes(fig, labels), strict=True):
         assert lab.arrow_patch.get_window_extent(r).x1 <= box.x0 + 2.0
     _legend_outside_axes(fig)
-    # saving draws again: the labels stay apart
+    # saving draws again (at another dpi): the labels stay apart and inside the figure
+    fig.set_dpi(130)
     fig.canvas.draw()
     assert _disjoint(_boxes(fig, labels))
+    assert all(b.x1 <= fig.bbox.x1 - 3 for b in _boxes(fig, labels))
     for lab in labels:  # none over another panel
         box = _boxes(fig, [lab])[0]
         own = lab.axes
