@@ -175,18 +175,18 @@ def _overlaps(a, b) -> bool:
     return not (a.x1 <= b.x0 or b.x1 <= a.x0 or a.y1 <= b.y0 or b.y1 <= a.y0)
 
 
-def place_labels(ax, points: Sequence[tuple[float, float, str]], fontsize: float = 7.5,
-                 avoid: Sequence = ()) -> list:
+def place_labels(ax, points: Sequence[tuple[float, float, str]],
+                 fontsize: float = 7.5) -> list:
     """Annotate each (x, y, text) at the first of a few offsets where the label overlaps
-    no label placed before (nor a display box of ``avoid``) and stays inside the axes;
-    when none does, it is stacked above the others on a leader line."""
+    no label placed before and stays inside the axes; when none does, it is stacked
+    above the others on a leader line."""
     fig = ax.figure
     renderer = fig.canvas.get_renderer()
     offsets = [(7, 7, "left", "bottom"), (7, -7, "left", "top"), (-7, 7, "right", "bottom"),
                (-7, -7, "right", "top"), (0, 14, "center", "bottom"),
                (0, -14, "center", "top"), (7, 24, "left", "bottom"), (-7, -24, "right", "top"),
                (14, 0, "left", "center"), (-14, 0, "right", "center")]
-    placed: list = list(avoid)
+    placed: list = []
     texts = []
     ax_box = ax.get_window_extent(renderer)
     box_style = {"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8}
@@ -427,7 +427,9 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
             and ext0[2] - reach <= t.estimate.enu_m[1] <= ext0[3] + reach]
     extent = framed_extent(np.vstack([core_pts, np.array(near).reshape(-1, 2)]), margin=0.07)
     set_extent(ax, extent)
-    grid = ground_grid(terrain, extent, terrain_frame=terrain_frame, plot_frame=report.frame)
+    placed = terrain_frame is None or report.frame is not None  # else: nowhere to put it
+    grid = ground_grid(terrain if placed else None, extent, terrain_frame=terrain_frame,
+                       plot_frame=report.frame)
     if grid is not None:
         ground_colorbar(fig, draw_ground(ax, grid), ax)
     modes = _draw_estimates(ax, report, circles=False)

@@ -212,6 +212,22 @@ def test_figures_without_estimates_say_so(no_estimate_run):
     plt.close(fig)
 
 
+def test_crowded_labels_are_stacked_apart():
+    import matplotlib.pyplot as plt
+
+    from envs.plots import place_labels
+
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.set_xlim(0, 100)
+    ax.set_ylim(0, 100)
+    fig.canvas.draw()
+    pts = [(50 + 0.1 * k, 50, f"responder {k} (vegetation_debris)") for k in range(12)]
+    texts = place_labels(ax, pts)
+    fig.canvas.draw()
+    assert len(texts) == 12 and _disjoint(_boxes(fig, texts))
+    plt.close(fig)
+
+
 def test_spread_positions_keeps_order_and_gap():
     from envs.plots import spread_positions
 
