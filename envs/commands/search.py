@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.connection is not None:
             from envs.mavlink_loop import VehicleLinkError, run_search_mavlink
-            from planner.mavlink import UploadError
+            from planner.mavlink_wire import UploadError
 
             try:
                 result = run_search_mavlink(scenario, policy, args.connection,
@@ -146,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
 def _link_problem(args: argparse.Namespace, scenario) -> str | None:
     """Why ``--connection`` / ``--vehicle-log`` cannot be used (None: they can)."""
     from envs.mavlink_loop import pymavlink_url
-    from planner.mavlink import InvalidConnectionError, check_connection_url
+    from planner.mavlink import check_connection_url
+    from planner.mavlink_wire import InvalidConnectionError
 
     if args.connection is None:
         return "--vehicle-log needs --connection"
