@@ -29,6 +29,7 @@ from envs.plots import (
     ground_colorbar,
     ground_grid,
     ground_norm,
+    plain_log_ticks,
     pyplot,
     r95_radius_m,
     save_figure,
@@ -137,14 +138,6 @@ def error_bands(ev: Evaluation, policy: str, column: int, dt_s: float | None = N
     return grid, np.quantile(a, qs, axis=0, method="inverted_cdf")
 
 
-def _plain_log_ticks(ax) -> None:
-    from matplotlib.ticker import FuncFormatter, LogLocator
-
-    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
-
-
 def error_vs_time_figure(ev: Evaluation):
     plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9.6, 7.4), sharex=True)
@@ -163,7 +156,7 @@ def error_vs_time_figure(ev: Evaluation):
     if drawn:
         for ax in (ax1, ax2):
             ax.set_yscale("log")
-            _plain_log_ticks(ax)
+            plain_log_ticks(ax)
             ax.grid(alpha=0.3, which="both")
     else:
         for ax in (ax1, ax2):

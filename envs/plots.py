@@ -71,6 +71,15 @@ def pyplot():
     return plt
 
 
+def plain_log_ticks(ax) -> None:
+    """A log y axis labelled 1, 2, 5, 10, 20 ... instead of 2 x 10^0."""
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
+
+
 def mode_style(mode: str) -> dict[str, Any]:
     """Line keyword arguments of a mode (colour, style, width, marker)."""
     ls, lw, marker = MODE_STYLES.get(mode, ("-", 1.0, "."))

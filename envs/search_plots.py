@@ -29,6 +29,7 @@ from envs.plots import (
     ground_colorbar,
     ground_grid,
     place_labels,
+    plain_log_ticks,
     pyplot,
     r95_radius_m,
     save_figure,
@@ -175,7 +176,7 @@ def _zoom(ax, result: SearchResult, r: dict, colour: str) -> None:
 
 def search_error_figure(result: SearchResult, title: str = ""):
     plt = pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8.6, 6.4), sharex=True)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9.6, 6.4), sharex=True)
     any_est = False
     for k, r in enumerate(result.responders):
         b = r["bssid"]
@@ -185,9 +186,13 @@ def search_error_figure(result: SearchResult, title: str = ""):
         err = np.array([np.nan if p.err_h_m is None else p.err_h_m for p in pts])
         sig = np.array([np.nan if p.sigma_h_m is None else p.sigma_h_m for p in pts])
         r95 = np.array([np.nan if p.r95_h_m is None else p.r95_h_m for p in pts])
-        if np.isfinite(err).any():
+        name = f"{short_id(b)} ({r.get('concealment', '?')})"
+        if not np.isfinite(err).any():  # listed all the same: every responder shows
+            ax1.plot([], [], color=c, lw=1.4, ls=":",
+                     label=f"{name}: {'no estimate' if 'detected_at_s' in r else 'never heard'}")
+        else:
             any_est = True
-            ax1.plot(t, err, color=c, lw=1.4, label=f"{b[-5:]} ({r.get('concealment', '?')})")
+            ax1.plot(t, err, color=c, lw=1.4, label=name)
             ax2.plot(t, sig, color=c, lw=1.4, label=f"{b[-5:]} sigma_H")
             if np.isfinite(r95).any():
                 ax2.plot(t, r95, color=c, lw=1.0, ls="--", label=f"{b[-5:]} 95 % radius")
@@ -199,6 +204,7 @@ def search_error_figure(result: SearchResult, title: str = ""):
     if any_est:
         for ax in (ax1, ax2):
             ax.set_yscale("log")
+            plain_log_ticks(ax)
             ax.grid(alpha=0.3, which="both")
         ax1.axhline(1.0, color="black", lw=0.8, ls=":")
         ax1.set_ylabel("horizontal error (m)")
@@ -216,7 +222,7 @@ def search_error_figure(result: SearchResult, title: str = ""):
                   loc="left")
     fig.suptitle(title or (f"{result.scenario}: {result.policy}, seed {result.seed}; "
                            "dotted: first heard, dash-dot: judged localised"), fontsize=10)
-    fig.tight_layout(rect=(0.0, 0.0, 0.76, 1.0))
+    fig.tight_layout(rect=(0.0, 0.0, 0.7, 1.0))
     return fig
 
 

@@ -502,6 +502,23 @@ def test_search_trajectory_shows_estimate_circle_and_truth(search_result):
     plt.close(fig)
 
 
+def test_search_errors_list_every_responder(search_result):
+    import matplotlib.pyplot as plt
+
+    from envs.search_plots import search_error_figure
+
+    res, _ = search_result
+    fig = search_error_figure(res)
+    words = " ".join(t.get_text() for t in fig.axes[0].get_legend().get_texts())
+    for b in res.truth_enu_m:
+        assert b[-5:] in words
+    assert "never heard" in words  # ba:35:20:fb:6c:b3 answered nothing
+    fig.canvas.draw()
+    ticks = [t.get_text() for t in fig.axes[0].get_yticklabels() if t.get_text()]
+    assert ticks and all(t.replace(".", "").isdigit() for t in ticks)  # 0.5, 1, 2: plain
+    plt.close(fig)
+
+
 def test_search_circle_falls_back_to_sigma_and_flat_ground_is_skipped(search_result):
     import dataclasses
 
