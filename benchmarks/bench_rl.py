@@ -44,7 +44,7 @@ class RandomManoeuvres:
         self.pilot.reset(mission)
 
     def decide(self, obs):
-        from planner.policy import Decision
+        from planner.observation import Decision
 
         self.pilot.observe(obs)
         if self.pilot.done(obs):

@@ -19,13 +19,8 @@ import statistics
 import sys
 import time
 
-from planner.mavlink import (
-    MAV_MISSION_TYPE_MISSION,
-    TransferConfig,
-    compare_wire,
-    connected,
-    mission_to_wire,
-)
+from planner.mavlink import MAV_MISSION_TYPE_MISSION, TransferConfig, connected
+from planner.mavlink_wire import compare_wire, mission_to_wire
 from planner.mission import Mission, MissionItem
 from sim import load_scenario
 

@@ -72,13 +72,8 @@ def vehicle_process(*args: str, scenario: str = SCENARIO) -> Iterator[int]:
 
 
 def bench_upload(n_items: int, runs: int) -> None:
-    from planner.mavlink import (
-        MAV_MISSION_TYPE_MISSION,
-        TransferConfig,
-        compare_wire,
-        connected,
-        mission_to_wire,
-    )
+    from planner.mavlink import MAV_MISSION_TYPE_MISSION, TransferConfig, connected
+    from planner.mavlink_wire import compare_wire, mission_to_wire
     from planner.mission import Mission, MissionItem
 
     lat0, lon0 = 36.7140, -4.4785

@@ -6,7 +6,7 @@ every record the phones log, in the order a replay of their logs gives, and the
 phones' logs written as they fly. It offers ``observe()`` (what a policy may see:
 the autopilots' estimates and the estimator's output, never the truth), ``apply(
 decision)`` (new segments to fly) and ``advance(dt)``; :func:`run_search` drives it
-with a :class:`planner.policy.Policy` until the policy says it is done or the budget
+with a :class:`planner.observation.Policy` until the policy says it is done or the budget
 is spent, and returns a :class:`SearchResult` (the ``osa search`` JSON report, plus
 time series for figures). The Gymnasium environments use the same object.
 
@@ -34,7 +34,7 @@ from estimator.online import EstimatorOptions, OnlineEstimator
 from estimator.records import Estimate, RangeSample, Trajectory
 from estimator.replay import parse_modes
 from planner.area import SearchArea
-from planner.policy import (
+from planner.observation import (
     AgentView,
     Decision,
     Observation,

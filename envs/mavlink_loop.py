@@ -47,15 +47,10 @@ from envs.vehicle.telemetry import VEHICLE_TAG, world_fingerprint
 from estimator.logio import LogWriter, RejectCounts, parse_line
 from estimator.records import GnssFix, LogHeader, RangeSample, Trajectory, TruthRecord
 from planner.convert import trajectory_to_mission
-from planner.mavlink import (
-    MissionRejectedError,
-    PymavlinkLink,
-    TransferConfig,
-    UploadError,
-    upload_on_link,
-)
+from planner.mavlink import PymavlinkLink, TransferConfig, upload_on_link
+from planner.mavlink_wire import MissionRejectedError, UploadError
 from planner.mission import MAV_CMD_DO_CHANGE_SPEED, Mission, MissionItem
-from planner.policy import AgentView, Decision, Observation, Policy
+from planner.observation import AgentView, Decision, Observation, Policy
 from sim.realisation import Realisation
 from sim.scenario import Scenario
 

@@ -306,7 +306,7 @@ class SearchArea:
                 break
         inside: list[XY] = []
         for w in wps:
-            q = self._pull_inside(w)
+            q = self.pull_inside(w)
             if not inside or math.dist(inside[-1], q) > 1.0:
                 inside.append(q)
         return self.join(inside)
@@ -330,7 +330,7 @@ class SearchArea:
             self._inset_cache[margin_m] = pts
         return pts
 
-    def _pull_inside(self, p: np.ndarray) -> XY:
+    def pull_inside(self, p: np.ndarray) -> XY:
         """``p`` if it lies ``margin_m`` inside, else the nearest point of the inset
         boundary (the centroid if there is none)."""
         p = np.asarray(p, dtype=float).reshape(2)

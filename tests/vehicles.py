@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from envs.vehicle import ConnectionURLError, VirtualVehicle
-from planner.mavlink import WireItem
+from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION
 from sim import load_scenario
 from tests.net import LOOPBACK, free_udp_port

@@ -54,12 +54,8 @@ def _fail(status: int, message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from planner.files import MissionFileError, read_mission
-    from planner.mavlink import (
-        InvalidConnectionError,
-        TransferConfig,
-        UploadError,
-        upload_mission,
-    )
+    from planner.mavlink import TransferConfig, upload_mission
+    from planner.mavlink_wire import InvalidConnectionError, UploadError
 
     try:
         mission = read_mission(args.file)

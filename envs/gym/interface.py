@@ -3,15 +3,15 @@
 One object per episode, shared by the Gymnasium envs and :class:`envs.gym.trained.
 TrainedPolicy`, so a network trained in an env meets exactly the same observation and
 action mapping when it flies ``osa search``: everything here is computed from a
-:class:`planner.policy.Observation` (what the autopilot and the estimator say, never
-the truth) and the :class:`planner.policy.SearchMission` (what the operator knows).
+:class:`planner.observation.Observation` (what the autopilot and the estimator say, never
+the truth) and the :class:`planner.observation.SearchMission` (what the operator knows).
 
 - :class:`Encoder`: the observation (a flat ``Dict`` of normalised float32 vectors:
   the vehicle, responder slots with a mask, a coarse coverage map), the estimator-only
-  "localised" bookkeeping (:class:`planner.policy.LocalisedRule`) and the information
+  "localised" bookkeeping (:class:`planner.observation.LocalisedRule`) and the information
   potential behind the reward.
 - :class:`ManoeuvreActions` (``osa/Search-v0``) and :class:`WaypointActions`
-  (``osa/Waypoint-v0``): action -> :class:`planner.policy.Decision`.
+  (``osa/Waypoint-v0``): action -> :class:`planner.observation.Decision`.
 
 Reward of one decision (all terms from the estimator, the vehicle and the link model):
 ``information + detection_bonus * newly detected + coverage_bonus * newly covered
@@ -36,18 +36,16 @@ import numpy as np
 from gymnasium import spaces
 
 from estimator.records import Trajectory
-from planner.policy import (
-    AdaptiveConfig,
+from planner.adaptive import AdaptiveConfig, Manoeuvres
+from planner.coverage import Sweep, search_spacing_m
+from planner.observation import (
     AgentView,
     Decision,
     LocalisedRule,
-    Manoeuvres,
+    LocalisedTracker,
     Observation,
     ResponderView,
     SearchMission,
-    Sweep,
-    _Tracker,
-    search_spacing_m,
 )
 
 SLOT_FEATURES = (
@@ -146,7 +144,7 @@ class Encoder:
     def reset(self, mission: SearchMission, agent: int = 0) -> None:
         self.mission = mission
         self.agent = agent
-        self.tracker = _Tracker(self.cfg.rule)
+        self.tracker = LocalisedTracker(self.cfg.rule)
         v = mission.area.vertices
         lo, hi = v.min(axis=0), v.max(axis=0)
         self.center = tuple((0.5 * (lo + hi)).tolist())
@@ -478,7 +476,7 @@ class WaypointActions:
         if self.halfplanes is not None:  # convex: the nearest point inside the margin
             wp = self._inside(want)
         else:
-            wp = np.asarray(area._pull_inside(want), dtype=float)
+            wp = np.asarray(area.pull_inside(want), dtype=float)
         self.penalty = min(1.0, _norm(want - wp) / reach)
         if self.ground:
             agl = 0.0

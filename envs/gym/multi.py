@@ -25,7 +25,7 @@ from envs.gym.base import (
 )
 from envs.gym.interface import Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop
-from planner.policy import Decision
+from planner.observation import Decision
 from sim.scenario import AgentSpec, Scenario, search_scenario
 from sim.vehicle import WALKER
 

@@ -18,7 +18,7 @@ class SearchEnv(SearchEnvBase):
 
     ## Action Space
 
-    ``Discrete(7)``, the manoeuvres of ``planner.policy.Manoeuvres``:
+    ``Discrete(7)``, the manoeuvres of ``planner.adaptive.Manoeuvres``:
 
     | action | manoeuvre |
     | --- | --- |
@@ -80,7 +80,7 @@ class SearchEnv(SearchEnvBase):
     ## Episode End
 
     Terminated when every detected responder (at least one) is localised by the
-    estimator's own judgement (``planner.policy.LocalisedRule``) and, when the scenario
+    estimator's own judgement (``planner.observation.LocalisedRule``) and, when the scenario
     says how many to expect, that many are. Truncated when the flight-time budget is
     spent. ``info["eval"]`` carries the truth for evaluation only (per BSSID
     ``detected`` and ``err_h_m`` when an estimate exists), with ``info["flight_time_s"]``

@@ -12,7 +12,7 @@
 
 :class:`TrainedPolicy` wraps the model, its statistics and the env's observation and
 action mapping (:class:`envs.gym.interface.Pilot`) into a
-:class:`planner.policy.Policy`: each ``decide`` encodes the observation exactly as the
+:class:`planner.observation.Policy`: each ``decide`` encodes the observation exactly as the
 env did in training, normalises it with the saved statistics, asks the network for its
 deterministic action and turns it into a flight with the env's mapping. So a policy
 trained in the env flies ``osa search`` and ``osa evaluate`` as it flew in training.
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.gym.interface import EnvConfig, Pilot
-from planner.policy import Decision, Observation, SearchMission
+from planner.observation import Decision, Observation, SearchMission
 
 MODEL_FILE, STATS_FILE, META_FILE = "model.zip", "vecnormalize.pkl", "osa-model.json"
 ALGOS = ("PPO", "A2C", "DQN", "SAC", "TD3")

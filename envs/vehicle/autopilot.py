@@ -86,7 +86,7 @@ from envs.vehicle.px4 import (
     SEVERITY_WARNING,
     Mode,
 )
-from planner.mavlink import WireItem
+from planner.mavlink_wire import WireItem
 from planner.mission import (
     MAV_CMD_DO_CHANGE_SPEED,
     MAV_CMD_NAV_LAND,

@@ -10,7 +10,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from planner.mavlink import WireItem, wire_to_fence
+from planner.mavlink_wire import WireItem, wire_to_fence
 from planner.mission import (
     MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
     MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from planner.mavlink import WireItem
+from planner.mavlink_wire import WireItem
 from planner.mission import (
     MAV_CMD_DO_CHANGE_SPEED,
     MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,

@@ -36,7 +36,7 @@ from envs.vehicle.mission import (
     check_item,
     check_list,
 )
-from planner.mavlink import WireItem
+from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
 MAV_MISSION_TYPE_ALL = 255

@@ -14,7 +14,9 @@ import sim
 from envs.cli import main
 from envs.loop import ClosedLoop, LoopConfig, run_search
 from estimator.replay import ReplayOptions, replay_logs
-from planner.policy import AdaptivePolicy, Decision, Observation, PatternPolicy
+from planner.adaptive import AdaptivePolicy
+from planner.coverage import PatternPolicy
+from planner.observation import Decision, Observation
 
 RTK = "search-random-los-rtk"
 
@@ -106,7 +108,7 @@ class _Recorder:
     def decide(self, obs):
         self.seen.append(obs)
         if obs.t_s == 0.0:
-            from planner.policy import polyline_trajectory
+            from planner.coverage import polyline_trajectory
 
             m = self.mission
             cx, cy = self.center
@@ -210,7 +212,7 @@ class _NoRaise:
 def test_a_segment_bringing_a_vehicle_back_inside_is_accepted(monkeypatch):
     """From inside, a segment (with the leg to it) must stay inside; from outside (a wide
     turn), the segment counts from its first point inside on."""
-    from planner.policy import polyline_trajectory
+    from planner.coverage import polyline_trajectory
 
     loop = ClosedLoop(_short(RTK, 60.0), 0)
     m = loop.mission

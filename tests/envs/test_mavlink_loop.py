@@ -27,7 +27,8 @@ from envs.mavlink_loop import (
     run_search_mavlink,
 )
 from estimator.replay import ReplayOptions, replay_logs
-from planner.policy import Decision, polyline_trajectory
+from planner.coverage import polyline_trajectory
+from planner.observation import Decision
 from sim import load_scenario
 from tests.envs.vehicle.helpers import SEARCH_SCENARIO
 from tests.vehicles import running_vehicle

@@ -33,11 +33,10 @@ from planner.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_GENERIC,
     MAV_MISSION_ACCEPTED,
-    WireItem,
-    ardupilot_stored,
     mavutil,
     quiet_mavsdk_logs,
 )
+from planner.mavlink_wire import WireItem, ardupilot_stored
 from planner.mission import (
     MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL,

@@ -18,18 +18,20 @@ from planner.files import write_plan
 from planner.mavlink import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     TransferConfig,
+    connected,
+    resolve_autopilot,
+    upload_mission,
+    upload_on_link,
+)
+from planner.mavlink_wire import (
     UploadTimeoutError,
     VerifyMismatchError,
     WireItem,
     compare_wire,
-    connected,
     fence_to_wire,
     home_to_wire,
     mission_to_wire,
     rally_to_wire,
-    resolve_autopilot,
-    upload_mission,
-    upload_on_link,
     wire_to_mission,
 )
 from planner.mission import (
@@ -308,7 +310,7 @@ def test_link_config_autopilot_is_used(ardupilot: ArduPilotLikeVehicle) -> None:
 def test_compare_wire_accepts_storage_forms_only():
     from dataclasses import replace
 
-    from planner.mavlink import compare_wire
+    from planner.mavlink_wire import compare_wire
 
     wp = WireItem(seq=1, frame=6, command=16, current=0, autocontinue=1, param1=0.0,
                   param2=0.0, param3=0.0, param4=float("nan"), x=367150000, y=-44780000,

@@ -19,13 +19,8 @@ from planner.files import (
     write_plan,
     write_wpl,
 )
-from planner.mavlink import (
-    compare_wire,
-    connected,
-    fence_to_wire,
-    mission_to_wire,
-    rally_to_wire,
-)
+from planner.mavlink import connected
+from planner.mavlink_wire import compare_wire, fence_to_wire, mission_to_wire, rally_to_wire
 from planner.mission import (
     MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
     MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,

@@ -222,7 +222,8 @@ def test_pattern_through_a_keep_out_is_refused(tmp_path, capsys) -> None:
 
 def test_mavsdk_imports_what_was_planned(tmp_path, mavsdk_peer) -> None:
     """MAVSDK's own QGroundControl importer reads the written .plan as planned."""
-    from planner.mavlink import compare_wire, connected, fence_to_wire, mission_to_wire
+    from planner.mavlink import connected
+    from planner.mavlink_wire import compare_wire, fence_to_wire, mission_to_wire
     from tests.planner.conftest import FAST
 
     path = tmp_path / "c.plan"

@@ -12,22 +12,18 @@ import pytest
 
 from envs.cli import main as osa_main
 from planner.files import write_plan
-from planner.mavlink import (
+from planner.mavlink import TransferConfig, connected, download_wire, upload_mission, upload_on_link
+from planner.mavlink_wire import (
     InvalidConnectionError,
     MissionRejectedError,
     NoVehicleError,
-    TransferConfig,
     UploadTimeoutError,
     VerifyMismatchError,
     WireItem,
     compare_wire,
-    connected,
-    download_wire,
     fence_to_wire,
     mission_to_wire,
     rally_to_wire,
-    upload_mission,
-    upload_on_link,
     wire_to_mission,
 )
 from planner.mission import (

@@ -23,7 +23,7 @@ from envs.gym.interface import EnvConfig, Pilot
 from envs.gym.search import SearchEnv
 from envs.gym.waypoint import WaypointEnv
 from envs.loop import ClosedLoop
-from planner.policy import AgentView, Observation, ResponderView
+from planner.observation import AgentView, Observation, ResponderView
 
 IDS = ("osa/Search-v0", "osa/Waypoint-v0")
 ROOT = Path(__file__).resolve().parents[3]

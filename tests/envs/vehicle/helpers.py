@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from envs.vehicle.autopilot import Autopilot
 from envs.vehicle.params import Params
 from envs.vehicle.px4 import Mode
-from planner.mavlink import WireItem
+from planner.mavlink_wire import WireItem
 from planner.mission import (
     MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,

@@ -15,14 +15,8 @@ import pytest
 from envs.cli import main as osa_main
 from envs.vehicle.px4 import Mode
 from planner.files import write_plan
-from planner.mavlink import (
-    TransferConfig,
-    UploadTimeoutError,
-    compare_wire,
-    download_wire,
-    mission_to_wire,
-    upload_mission,
-)
+from planner.mavlink import TransferConfig, download_wire, upload_mission
+from planner.mavlink_wire import UploadTimeoutError, compare_wire, mission_to_wire
 from planner.mission import (
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_TAKEOFF,
@@ -81,7 +75,7 @@ def test_mavsdk_upload_through_a_lossy_link_succeeds_or_fails_cleanly() -> None:
     """MAVSDK 4.1 does not resend its last item when the final MISSION_ACK is lost (it
     times out): over a lossy link its upload may fail, but within its bound and with
     a typed error, and the vehicle then holds the previous list, never part of one."""
-    from planner.mavlink import UploadError
+    from planner.mavlink_wire import UploadError
 
     m = sample_mission(6)
     outcomes = []

@@ -11,13 +11,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from planner.mavlink import (
-    TransferConfig,
-    compare_wire,
-    mission_to_wire,
-    quiet_mavsdk_logs,
-    upload_mission,
-)
+from planner.mavlink import TransferConfig, quiet_mavsdk_logs, upload_mission
+from planner.mavlink_wire import compare_wire, mission_to_wire
 from planner.mission import MAV_CMD_NAV_TAKEOFF, Mission, MissionItem
 from tests.envs.vehicle.helpers import SEARCH_SCENARIO
 from tests.vehicles import RunningVehicle, running_vehicle
@@ -152,7 +147,7 @@ def test_mavsdk_missionraw_and_action_takeoff() -> None:
         report = upload_mission(m, rv.mavsdk_url, config=TransferConfig(connect_timeout_s=3.0))
         assert report.backend == "mavsdk" and report.items == 3
         raw = MissionRaw(system).download_mission()
-        from planner.mavlink import WireItem
+        from planner.mavlink_wire import WireItem
 
         assert compare_wire(mission_to_wire(m), [WireItem.from_msg(r) for r in raw]) == []
         action, telemetry = Action(system), Telemetry(system)

@@ -21,7 +21,7 @@ from envs.vehicle.mission import (
     MISSION_UNSUPPORTED_FRAME,
 )
 from envs.vehicle.protocol import MissionServer
-from planner.mavlink import WireItem
+from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
 
 GCS = (0, 255, 190)

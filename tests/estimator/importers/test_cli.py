@@ -126,3 +126,26 @@ def test_the_restarted_phone_is_reported(flight, tmp_path, capsys):
     assert code == 0
     assert "time: utc clock: joined on UTC: the phone clocks of the two files are of " \
            "different boots" in text and "restarted" in text
+
+
+def test_the_figures_of_a_flight_without_truth_zoom_on_its_estimates(files, tmp_path,
+                                                                     capsys):
+    from envs.plots import pyplot, trajectory_figure
+    from estimator.replay import ReplayOptions, replay_logs
+
+    gnss, rtt = files
+    out = tmp_path / "flight.jsonl"
+    assert _import(capsys, gnss, rtt, out, "--agl", "45")[0] == 0
+    report = replay_logs([str(out)], ReplayOptions(modes=("refined",)))
+    assert not report.truth
+    fig = trajectory_figure(report, [out])
+    titles = sorted(a.get_title() for a in fig.axes if "(no survey)" in a.get_title())
+    assert titles == ["1e:02 (no survey)", "2b:a4 (no survey)"]
+    # each zoom panel holds its estimate
+    for a in fig.axes:
+        if "(no survey)" in a.get_title():
+            t = next(t for t in report.tracks if t.bssid.endswith(a.get_title()[:5]))
+            x0, x1 = a.get_xlim()
+            y0, y1 = a.get_ylim()
+            assert x0 < t.estimate.enu_m[0] < x1 and y0 < t.estimate.enu_m[1] < y1
+    pyplot().close(fig)
