@@ -28,7 +28,6 @@ import heapq
 import importlib
 import os
 import statistics
-from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -575,7 +574,3 @@ def _with_t_ns(rec, t_ns: int):
     new.__dict__["t_ns"] = t_ns
     return new
 
-
-def tally_summary(counts: Counter) -> str:
-    """``reason=n, ...`` sorted by reason (for the text report)."""
-    return ", ".join(f"{k}={v}" for k, v in sorted(counts.items()))

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta, timezone
 from pathlib import Path
@@ -591,7 +591,3 @@ def storage_file(bag_dir: Path) -> Path:
     (f,) = [p for p in bag_dir.iterdir() if p.suffix in (".db3", ".mcap")]
     return f
 
-
-def chunks(items: list, n: int) -> Iterator[list]:
-    for i in range(0, len(items), n):
-        yield items[i:i + n]
