@@ -50,7 +50,7 @@ def _ground_points(dem, rng, half=600.0, k=400):
     e = rng.uniform(-half, half, k)
     n = rng.uniform(-half, half, k)
     u = np.asarray(dem.height_m(e, n))
-    lat, lon, h = ExactENU(LAT0, LON0, H0).to_geodetic(e, n, u)
+    lat, lon, h = ExactENU(*dem.origin).to_geodetic(e, n, u)
     return e, n, u, np.asarray(lat), np.asarray(lon), np.asarray(h)
 
 
@@ -64,6 +64,38 @@ def test_plane_in_wgs84_geotiff(tmp_path):
     _, _, _, la, lo, h = _ground_points(dem, np.random.default_rng(1))
     # the ground point's ellipsoidal height is the plane's value where it lies
     assert np.max(np.abs(h - plane(la, lo))) < 1e-3
+
+
+def test_quadratic_in_wgs84_geotiff_is_bilinear_between_cell_centres(tmp_path):
+    tr, lon, lat = _geo_grid()
+    q = lambda la, lo: 200.0 + 4e6 * (lo - LON0) ** 2 - 3e6 * (lo - LON0) * (la - LAT0)  # noqa: E731
+    f = _write(tmp_path / "quad4326.tif", q(lat, lon), "EPSG:4326", tr)
+    dem = DemTerrain(f, (LAT0, LON0, H0), (-500, 500, -500, 500))
+    _, _, _, la, lo, h = _ground_points(dem, np.random.default_rng(6))
+    col, row = ~tr @ (lo, la)
+    ci, cj = np.asarray(col) - 0.5, np.asarray(row) - 0.5
+    i0, j0 = np.floor(ci), np.floor(cj)
+    ti, tj = ci - i0, cj - j0
+
+    def at(i, j):
+        x, y = tr @ (i + 0.5, j + 0.5)
+        return q(np.asarray(y), np.asarray(x))
+
+    hand = ((at(i0, j0) * (1 - ti) + at(i0 + 1, j0) * ti) * (1 - tj)
+            + (at(i0, j0 + 1) * (1 - ti) + at(i0 + 1, j0 + 1) * ti) * tj)
+    assert np.max(np.abs(h - hand)) < 1e-4
+    assert np.max(np.abs(h - q(la, lo))) > 1e-3  # not the quadratic itself: bilinear
+
+
+def test_plane_in_an_hgt_tile(tmp_path):
+    n = 1201
+    j, i = np.mgrid[0:n, 0:n]
+    (100 + i + 2 * j).astype(">i2").tofile(tmp_path / "N36W005.hgt")
+    dem = DemTerrain(tmp_path / "N36W005.hgt", (36.5, -4.5, 150.0), (-800, 800, -800, 800))
+    _, _, _, la, lo, h = _ground_points(dem, np.random.default_rng(8), half=700.0)
+    # posts every 3 arc-seconds from the tile's corner (37 N, 5 W): column, row of a post
+    col, row = (lo + 5.0) * 1200.0, (37.0 - la) * 1200.0
+    assert np.max(np.abs(h - (100 + col + 2 * row))) < 1e-4
 
 
 def test_plane_and_quadratic_in_utm_geotiff(tmp_path):
