@@ -12,6 +12,9 @@ horizontal line (how far a straight leg can sag towards the ground). Two kinds:
   terrain" (sec. Experimental Setup).
 - :class:`GridTerrain`: a user-supplied regular grid with bilinear interpolation;
   outside the grid the edge value is held.
+
+A real place's ground comes from a DEM file: :class:`sim.dem.DemTerrain` (GeoTIFF in
+any CRS, SRTM ``.hgt``), the same protocol.
 """
 
 from __future__ import annotations
