@@ -74,6 +74,8 @@ CLOCK_TOLERANCE_S = 0.002  # time_boot_ms is truncated to the millisecond
 ACK_AGAIN_S = 0.5  # the vehicle's clock still for this long (wall): acknowledge again
 RESEND_WAIT_S = 1.0  # records missing at a mark are asked again for this long (wall)
 RESEND_EVERY_S = 0.25
+QUIET_S = 0.3  # at the start: a source without marks quiet this long holds no backlog
+DRAIN_MAX_S = 2.0
 RCVBUF_BYTES = 4 << 20  # a lockstep vehicle sends a decision period's records at once
 
 
@@ -193,6 +195,7 @@ class MavlinkVehicle:
         self.uploads = 0
         self.upload_retries = 0
         self.asked_again = 0  # relayed records asked for again
+        self.command_tries = 0
         self.started = False
         self.finished = False
         self.closed = False
@@ -227,6 +230,7 @@ class MavlinkVehicle:
             self._pump(0.1)
         self._pump(0.0)
         self.tunnel.settle(count=False)  # the records of before the search: not fed
+        self._drain_before()
         self.feed.skip_before()
         self._check_world(self.feed.truth)
         h = self.feed.header
@@ -239,8 +243,38 @@ class MavlinkVehicle:
             self._writer = LogWriter(self.log_paths[0], self._header)
             self._writer.write_all(self.realisation.truth_records())
         self._boot0_s = self._boot_s
+        p = self.tunnel.pacing
+        if ours and p is not None and p.lockstep:  # where it waits, to the millisecond
+            self._boot0_s = p.now_ms / 1000.0  # (its telemetry's clock may be 1 ms short)
         self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, what="arm")
+        # arming sets home where the vehicle is: plans are flown relative to that one
+        self.home = None
+        deadline = time.monotonic() + self.link_config.connect_timeout_s
+        asked = -math.inf
+        while self.home is None:
+            if time.monotonic() > deadline:
+                raise VehicleLinkError("no home position from the vehicle after arming")
+            if time.monotonic() - asked > 0.5:
+                asked = time.monotonic()
+                self._send_command(mavlink.MAV_CMD_GET_HOME_POSITION)
+            self._pump(0.05)
         self.started = True
+
+    def _drain_before(self) -> None:
+        """A source without marks (a file, a phone app) may still hold records of before
+        the search: take them until it has been quiet for QUIET_S (at most
+        DRAIN_MAX_S; a phone streaming in real time is never quiet, and has no
+        backlog either)."""
+        if self.feed.source.mark() is not None:
+            return
+        now = time.monotonic()
+        deadline, quiet_since, seen = now + DRAIN_MAX_S, now, -1
+        while now < deadline and now - quiet_since < QUIET_S:
+            self._pump(0.02)
+            self.feed.pull()
+            now = time.monotonic()
+            if self.feed.stats.received != seen:
+                seen, quiet_since = self.feed.stats.received, now
 
     def _ready(self, ours: bool) -> bool:
         """Position, home and clock known; an ``osa vehicle`` has told its pacing, and
@@ -356,28 +390,38 @@ class MavlinkVehicle:
             self.conn.mav.command_long_send(*self.vehicle, command, confirmation, *p)
 
     def _command(self, command: int, *params: float, what: str) -> None:
+        """COMMAND_LONG until acknowledged (``command_attempts`` tries). A try answered
+        late means the vehicle gets the command twice: the answers to every try are
+        awaited (a while), so that a lockstep vehicle, still waiting, has executed them
+        all before it runs on (a late repeat of MISSION_START would restart a mission
+        in flight)."""
         cfg = self.link_config
-        for attempt in range(cfg.command_attempts):
-            acks: list[Any] = []
+        acks: list[Any] = []
 
-            def hook(conn: Any, m: Any, acks: list = acks) -> None:
-                if m.get_type() == "COMMAND_ACK" and m.command == command:
-                    acks.append(m)
+        def hook(conn: Any, m: Any) -> None:
+            if m.get_type() == "COMMAND_ACK" and m.command == command:
+                acks.append(m)
 
-            self.conn.message_hooks.append(hook)
-            try:
-                self._send_command(command, *params, confirmation=attempt)
+        self.conn.message_hooks.append(hook)
+        sent = 0
+        try:
+            while not acks and sent < cfg.command_attempts:
+                self._send_command(command, *params, confirmation=sent)
+                sent += 1
+                self.command_tries += 1
                 deadline = time.monotonic() + cfg.command_timeout_s
                 while time.monotonic() < deadline and not acks:
                     self._pump(0.05)
-            finally:
-                self.conn.message_hooks.remove(hook)
-            if acks:
-                if acks[0].result != mavlink.MAV_RESULT_ACCEPTED:
-                    raise VehicleLinkError(f"the vehicle refused to {what}: "
-                                           f"{result_name(acks[0].result)}")
-                return
-        raise VehicleLinkError(f"no answer to {what} after {cfg.command_attempts} attempts")
+            deadline = time.monotonic() + cfg.command_timeout_s
+            while acks and len(acks) < sent and time.monotonic() < deadline:
+                self._pump(0.05)
+        finally:
+            self.conn.message_hooks.remove(hook)
+        if not acks:
+            raise VehicleLinkError(f"no answer to {what} after {cfg.command_attempts} attempts")
+        if acks[0].result != mavlink.MAV_RESULT_ACCEPTED:
+            raise VehicleLinkError(f"the vehicle refused to {what}: "
+                                   f"{result_name(acks[0].result)}")
 
     def _pace(self, time_boot_ms: int, again: bool = False) -> None:
         """Acknowledge the vehicle's time up to ``time_boot_ms`` (and ask for records)."""

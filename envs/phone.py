@@ -473,8 +473,10 @@ class PhoneFeed:
     ``take(flight_s, vehicle_boot_s)`` returns a :class:`PhoneBatch` of what may be fed
     now; ``final(end_ns)`` the rest up to ``end_ns``. Records before the loop started
     (``skip_before()``) are not fed. The clock offset comes from the source's marks,
-    else from arrivals (a record arrives after it was stamped: the largest phone time
-    minus arrival time is the tightest bound)."""
+    else from arrivals: every record taken at flight time ``flight_s`` was stamped
+    before it, so the largest phone time minus ``flight_s`` bounds the offset from
+    below, and a range's flight time is late by at most the source's latency (never
+    early, never after the flight time it was taken at)."""
 
     def __init__(self, source: RecordSource, *, lag_s: float = 2.0) -> None:
         self.source = source

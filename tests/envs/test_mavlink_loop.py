@@ -453,7 +453,9 @@ def _phone_app(log: Path, port: int, stop: threading.Event) -> None:
 def test_records_from_a_phone_app_in_datagrams(tmp_path: Path) -> None:
     """--phone: the records as JSON-line datagrams from a phone app (here one that sends
     its log's lines as it writes them); released 2 s behind the newest (no marks), the
-    same estimates as a replay of the loop's log; bad datagrams counted."""
+    same estimates as a replay of the loop's log; bad datagrams counted. The phone's
+    clock is bounded from the arrivals, so a detection is never placed before the
+    flight nor after the time it was taken (only late by the app's latency)."""
     from envs.policies import load_policy
 
     phone = UdpRecords(f"udpin://{LOOPBACK}:0")
