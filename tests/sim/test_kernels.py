@@ -14,7 +14,7 @@ import numpy as np
 
 from estimator.geodesy import ExactENU
 from sim import _kernels as kn
-from sim.terrain import HillsTerrain
+from sim.terrain import GridTerrain, HillsTerrain
 from sim.vehicle import WALKER, HoldGuidance, Multirotor, PathGuidance, VehicleConfig, VehicleState
 from sim.world import Origin, World
 
@@ -126,3 +126,33 @@ def test_walker_and_generic_guidance_tick_by_tick_equal_the_compiled_run() -> No
     st = v.state_log.view
     assert np.allclose(st[:, 3], world.ground_m(st[:, 1], st[:, 2]) + 1.5)
     assert math.dist(st[-1, 1:3], (20.0, 5.0)) < 0.5
+
+
+def occlusion_digest() -> str:
+    """SHA-256 of the FTM occlusion profiles (sim.occlusion's compiled sampling and nu
+    loops) of seeded random links over hills and a grid, with and without the
+    clearance tables' cleared annuli."""
+    from sim.occlusion import Occluder, profile_nu
+
+    rng = np.random.default_rng(9)
+    h = hashlib.sha256()
+    grid = GridTerrain(rng.normal(0.0, 2.0, (81, 81)).cumsum(0) * 0.3, -200.0, -200.0, 5.0)
+    for terrain in (HillsTerrain(), grid):
+        resp = np.column_stack([rng.uniform(-150, 150, (3, 2)), np.zeros(3)])
+        resp[:, 2] = terrain.height_m(resp[:, 0], resp[:, 1]) + 0.5
+        k = rng.integers(0, 3, 400)
+        p = resp[k] + np.column_stack([rng.uniform(-250, 250, (400, 2)),
+                                       rng.uniform(-5.0, 60.0, 400)])
+        occ = Occluder(terrain, resp, 5.18e9, 2.0)
+        ob = occ.obstruction(k, p)
+        for a in (profile_nu(resp[k], p, terrain, 0.0579, 3.0), ob.nu, ob.loss_db, ob.excess_m):
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def test_compiled_occlusion_profiles_equal_the_interpreted_source_bit_for_bit() -> None:
+    code = "from tests.sim.test_kernels import occlusion_digest; print(occlusion_digest())"
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120, cwd=Path(__file__).parents[2], check=True)
+    assert out.stdout.strip() == occlusion_digest()
