@@ -30,12 +30,13 @@ beyond grazing.
 
 Cheap first (:class:`Occluder`): when the terrain has the optional
 ``max_height_m(e_min, e_max, n_min, n_max)`` upper bound, each responder gets a table
-of that bound over annular sectors about it (32 sectors, annuli doubling from half a
-step out to 4 km), built once. A ray from the responder stays in one sector, so a link
-is provably clear when, in every annulus it crosses, the line minus the vertical
-clearance that keeps a point outside the nu = -0.78 ellipsoid stays above the bound:
-the profile is then skipped and the result is exactly the profile's (nu below -0.78
-everywhere: no loss, no excess).
+of that bound over annular sectors about it (16 sectors; annuli doubling from half a
+step out to 1 km; a sector is bounded when a link first lies in it). A ray from the
+responder stays in one sector, so a link is provably clear when, in every annulus it
+crosses, the line minus the vertical clearance that keeps a point outside the
+nu = -0.78 ellipsoid stays above the bound; in the annuli where that holds no sample
+can have a loss. The profile is sampled only in the other annuli (not at all when
+every annulus clears), and the loss and excess are exactly those of the whole profile.
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ from estimator._jit import compiled
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 NU_CLEAR = -0.78  # J(nu) = 0 at and below this (P.526 sec. 4.1)
 MAX_SAMPLES = 1024  # profile samples per link at most (2 km at the default 2 m step)
-SECTORS = 32
-TABLE_RANGE_M = 4096.0  # the clearance tables reach this far; longer links are profiled
+SECTORS = 16
+TABLE_RANGE_M = 1024.0  # the clearance tables reach this far; longer links are profiled
 _MARGIN_M = 1e-6  # covers the rounding of the clearance test
 
 
@@ -171,19 +172,19 @@ def smooth_loss_db(a, b, terrain, lam_m: float, n_samples: int = 6):
 # ----------------------------------------------------------------------------- the tables
 
 
-def _sector_box(x: float, y: float, r0: float, r1: float, th0: float, th1: float):
-    """Bounding box (e_min, e_max, n_min, n_max) of the annular sector r0..r1,
-    th0..th1 (radians) about (x, y)."""
+def _sector_boxes(x: float, y: float, radii: np.ndarray, th0: float, th1: float) -> np.ndarray:
+    """(R, 4) bounding boxes (e_min, e_max, n_min, n_max) of the annular sectors
+    radii[i]..radii[i + 1], th0..th1 (radians) about (x, y): the extremes over the
+    sector's corners and the axis directions inside it, padded for rounding."""
     angles = [th0, th1] + [k * 0.5 * math.pi for k in range(-4, 9)
                            if th0 < k * 0.5 * math.pi < th1]
-    es, ns = [], []
-    for th in angles:
-        c, s = math.cos(th), math.sin(th)
-        for r in (r0, r1):
-            es.append(x + r * c)
-            ns.append(y + r * s)
-    pad = 1e-9 * max(1.0, abs(x), abs(y), r1)
-    return min(es) - pad, max(es) + pad, min(ns) - pad, max(ns) + pad
+    c = np.array([math.cos(t) for t in angles])
+    sn = np.array([math.sin(t) for t in angles])
+    r = np.stack([radii[:-1], radii[1:]], axis=1)[:, :, None]  # (R, 2, 1)
+    es, ns = (x + r * c).reshape(len(r), -1), (y + r * sn).reshape(len(r), -1)
+    pad = 1e-9 * np.maximum(max(1.0, abs(x), abs(y)), radii[1:])
+    return np.column_stack([es.min(axis=1) - pad, es.max(axis=1) + pad,
+                            ns.min(axis=1) - pad, ns.max(axis=1) + pad])
 
 
 class Occluder:
@@ -204,16 +205,20 @@ class Occluder:
         self.bound = None
         self.n_profiled = 0  # links whose profile was sampled (for benchmarks)
         self.n_links = 0
-        box = getattr(terrain, "max_height_m", None)
-        if box is not None and len(self.resp):
-            th = np.linspace(-math.pi, math.pi, SECTORS + 1)
-            tab = np.empty((len(self.resp), n_ann, SECTORS))
-            for k, (x, y, _) in enumerate(self.resp):
-                for i in range(n_ann):
-                    for j in range(SECTORS):
-                        tab[k, i, j] = box(*_sector_box(x, y, self.radii[i], self.radii[i + 1],
-                                                        th[j], th[j + 1]))
-            self.bound = tab
+        self._box = getattr(terrain, "max_height_m", None)
+        if self._box is not None and len(self.resp):
+            # filled a sector at a time, when a link first lies in it
+            self.bound = np.full((len(self.resp), n_ann, SECTORS), np.nan)
+            self._filled = np.zeros((len(self.resp), SECTORS), dtype=bool)
+
+    def _fill(self, k: int, j: int) -> None:
+        """The bounds of responder k's sector j, annulus by annulus."""
+        x, y = float(self.resp[k, 0]), float(self.resp[k, 1])
+        th0 = -math.pi + 2.0 * math.pi * j / SECTORS
+        th1 = -math.pi + 2.0 * math.pi * (j + 1) / SECTORS
+        for i, box in enumerate(_sector_boxes(x, y, self.radii, th0, th1).tolist()):
+            self.bound[k, i, j] = self._box(*box)
+        self._filled[k, j] = True
 
     def cleared_annuli(self, k: np.ndarray, p_enu_m: np.ndarray) -> np.ndarray | None:
         """(L, R) the annuli where the tables show every profile sample of the link
@@ -221,31 +226,15 @@ class Occluder:
         count as cleared); None without tables."""
         if self.bound is None:
             return None
-        a = self.resp[k]
-        d = p_enu_m - a
-        horiz = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
-        s = np.sqrt(horiz * horiz + d[:, 2] * d[:, 2])
-        with np.errstate(all="ignore"):
-            sector = ((np.arctan2(d[:, 1], d[:, 0]) + math.pi) * (SECTORS / (2 * math.pi)))
-            sector = np.clip(sector.astype(np.int64), 0, SECTORS - 1)
-            # each annulus r0..r1 crossed (up to X); the line's lowest point in it
-            r0, r1 = self.radii[None, :-1], self.radii[None, 1:]
-            x = horiz[:, None]
-            x1 = np.minimum(r1, x)
-            slope = d[:, 2:3] / x
-            z_lo = a[:, 2:3] + slope * np.where(slope >= 0.0, r0, x1)
-            # the vertical clearance that keeps a point below the line outside the
-            # nu = -0.78 ellipsoid: its distance across the line, v cos(eps), exceeds
-            # min(b, sqrt(delta (2 u + delta))), u the axial distance from the lower
-            # end of the link, b the ellipsoid's semi-minor axis
-            cos_e = (horiz / s)[:, None]
-            u = np.where(slope >= 0.0, x1, x - r0) / cos_e
-            dl = self.delta_m
-            semi_minor = 0.5 * np.sqrt(dl * (2.0 * s + dl))[:, None]
-            need = np.minimum(semi_minor, np.sqrt(dl * (2.0 * u + dl))) / cos_e
-            top = self.bound[k[:, None], np.arange(r0.shape[1])[None, :], sector[:, None]]
-            ok = (z_lo - need > top + _MARGIN_M) | (r0 >= x)
-        return ok & (cos_e > 1e-6)
+        d = p_enu_m - self.resp[k]
+        sector = (np.arctan2(d[:, 1], d[:, 0]) + math.pi) * (SECTORS / (2 * math.pi))
+        sector = np.clip(sector.astype(np.int64), 0, SECTORS - 1)
+        todo = ~self._filled[k, sector]
+        if todo.any():
+            for kk, jj in set(zip(k[todo].tolist(), sector[todo].tolist(), strict=True)):
+                self._fill(kk, jj)
+        return compiled(_cleared_annuli)(np.ascontiguousarray(d), self.resp[k, 2], k, sector,
+                                         self.bound, self.radii, self.delta_m, _MARGIN_M)
 
     def obstruction(self, k: np.ndarray, p_enu_m: np.ndarray) -> Obstruction:
         """The obstruction of the links from responders ``k`` (indices) to drone
@@ -255,16 +244,16 @@ class Occluder:
         nu = np.full(len(k), -np.inf)
         d = p - self.resp[k]
         horiz = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
-        todo = np.ceil(horiz / self.step_m) > 1.0  # the link has profile samples
-        ok = self.cleared_annuli(k, p)
+        todo = np.flatnonzero(np.ceil(horiz / self.step_m) > 1.0)  # links with samples
+        ok = self.cleared_annuli(k[todo], p[todo])
         if ok is not None:
-            todo &= ~ok.all(axis=1) | (horiz >= self.radii[-1])
-        todo = np.flatnonzero(todo)
+            keep = ~ok.all(axis=1) | (horiz[todo] >= self.radii[-1])
+            todo, ok = todo[keep], ok[keep]
         self.n_links += len(k)
         self.n_profiled += len(todo)
         if len(todo):
             nu[todo] = profile_nu(self.resp[k[todo]], p[todo], self.terrain, self.lam,
-                                  self.step_m, None if ok is None else ok[todo], self.radii)
+                                  self.step_m, ok, self.radii)
         return Obstruction.of_nu(nu, self.lam)
 
 
@@ -330,3 +319,41 @@ def _profile_max_nu(a: np.ndarray, b: np.ndarray, link: np.ndarray, t: np.ndarra
         if v > nu[i]:
             nu[i] = v
     return nu
+
+
+def _cleared_annuli(d: np.ndarray, z_a: np.ndarray, k: np.ndarray, sector: np.ndarray,
+                    bound: np.ndarray, radii: np.ndarray, delta: float,
+                    margin: float) -> np.ndarray:
+    """(L, R): annulus r of link i (from responder k[i], at height z_a[i], along d[i]) is
+    cleared when the line's lowest point in it, less the vertical clearance that keeps
+    a point below the line outside the ellipsoid Delta = ``delta`` (its distance across
+    the line, v cos(eps), above min(b, sqrt(delta (2 u + delta))): u the axial distance
+    from the link's lower end, b the ellipsoid's semi-minor axis), is above
+    ``bound[k, r, sector]`` (+ ``margin``); annuli beyond the link are cleared. A
+    near-vertical link clears nothing (the profile decides)."""
+    n_ann = len(radii) - 1
+    ok = np.zeros((len(k), n_ann), dtype=np.bool_)
+    for i in range(len(k)):
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        x = math.sqrt(dx * dx + dy * dy)
+        s = math.sqrt(x * x + dz * dz)
+        if not (s > 0.0 and x / s > 1e-6):
+            continue
+        cos_e = x / s
+        slope = dz / x
+        semi = 0.5 * math.sqrt(delta * (2.0 * s + delta))
+        for r in range(n_ann):
+            r0 = radii[r]
+            if r0 >= x:
+                ok[i, r] = True
+                continue
+            x1 = min(radii[r + 1], x)
+            if slope >= 0.0:
+                z_lo = z_a[i] + slope * r0
+                u = x1 / cos_e
+            else:
+                z_lo = z_a[i] + slope * x1
+                u = (x - r0) / cos_e
+            need = min(semi, math.sqrt(delta * (2.0 * u + delta))) / cos_e
+            ok[i, r] = z_lo - need > bound[k[i], r, sector[i]] + margin
+    return ok
