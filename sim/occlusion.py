@@ -23,7 +23,7 @@ dominant obstacle is the sample of largest nu. A link shorter horizontally than 
 step has no sample (the drone is overhead) and is clear.
 
 Loss. J(nu) = 6.9 + 20 log10(sqrt((nu - 0.1)^2 + 1) + nu - 0.1) dB for nu > -0.78,
-else 0 (P.526 sec. 4.1, eq. 31). Range. When nu > 0 the direct path is blocked and the
+else 0 (P.526 sec. 4.1). Range. When nu > 0 the direct path is blocked and the
 first path to arrive runs over the edge, longer by Delta = lambda nu^2 / 4;
 :class:`sim.ftm.FtmConfig` adds an NLoS-like exponential excess growing with the loss
 beyond grazing.
