@@ -2,9 +2,11 @@
 
 ``osa vehicle`` (envs/commands/vehicle.py) runs :class:`VirtualVehicle`; docs/vehicle.md
 describes what it answers and how it flies. Modules: :mod:`.px4` (modes and codes),
-:mod:`.params`, :mod:`.flight` (flight tasks), :mod:`.autopilot` (modes, commands,
-mission executor, failsafes), :mod:`.mission` (what storage accepts),
-:mod:`.protocol` (mission protocol server), :mod:`.geofence`, :mod:`.telemetry`,
+:mod:`.params`, :mod:`.flight` (flight tasks), :mod:`.autopilot` (the guidance: shared
+state, terrain clearance, landing) with its parts :mod:`.modes` (modes, arming,
+commands, link loss), :mod:`.executor` (the mission flown), :mod:`.geofence` (zones
+and breach actions) and :mod:`.rtl` (return, rally points); :mod:`.mission` (what
+storage accepts), :mod:`.protocol` (mission protocol server), :mod:`.telemetry`,
 :mod:`.server` (the loop and the MAVLink ports).
 """
 

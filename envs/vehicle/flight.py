@@ -20,6 +20,9 @@ yaw-rate limits to it. Tasks:
   MPC_LAND_SPEED below MPC_LAND_ALT2), braking to touch down gently; touchdown is
   judged on the true height above the terrain (a land detector feels the ground,
   the estimate does not).
+
+Also the geometry the autopilot's parts share: :data:`Vec3` (ENU metres),
+:class:`Home`, :class:`Limits` and :data:`TERRAIN_CLEARANCE_M`.
 """
 
 from __future__ import annotations
@@ -29,6 +32,17 @@ from dataclasses import dataclass
 from typing import Protocol
 
 Vec3 = tuple[float, float, float]
+TERRAIN_CLEARANCE_M = 2.0  # the vehicle never flies lower above the ground (not PX4)
+
+
+@dataclass
+class Home:
+    """Home position: ENU (navigation frame) and geodetic (ellipsoidal height)."""
+
+    enu: Vec3
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
 
 
 @dataclass(frozen=True)
