@@ -31,6 +31,13 @@ import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from pymavlink.dialects.v20.common import (
+    MAV_LANDED_STATE_IN_AIR,
+    MAV_LANDED_STATE_LANDING,
+    MAV_LANDED_STATE_ON_GROUND,
+    MAV_SEVERITY_INFO,
+    MAV_SEVERITY_WARNING,
+)
 
 from envs.vehicle.executor import MissionExecutor, MissionProgress
 from envs.vehicle.flight import (
@@ -48,14 +55,7 @@ from envs.vehicle.geofence import Fence, FenceGuard
 from envs.vehicle.mission import ABSOLUTE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.modes import ModeMachine, Result
 from envs.vehicle.params import Params
-from envs.vehicle.px4 import (
-    LANDED_IN_AIR,
-    LANDED_LANDING,
-    LANDED_ON_GROUND,
-    SEVERITY_INFO,
-    SEVERITY_WARNING,
-    Mode,
-)
+from envs.vehicle.px4 import Mode
 from envs.vehicle.rtl import ReturnToLaunch
 from planner.mavlink_wire import WireItem
 from sim.stepper import Emitted, Stepper
@@ -88,7 +88,7 @@ class Autopilot:
         self.dt = self.cfg.sample_dt_s
         self.t_s = self.vehicle.t_s
         self.landed = True
-        self.landed_state = LANDED_ON_GROUND
+        self.landed_state = MAV_LANDED_STATE_ON_GROUND
         self.crashed = False
         self.task: Task = Idle()
         self.events: list[tuple] = []
@@ -243,7 +243,7 @@ class Autopilot:
                 self.geofence.check(p, v)
             self.modes.tick(p)
         cmd = self.task.setpoint(self, p, dt)
-        if self.modes.armed and self.landed_state == LANDED_IN_AIR \
+        if self.modes.armed and self.landed_state == MAV_LANDED_STATE_IN_AIR \
                 and not isinstance(self.task, Land | Idle):
             cmd = self._terrain_floor(p, cmd)
         self._land_detector()
@@ -289,7 +289,7 @@ class Autopilot:
             vz_min = max(vz_min, lim.gain_per_s * (limit - agl))
         if vz < vz_min:
             if not self._floor_warned and agl < limit + 0.5:
-                self.text(SEVERITY_WARNING, f"terrain: keeping {limit:g} m above the ground")
+                self.text(MAV_SEVERITY_WARNING, f"terrain: keeping {limit:g} m above the ground")
                 self._floor_warned = True
             return cmd[0], cmd[1], vz_min
         return cmd
@@ -303,17 +303,17 @@ class Autopilot:
     def land_at(self, x: float, y: float) -> None:
         """Descend at (x, y) until the land detector feels the ground."""
         self.task = Land(x, y)
-        self.landed_state = LANDED_LANDING
+        self.landed_state = MAV_LANDED_STATE_LANDING
         self.emit("landed")
 
     def _land_detector(self) -> None:
         t = self.t_s
         if isinstance(self.task, Land) and self.task.done and not self.landed:
             self.landed = True
-            self.landed_state = LANDED_ON_GROUND
+            self.landed_state = MAV_LANDED_STATE_ON_GROUND
             self.touchdown_s = t
             self.task = Idle()
-            self.text(SEVERITY_INFO, "landing detected")
+            self.text(MAV_SEVERITY_INFO, "landing detected")
             self.emit("landed")
             self.executor.on_touchdown()
             self.rtl.leg = None

@@ -31,24 +31,23 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from envs.vehicle.flight import TERRAIN_CLEARANCE_M, Hold, Line, Orbit, Vec3, corner_speed
-from envs.vehicle.mission import (
-    IGNORED_COMMANDS,
+from pymavlink.dialects.v20.common import (
     MAV_CMD_DO_JUMP,
     MAV_CMD_NAV_DELAY,
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_LOITER_TURNS,
     MAV_CMD_NAV_LOITER_UNLIM,
-)
-from envs.vehicle.px4 import (
+    MAV_SEVERITY_INFO,
     MISSION_STATE_ACTIVE,
     MISSION_STATE_COMPLETE,
     MISSION_STATE_NO_MISSION,
     MISSION_STATE_NOT_STARTED,
     MISSION_STATE_PAUSED,
-    SEVERITY_INFO,
-    Mode,
 )
+
+from envs.vehicle.flight import TERRAIN_CLEARANCE_M, Hold, Line, Orbit, Vec3, corner_speed
+from envs.vehicle.mission import IGNORED_COMMANDS
+from envs.vehicle.px4 import Mode
 from planner.mavlink_wire import WireItem
 from planner.mission import (
     MAV_CMD_DO_CHANGE_SPEED,
@@ -426,7 +425,7 @@ class MissionExecutor:
         m.started = False
         self.item = None
         self.emit_current()
-        ap.text(SEVERITY_INFO, "mission finished")
+        ap.text(MAV_SEVERITY_INFO, "mission finished")
         if then_rtl:
             ap.modes.enter(Mode.RTL)
         elif not landed and not ap.landed:

@@ -15,8 +15,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from pymavlink.dialects.v20.common import (
+    MAV_SEVERITY_CRITICAL,
+)
+
 from envs.vehicle.flight import Vec3, stopping_point
-from envs.vehicle.px4 import SEVERITY_CRITICAL, Mode
+from envs.vehicle.px4 import Mode
 from planner.mavlink_wire import WireItem, wire_to_fence
 from planner.mission import (
     MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
@@ -138,7 +142,7 @@ class FenceGuard:
             return False
         self._ok = False
         action = int(ap.params["GF_ACTION"])
-        ap.text(SEVERITY_CRITICAL, "geofence breached" + (" (predicted)" if point != p else ""))
+        ap.text(MAV_SEVERITY_CRITICAL, "geofence breached" + (" (predicted)" if point != p else ""))
         if action == 2:
             ap.modes.enter(Mode.LOITER)
             ap.hold_here(self._safe_stop or p)

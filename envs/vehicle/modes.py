@@ -23,18 +23,19 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from envs.vehicle.flight import Hold, Home, Idle, Line, Vec3, stopping_point
-from envs.vehicle.px4 import (
-    LANDED_IN_AIR,
-    LANDED_TAKEOFF,
+from pymavlink.dialects.v20.common import (
+    MAV_LANDED_STATE_IN_AIR,
+    MAV_LANDED_STATE_TAKEOFF,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
     MAV_RESULT_TEMPORARILY_REJECTED,
-    SEVERITY_CRITICAL,
-    SEVERITY_INFO,
-    SEVERITY_WARNING,
-    Mode,
+    MAV_SEVERITY_CRITICAL,
+    MAV_SEVERITY_INFO,
+    MAV_SEVERITY_WARNING,
 )
+
+from envs.vehicle.flight import Hold, Home, Idle, Line, Vec3, stopping_point
+from envs.vehicle.px4 import Mode
 
 if TYPE_CHECKING:
     from envs.vehicle.autopilot import Autopilot
@@ -59,7 +60,7 @@ class ModeMachine:
         if mode is not self.mode:
             self.mode = mode
             self.ap.emit("mode")
-            self.ap.text(SEVERITY_INFO, f"mode {mode.label}")
+            self.ap.text(MAV_SEVERITY_INFO, f"mode {mode.label}")
 
     def enter(self, mode: Mode) -> None:
         """Switch to ``mode`` (already judged possible) and start flying it."""
@@ -70,7 +71,7 @@ class ModeMachine:
         if self.takeoff_then is not None:
             self.takeoff_then = None
             if not ap.landed:
-                ap.landed_state = LANDED_IN_AIR
+                ap.landed_state = MAV_LANDED_STATE_IN_AIR
                 ap.emit("landed")
         if mode is not Mode.MISSION:
             ap.executor.pause()
@@ -123,7 +124,7 @@ class ModeMachine:
         ap.home = ap.home_here()
         ap.emit("armed")
         ap.emit("home")
-        ap.text(SEVERITY_INFO, "armed")
+        ap.text(MAV_SEVERITY_INFO, "armed")
         if self.mode is Mode.MISSION:
             ap.executor.begin()
         elif self.mode is Mode.TAKEOFF:
@@ -146,7 +147,7 @@ class ModeMachine:
         ap.executor.item = None
         self.takeoff_then = None
         ap.emit("armed")
-        ap.text(SEVERITY_INFO, why)
+        ap.text(MAV_SEVERITY_INFO, why)
         if ap.executor.progress.complete:  # PX4: a flown mission starts over after landing
             ap.executor.restart()
 
@@ -200,7 +201,7 @@ class ModeMachine:
         ap.landed = False
         self._flew_since_arming = True
         ap.touchdown_s = None
-        ap.landed_state = LANDED_TAKEOFF
+        ap.landed_state = MAV_LANDED_STATE_TAKEOFF
         ap.emit("landed")
 
     def _takeoff_tick(self, p: Vec3) -> None:
@@ -210,7 +211,7 @@ class ModeMachine:
         if abs(task.target[2] - p[2]) > ap.params["NAV_MC_ALT_RAD"]:
             return
         then, self.takeoff_then = self.takeoff_then, None
-        ap.landed_state = LANDED_IN_AIR
+        ap.landed_state = MAV_LANDED_STATE_IN_AIR
         ap.emit("landed")
         if then == "item" and ap.executor.item is not None and self.mode is Mode.MISSION:
             ap.executor.climbed(p)
@@ -319,12 +320,12 @@ class ModeMachine:
         action = int(ap.params["NAV_DLL_ACT"])
         exempt = int(ap.params["COM_DLL_EXCEPT"])
         if self.mode is Mode.MISSION and exempt & 1:
-            ap.text(SEVERITY_WARNING, "ground station lost: mission continues")
+            ap.text(MAV_SEVERITY_WARNING, "ground station lost: mission continues")
             return
         if self.mode in (Mode.LOITER, Mode.POSCTL) and exempt & 2:
-            ap.text(SEVERITY_WARNING, "ground station lost: holding")
+            ap.text(MAV_SEVERITY_WARNING, "ground station lost: holding")
             return
-        ap.text(SEVERITY_CRITICAL, "ground station lost: failsafe")
+        ap.text(MAV_SEVERITY_CRITICAL, "ground station lost: failsafe")
         if action == 1:
             self.enter(Mode.LOITER)
         elif action == 2 and self.mode is not Mode.RTL:

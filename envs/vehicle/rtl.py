@@ -13,8 +13,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from pymavlink.dialects.v20.common import (
+    MAV_SEVERITY_NOTICE,
+)
+
 from envs.vehicle.flight import Hold, Line, Vec3
-from envs.vehicle.px4 import SEVERITY_NOTICE
 from planner.mavlink_wire import WireItem
 
 if TYPE_CHECKING:
@@ -60,7 +63,7 @@ class ReturnToLaunch:
                 best, dest, descend = d, (r[0], r[1]), r[2]
         ret = max(p[2], home[2] + ap.params["RTL_RETURN_ALT"])
         self.leg = ReturnLeg(dest, ret, min(descend, ret))
-        ap.text(SEVERITY_NOTICE, f"returning: {best:.0f} m to go")
+        ap.text(MAV_SEVERITY_NOTICE, f"returning: {best:.0f} m to go")
         ap.task = Line(p, (p[0], p[1], ret))
 
     def tick(self, p: Vec3) -> None:

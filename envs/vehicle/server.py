@@ -33,29 +33,50 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.params import MAV_PARAM_TYPE_REAL32, Params
-from envs.vehicle.protocol import MissionServer, Peer
-from envs.vehicle.px4 import (
+from pymavlink.dialects.v20.common import (
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_CHANGE_SPEED,
+    MAV_CMD_DO_PAUSE_CONTINUE,
+    MAV_CMD_DO_REPOSITION,
+    MAV_CMD_DO_SET_HOME,
+    MAV_CMD_DO_SET_MISSION_CURRENT,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_GET_HOME_POSITION,
+    MAV_CMD_GET_MESSAGE_INTERVAL,
+    MAV_CMD_MISSION_START,
+    MAV_CMD_NAV_LAND,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+    MAV_PARAM_TYPE_REAL32,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
     MAV_RESULT_UNSUPPORTED,
+    MAV_SEVERITY_CRITICAL,
+    MAV_SEVERITY_INFO,
+    MAV_SEVERITY_WARNING,
     MAV_TYPE_GCS,
-    SEVERITY_CRITICAL,
-    SEVERITY_INFO,
-    SEVERITY_WARNING,
+    MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    MAVLINK_MSG_ID_HOME_POSITION,
+    MAVLINK_MSG_ID_MISSION_CURRENT,
+)
+
+from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.mission import RELATIVE_FRAMES
+from envs.vehicle.params import Params
+from envs.vehicle.protocol import MissionServer, Peer
+from envs.vehicle.px4 import (
+    FORCE_DISARM_MAGIC,
     Mode,
     decode_custom_mode,
     mode_from_main_sub,
     mode_name,
 )
-from envs.vehicle.telemetry import (
-    MSG_EXTENDED_SYS_STATE,
-    MSG_HOME_POSITION,
-    MSG_MISSION_CURRENT,
-    REQUESTABLE,
-    Telemetry,
-)
+from envs.vehicle.telemetry import REQUESTABLE, Telemetry
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
 from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
@@ -66,24 +87,6 @@ from sim.vehicle import FlightError
 
 mavlink = mavutil.mavlink
 
-# MAV_CMD
-CMD_NAV_RETURN_TO_LAUNCH = 20
-CMD_NAV_LAND = 21
-CMD_NAV_TAKEOFF = 22
-CMD_DO_SET_MODE = 176
-CMD_DO_CHANGE_SPEED = 178
-CMD_DO_SET_HOME = 179
-CMD_DO_REPOSITION = 192
-CMD_DO_PAUSE_CONTINUE = 193
-CMD_DO_SET_MISSION_CURRENT = 224
-CMD_MISSION_START = 300
-CMD_COMPONENT_ARM_DISARM = 400
-CMD_GET_HOME_POSITION = 410
-CMD_GET_MESSAGE_INTERVAL = 510
-CMD_SET_MESSAGE_INTERVAL = 511
-CMD_REQUEST_MESSAGE = 512
-CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
-RELATIVE_COMMAND_FRAMES = (3, 6)
 
 _SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
             "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
@@ -313,7 +316,7 @@ class VirtualVehicle:
             except FlightError as exc:
                 self.error = f"the vehicle crashed: {exc}"
                 self.autopilot.crashed = True
-                self.autopilot.text(SEVERITY_CRITICAL, "crashed")
+                self.autopilot.text(MAV_SEVERITY_CRITICAL, "crashed")
                 self.status(self.error)
                 self._publish_events()
                 break
@@ -405,9 +408,9 @@ class VirtualVehicle:
             elif kind in ("mode", "armed"):
                 self._broadcast(self.telemetry.heartbeat())
             elif kind == "home":
-                self._broadcast(self.telemetry.build(MSG_HOME_POSITION))
+                self._broadcast(self.telemetry.build(MAVLINK_MSG_ID_HOME_POSITION))
             elif kind == "landed":
-                self._broadcast(self.telemetry.build(MSG_EXTENDED_SYS_STATE))
+                self._broadcast(self.telemetry.build(MAVLINK_MSG_ID_EXTENDED_SYS_STATE))
             elif kind == "text":
                 self._statustext(int(ev[1]), str(ev[2]))
 
@@ -434,7 +437,7 @@ class VirtualVehicle:
         self._link.last_rx_wall = now
         if not self._link.seen or self._link.lost:
             if self._link.lost:
-                self.autopilot.text(SEVERITY_WARNING, "ground station regained")
+                self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
             self._link.seen, self._link.lost = True, False
         target = getattr(msg, "target_system", 0)
         if target not in (0, self.sysid):
@@ -487,8 +490,8 @@ class VirtualVehicle:
     def _on_mission_set_current(self, peer: Peer, msg: Any) -> None:
         result, why = self.autopilot.set_current(int(msg.seq))
         if result != MAV_RESULT_ACCEPTED:
-            self.autopilot.text(SEVERITY_WARNING, why)
-        self._send_msg(peer, self.telemetry.build(MSG_MISSION_CURRENT))
+            self.autopilot.text(MAV_SEVERITY_WARNING, why)
+        self._send_msg(peer, self.telemetry.build(MAVLINK_MSG_ID_MISSION_CURRENT))
 
     def _on_commit(self, mission_type: int, items: list, current: int) -> None:
         ap = self.autopilot
@@ -526,13 +529,13 @@ class VirtualVehicle:
         params = self.autopilot.params
         name = msg.param_id
         if params.index(name) is None:
-            self.autopilot.text(SEVERITY_WARNING, f"unknown parameter {name}")
+            self.autopilot.text(MAV_SEVERITY_WARNING, f"unknown parameter {name}")
             return
         value = Params.from_wire(float(msg.param_value), int(msg.param_type or
                                                                 MAV_PARAM_TYPE_REAL32))
         why = params.set(name, value)
         if why is not None:
-            self.autopilot.text(SEVERITY_WARNING, why)
+            self.autopilot.text(MAV_SEVERITY_WARNING, why)
         self._param_value(None, name)
 
     def _on_timesync(self, peer: Peer, msg: Any) -> None:
@@ -555,72 +558,72 @@ class VirtualVehicle:
     def _on_set_mode(self, peer: Peer, msg: Any) -> None:
         """SET_MODE (deprecated): answered as PX4 does, with a DO_SET_MODE COMMAND_ACK."""
         main, sub = decode_custom_mode(int(msg.custom_mode))
-        self._command(peer, CMD_DO_SET_MODE, [float(msg.base_mode), float(main), float(sub),
+        self._command(peer, MAV_CMD_DO_SET_MODE, [float(msg.base_mode), float(main), float(sub),
                                               0.0, 0.0, 0.0, 0.0], None)
 
     def _alt_amsl(self, alt: float, frame: int | None) -> float:
         """A command's altitude as AMSL (COMMAND_LONG: AMSL; COMMAND_INT: by frame)."""
-        if frame in RELATIVE_COMMAND_FRAMES and math.isfinite(alt):
+        if frame in RELATIVE_FRAMES and math.isfinite(alt):
             return self.autopilot.home.alt_m + alt
         return alt
 
     def _command(self, peer: Peer, cmd: int, p: list[float], frame: int | None) -> None:
         ap = self.autopilot
         result, why, after = MAV_RESULT_UNSUPPORTED, "", None
-        if cmd == CMD_COMPONENT_ARM_DISARM:
+        if cmd == MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] == 1.0:
                 result, why = ap.arm()
             elif p[0] == 0.0:
-                result, why = ap.disarm(force=round(p[1]) == 21196)
+                result, why = ap.disarm(force=round(p[1]) == FORCE_DISARM_MAGIC)
             else:
                 result, why = MAV_RESULT_DENIED, f"arm/disarm param1 {p[0]:g}"
-        elif cmd == CMD_NAV_TAKEOFF:
+        elif cmd == MAV_CMD_NAV_TAKEOFF:
             result, why = ap.takeoff(self._alt_amsl(p[6], frame))
-        elif cmd == CMD_DO_SET_MODE:
+        elif cmd == MAV_CMD_DO_SET_MODE:
             result, why = self._set_mode(p)
-        elif cmd == CMD_MISSION_START:
+        elif cmd == MAV_CMD_MISSION_START:
             result, why = ap.mission_start(p[0], p[1])
-        elif cmd == CMD_NAV_RETURN_TO_LAUNCH:
+        elif cmd == MAV_CMD_NAV_RETURN_TO_LAUNCH:
             result, why = ap.return_to_launch()
-        elif cmd == CMD_NAV_LAND:
+        elif cmd == MAV_CMD_NAV_LAND:
             result, why = ap.land()
-        elif cmd == CMD_DO_PAUSE_CONTINUE:
+        elif cmd == MAV_CMD_DO_PAUSE_CONTINUE:
             result, why = ap.pause_continue(p[0] >= 1.0)
-        elif cmd == CMD_DO_CHANGE_SPEED:
+        elif cmd == MAV_CMD_DO_CHANGE_SPEED:
             result, why = ap.change_speed(p[1])
-        elif cmd == CMD_DO_REPOSITION:
+        elif cmd == MAV_CMD_DO_REPOSITION:
             result, why = self._reposition(p, frame)
-        elif cmd == CMD_DO_SET_HOME:
+        elif cmd == MAV_CMD_DO_SET_HOME:
             if p[0] == 1.0 or not (math.isfinite(p[4]) and math.isfinite(p[5])):
                 result, why = ap.set_home(None)
             else:
                 result, why = ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame)))
-        elif cmd == CMD_DO_SET_MISSION_CURRENT:
+        elif cmd == MAV_CMD_DO_SET_MISSION_CURRENT:
             seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
             result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
-            after = self.telemetry.build(MSG_MISSION_CURRENT)
-        elif cmd == CMD_SET_MESSAGE_INTERVAL:
+            after = self.telemetry.build(MAVLINK_MSG_ID_MISSION_CURRENT)
+        elif cmd == MAV_CMD_SET_MESSAGE_INTERVAL:
             ok = self.telemetry.streams.set_interval(int(p[0]), p[1])
             result = MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED
-        elif cmd == CMD_GET_MESSAGE_INTERVAL:
+        elif cmd == MAV_CMD_GET_MESSAGE_INTERVAL:
             result = MAV_RESULT_ACCEPTED
             after = mavlink.MAVLink_message_interval_message(
                 int(p[0]), self.telemetry.streams.interval_us(int(p[0])))
-        elif cmd in (CMD_REQUEST_MESSAGE, CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                     CMD_GET_HOME_POSITION):
-            msg_id = {CMD_REQUEST_AUTOPILOT_CAPABILITIES: 148,
-                      CMD_GET_HOME_POSITION: MSG_HOME_POSITION}.get(cmd, int(p[0]))
+        elif cmd in (MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                     MAV_CMD_GET_HOME_POSITION):
+            msg_id = {MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+                      MAV_CMD_GET_HOME_POSITION: MAVLINK_MSG_ID_HOME_POSITION}.get(cmd, int(p[0]))
             if msg_id in REQUESTABLE:
                 result, after = MAV_RESULT_ACCEPTED, self.telemetry.build(msg_id)
         self._ack(peer, cmd, result)
         if why:
-            ap.text(SEVERITY_WARNING if result else SEVERITY_INFO, why)
+            ap.text(MAV_SEVERITY_WARNING if result else MAV_SEVERITY_INFO, why)
         self._send_msg(peer, after)
         self._publish_events()
 
     def _set_mode(self, p: list[float]) -> tuple[int, str]:
         base = int(p[0]) if math.isfinite(p[0]) else 0
-        if not base & 1:
+        if not base & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return MAV_RESULT_DENIED, "mode change without a custom mode"
         main, sub = int(p[1]), int(p[2]) if math.isfinite(p[2]) else 0
         mode = mode_from_main_sub(main, sub)
