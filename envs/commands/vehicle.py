@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         except OutputRefusedError as exc:
             return _fail(EXIT_USAGE, str(exc))
 
-    from envs.vehicle.server import ConnectionURLError, VirtualVehicle
+    from envs.vehicle import ConnectionURLError, VirtualVehicle
 
     try:
         vehicle = VirtualVehicle(

@@ -7,12 +7,14 @@ state, terrain clearance, landing) with its parts :mod:`.modes` (modes, arming,
 commands, link loss), :mod:`.executor` (the mission flown), :mod:`.geofence` (zones
 and breach actions) and :mod:`.rtl` (return, rally points); :mod:`.mission` (what
 storage accepts), :mod:`.protocol` (mission protocol server), :mod:`.telemetry`,
-:mod:`.server` (the loop and the MAVLink ports).
+:mod:`.links` (the MAVLink ports and the ground stations on them), :mod:`.server`
+(the loop).
 """
 
 from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.links import ConnectionURLError, vehicle_url
 from envs.vehicle.params import Params
 from envs.vehicle.px4 import Mode
-from envs.vehicle.server import ConnectionURLError, VirtualVehicle, vehicle_url
+from envs.vehicle.server import VirtualVehicle
 
 __all__ = ["Autopilot", "ConnectionURLError", "Mode", "Params", "VirtualVehicle", "vehicle_url"]

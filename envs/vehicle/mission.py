@@ -97,6 +97,8 @@ FENCE_VERTEX = (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
                 MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION)
 FENCE_CIRCLE = (MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION)
 
+MAX_ALTITUDE_M = 10_000.0  # |altitude| of a positioned item or command, at most
+
 # storage sizes (PX4's dataman on a Pixhawk 6: 2000 items, 64 fence vertices... raised a
 # little for fences: a keep-in polygon and some keep-out circles)
 CAPACITY = {MAV_MISSION_TYPE_MISSION: 2000, MAV_MISSION_TYPE_FENCE: 256,
@@ -110,7 +112,7 @@ def _check_position(w: WireItem) -> int:
         return MAV_MISSION_INVALID_PARAM5_X
     if not -1_800_000_000 <= w.y <= 1_800_000_000:
         return MAV_MISSION_INVALID_PARAM6_Y
-    if not math.isfinite(w.z) or abs(w.z) > 10_000.0:
+    if not math.isfinite(w.z) or abs(w.z) > MAX_ALTITUDE_M:
         return MAV_MISSION_INVALID_PARAM7
     return MAV_MISSION_ACCEPTED
 

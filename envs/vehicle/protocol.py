@@ -39,7 +39,7 @@ from envs.vehicle.mission import CAPACITY, check_item, check_list
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
-Peer = tuple[int, int, int]  # (port index, system id, component id)
+Peer = tuple[int, int, int]  # (link id: envs.vehicle.links, system id, component id)
 Send = Callable[[Peer, str, tuple], None]  # peer, pymavlink message name, args after target
 
 
