@@ -14,7 +14,9 @@ hands the rest to them:
   items, jumps, speed changes and loiters, the items reached and the current one;
 - :class:`envs.vehicle.geofence.FenceGuard` (``geofence``): the fence and what a
   (predicted) breach does;
-- :class:`envs.vehicle.rtl.ReturnToLaunch` (``rtl``): AUTO.RTL and the rally points.
+- :class:`envs.vehicle.rtl.ReturnToLaunch` (``rtl``): AUTO.RTL and the rally points;
+- :class:`envs.vehicle.terrain.TerrainDatabase` (``terrain``): the scenario's terrain,
+  for the terrain protocol and the items above the terrain.
 
 Landing is the autopilot's own (:meth:`Autopilot.land_at`, the land detector judged
 on the true height above the terrain); so are the terrain clearance (never lower than
@@ -57,6 +59,7 @@ from envs.vehicle.modes import ModeMachine, Result
 from envs.vehicle.params import Params
 from envs.vehicle.px4 import Mode
 from envs.vehicle.rtl import ReturnToLaunch
+from envs.vehicle.terrain import TerrainDatabase
 from planner.mavlink_wire import WireItem
 from sim.stepper import Emitted, Stepper
 
@@ -77,6 +80,7 @@ class Autopilot:
         self.vehicle = self.agent.vehicle
         self.world = stepper.world
         self.frame = self.world.frame
+        self.terrain = TerrainDatabase(self.world)
         self._geo_key: Vec3 | None = None
         self._geo = (0.0, 0.0, 0.0)
         self.cfg = self.agent.spec.vehicle
@@ -261,6 +265,14 @@ class Autopilot:
             self._bias_t = self.t_s
         return self._bias
 
+    def ground_m(self, e_m: float, n_m: float) -> float:
+        """The terrain database's ground height (ENU up) at (e, n)."""
+        return self.terrain.ground_m(e_m, n_m)
+
+    def agl_m(self, p: Vec3) -> float:
+        """Height of ``p`` above the terrain database's ground under it."""
+        return p[2] - self.terrain.ground_m(p[0], p[1])
+
     def true_agl_m(self, p: Vec3) -> float:
         """True height above the terrain of navigation position ``p``."""
         b = self._bias_now()
@@ -331,11 +343,10 @@ class Autopilot:
             e = n = math.nan
         if w.frame in ABSOLUTE_FRAMES:
             alt = w.z
-        elif w.frame in TERRAIN_FRAMES:
+        elif w.frame in TERRAIN_FRAMES:  # above the terrain database's ground
             if math.isnan(e):
-                ee, nn, _ = self.frame.to_enu(lat, lon, self.home.alt_m)
-                e, n = float(ee), float(nn)
-            return e, n, float(self.world.ground_m(e, n)) + float(w.z)
+                return self.terrain.above_ground(lat, lon, float(w.z))
+            return e, n, self.terrain.ground_m(e, n) + float(w.z)
         else:
             alt = self.home.alt_m + w.z
         ee, nn, uu = self.frame.to_enu(lat, lon, alt)

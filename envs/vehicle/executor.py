@@ -16,6 +16,11 @@ and the item being flown, and turns items into flight tasks on the autopilot:
   (hover param1 s); DO_JUMP (param1 target, param2 repeats, negative: forever; never
   the current item), DO_CHANGE_SPEED (param2 m/s; -2 the default); payload commands
   are reached at once;
+- items above the terrain (MAV_FRAME_GLOBAL_TERRAIN_ALT(_INT)) are flown at their
+  height above the terrain database's ground, also along the leg into them: the height
+  above the ground goes linearly from the leg's start to the item's
+  (:class:`envs.vehicle.flight.TerrainLine`; a loiter circle follows the ground too, a
+  landing's approach keeps its height above it);
 - the end of the mission in the air switches to AUTO.LOITER; after landing a
   finished mission starts over from item 0.
 
@@ -45,8 +50,16 @@ from pymavlink.dialects.v20.common import (
     MISSION_STATE_PAUSED,
 )
 
-from envs.vehicle.flight import TERRAIN_CLEARANCE_M, Hold, Line, Orbit, Vec3, corner_speed
-from envs.vehicle.mission import IGNORED_COMMANDS
+from envs.vehicle.flight import (
+    TERRAIN_CLEARANCE_M,
+    Hold,
+    Line,
+    Orbit,
+    TerrainLine,
+    Vec3,
+    corner_speed,
+)
+from envs.vehicle.mission import IGNORED_COMMANDS, TERRAIN_FRAMES
 from envs.vehicle.px4 import Mode
 from planner.mavlink_wire import WireItem
 from planner.mission import (
@@ -298,12 +311,19 @@ class MissionExecutor:
             it.phase = "climb"
             ap.modes.climb_to(max(target[2], ap.home.enu[2] + 1.0), then="item")
             return
+        terrain = w.frame in TERRAIN_FRAMES
         if cmd == MAV_CMD_NAV_LAND:
-            it.target = (target[0], target[1], p[2])
             if math.hypot(target[0] - p[0], target[1] - p[1]) <= it.radius_m:
+                it.target = (target[0], target[1], p[2])
                 it.phase = "land"
                 ap.land_at(target[0], target[1])
                 return
+            if terrain:  # the approach keeps its height above the ground
+                agl = ap.agl_m(p)
+                it.target = (target[0], target[1], ap.ground_m(target[0], target[1]) + agl)
+                ap.task = TerrainLine((leg_start[0], leg_start[1], p[2]), it.target, agl, agl)
+                return
+            it.target = (target[0], target[1], p[2])
             ap.task = Line((leg_start[0], leg_start[1], p[2]), it.target)
             return
         if cmd == MAV_CMD_NAV_LOITER_TURNS:
@@ -312,10 +332,15 @@ class MissionExecutor:
                 dx, dy = p[0] - target[0], p[1] - target[1]
                 d = math.hypot(dx, dy)
                 ux, uy = (dx / d, dy / d) if d > 1e-3 else (1.0, 0.0)
-                it.target = (target[0] + radius * ux, target[1] + radius * uy, target[2])
+                e, n = target[0] + radius * ux, target[1] + radius * uy
+                it.target = (e, n, ap.ground_m(e, n) + w.z if terrain else target[2])
         end = 0.0
         if cmd == MAV_CMD_NAV_WAYPOINT and w.param1 <= 0 and w.autocontinue:
             end = self._corner_after(seq, leg_start, it.target, it.radius_m)
+        if terrain:
+            ap.task = TerrainLine(leg_start, it.target, ap.agl_m(leg_start), float(w.z),
+                                  end_speed_mps=end, end_at_m=it.radius_m)
+            return
         ap.task = Line(leg_start, it.target, end_speed_mps=end, end_at_m=it.radius_m)
 
     def _corner_after(self, seq: int, start: Vec3, target: Vec3, radius: float) -> float:
@@ -374,7 +399,8 @@ class MissionExecutor:
                     c = ap.item_position(w)
                     it.phase = "orbit"
                     ap.task = Orbit((c[0], c[1]), radius, t[2],
-                                    -1 if w.param3 > 0 else 1, w.param1)
+                                    -1 if w.param3 > 0 else 1, w.param1,
+                                    agl_m=float(w.z) if w.frame in TERRAIN_FRAMES else None)
                     return
             hold_s = w.param1 if cmd in (MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LOITER_TIME) else 0.0
             if hold_s > 0:
@@ -407,7 +433,10 @@ class MissionExecutor:
         w = it.item
         if (w.x or w.y) and math.hypot(t[0] - p[0], t[1] - p[1]) > it.radius_m:
             it.phase = "fly"
-            self.ap.task = Line(p, t)
+            if w.frame in TERRAIN_FRAMES:
+                self.ap.task = TerrainLine(p, t, self.ap.agl_m(p), float(w.z))
+            else:
+                self.ap.task = Line(p, t)
         else:
             self.item_done(it, p)
 

@@ -152,9 +152,7 @@ def check_item(w: WireItem, count: int) -> int:
     if w.mission_type == MAV_MISSION_TYPE_RALLY:
         if w.command != MAV_CMD_NAV_RALLY_POINT:
             return MAV_MISSION_UNSUPPORTED
-        if w.frame in TERRAIN_FRAMES:
-            return MAV_MISSION_UNSUPPORTED_FRAME
-        return _check_position(w)
+        return _check_position(w)  # (above the terrain too: it can be flown)
     return MAV_MISSION_ERROR
 
 

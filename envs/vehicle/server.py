@@ -71,7 +71,7 @@ from pymavlink.dialects.v20.common import (
 
 from envs.vehicle.autopilot import Autopilot
 from envs.vehicle.links import ConnectionURLError, Links
-from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES
+from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.params import Params
 from envs.vehicle.protocol import MissionServer, Peer
 from envs.vehicle.px4 import (
@@ -82,6 +82,7 @@ from envs.vehicle.px4 import (
     mode_name,
 )
 from envs.vehicle.telemetry import REQUESTABLE, Telemetry
+from envs.vehicle.terrain import REQUEST_BLOCKS_E, REQUEST_BLOCKS_N
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
 from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
@@ -175,6 +176,7 @@ class VirtualVehicle:
         self._thread: threading.Thread | None = None
         self._last_current: tuple[int, int, int] | None = None
         self._bad_kinds: set[str] = set()
+        self.terrain_data_ignored = 0  # TERRAIN_DATA received (the database needs none)
         self._closed = False
         self._lock = threading.Lock()
 
@@ -460,6 +462,26 @@ class VirtualVehicle:
             self.autopilot.text(MAV_SEVERITY_WARNING, why)
         self._param_value(None, name)
 
+    # terrain protocol (envs/vehicle/terrain.py)
+    def _on_terrain_check(self, peer: Peer, msg: Any) -> None:
+        self._send_msg(peer, self.telemetry.terrain_report(int(msg.lat), int(msg.lon)))
+
+    def _on_terrain_request(self, peer: Peer, msg: Any) -> None:
+        """The blocks of the mask from the database (none: it needs no data)."""
+        db = self.autopilot.terrain
+        lat, lon, spacing, mask = int(msg.lat), int(msg.lon), int(msg.grid_spacing), \
+            int(msg.mask)
+        for bit in range(REQUEST_BLOCKS_E * REQUEST_BLOCKS_N):
+            if mask >> bit & 1:
+                heights = db.block(lat, lon, spacing, bit)
+                if heights is not None:
+                    self._send_msg(peer, mavlink.MAVLink_terrain_data_message(
+                        lat, lon, spacing, bit, heights))
+
+    def _on_terrain_data(self, peer: Peer, msg: Any) -> None:
+        """Accepted without effect: the database is the scenario's terrain."""
+        self.terrain_data_ignored += 1
+
     def _on_timesync(self, peer: Peer, msg: Any) -> None:
         if msg.tc1 == 0:
             self._send_msg(peer, mavlink.MAVLink_timesync_message(
@@ -483,10 +505,17 @@ class VirtualVehicle:
         self._command(peer, MAV_CMD_DO_SET_MODE, [float(msg.base_mode), float(main), float(sub),
                                               0.0, 0.0, 0.0, 0.0], None)
 
-    def _alt_amsl(self, alt: float, frame: int | None) -> float:
-        """A command's altitude as AMSL (COMMAND_LONG: AMSL; COMMAND_INT: by frame)."""
+    def _alt_amsl(self, alt: float, frame: int | None, lat_deg: float = math.nan,
+                  lon_deg: float = math.nan) -> float:
+        """A command's altitude as AMSL (COMMAND_LONG: AMSL; COMMAND_INT: by frame; above
+        the terrain: at (lat, lon), NaN: under the vehicle)."""
+        ap = self.autopilot
         if frame in RELATIVE_FRAMES and math.isfinite(alt):
-            return self.autopilot.home.alt_m + alt
+            return ap.home.alt_m + alt
+        if frame in TERRAIN_FRAMES and math.isfinite(alt):
+            if not (math.isfinite(lat_deg) and math.isfinite(lon_deg)):
+                lat_deg, lon_deg = ap.geodetic(ap.position)[:2]
+            return ap.terrain.height_m(lat_deg, lon_deg) + alt
         return alt
 
     def _command(self, peer: Peer, cmd: int, p: list[float], frame: int | None) -> None:
@@ -545,7 +574,8 @@ class VirtualVehicle:
                 or _bad_position(p[4], p[5]) or _bad_altitude(p[6], nan_ok=False)
             if why:
                 return MAV_RESULT_DENIED, f"set home denied: {why}", None
-            return (*ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame))), None)
+            return (*ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame, p[4], p[5]))),
+                    None)
         if cmd == MAV_CMD_DO_SET_MISSION_CURRENT:
             seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
             result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
@@ -589,7 +619,7 @@ class VirtualVehicle:
         lat, lon, alt = ap.geodetic(here)
         if math.isfinite(p[4]) and math.isfinite(p[5]):
             lat, lon = p[4], p[5]
-        a = self._alt_amsl(p[6], frame)
+        a = self._alt_amsl(p[6], frame, lat, lon)
         if math.isfinite(a):
             alt = a
         e, n, u = ap.frame.to_enu(lat, lon, alt)

@@ -2,7 +2,8 @@
 
 Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUDE
 10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT
-1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz), on the simulated clock (as PX4 SITL
+1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz; TERRAIN_REPORT for its own position
+1 Hz, as ArduPilot), on the simulated clock (as PX4 SITL
 with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
 time) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most once per
 simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
@@ -32,6 +33,7 @@ from pymavlink.dialects.v20.common import (
     MAVLINK_MSG_ID_HOME_POSITION,
     MAVLINK_MSG_ID_MISSION_CURRENT,
     MAVLINK_MSG_ID_SYS_STATUS,
+    MAVLINK_MSG_ID_TERRAIN_REPORT,
     MAVLINK_MSG_ID_VFR_HUD,
 )
 
@@ -56,6 +58,7 @@ DEFAULT_RATES_HZ = {
     MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
+    MAVLINK_MSG_ID_TERRAIN_REPORT: 1.0,
 }
 REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MAVLINK_MSG_ID_HEARTBEAT,
                          MAVLINK_MSG_ID_AUTOPILOT_VERSION})
@@ -68,6 +71,7 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+    | mavlink.MAV_PROTOCOL_CAPABILITY_TERRAIN
 )
 FLIGHT_SW_VERSION = (1 << 24) | (14 << 16) | (0 << 8) | 255  # "PX4 1.14.0, official"
 VEHICLE_TAG = b"osa-veh"  # AUTOPILOT_VERSION.flight_custom_version of this vehicle
@@ -218,11 +222,23 @@ class Telemetry:
             return mavlink.MAVLink_battery_status_message(
                 0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LION, 32767, cells,
                 round(amps * 100), -1, -1, left, 0, 0)
+        if msg_id == MAVLINK_MSG_ID_TERRAIN_REPORT:
+            lat, lon, _ = ap.geodetic(ap.position)
+            return self.terrain_report(deg_to_e7(lat), deg_to_e7(lon))
         if msg_id == MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return mavlink.MAVLink_autopilot_version_message(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
                 [0] * 8, [0] * 8, 0, 0, self.fingerprint, [0] * 18)
         return None
+
+    def terrain_report(self, lat_e7: int, lon_e7: int) -> object:
+        """TERRAIN_REPORT for (lat, lon): the ground there and the vehicle's height
+        above it (envs/vehicle/terrain.py)."""
+        ap = self.ap
+        r = ap.terrain.report(lat_e7, lon_e7, ap.geodetic(ap.position)[2])
+        return mavlink.MAVLink_terrain_report_message(
+            r.lat_e7, r.lon_e7, r.spacing, r.terrain_height_m, r.current_height_m, r.pending,
+            r.loaded)
 
     def _heading_deg(self) -> float:
         yaw = self.ap.vehicle.state.yaw_rad  # ENU, counter-clockwise from east
