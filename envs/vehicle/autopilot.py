@@ -12,8 +12,8 @@ hands the rest to them:
   and the commands of a ground station, link loss;
 - :class:`envs.vehicle.executor.MissionExecutor` (``executor``): the mission, its
   items, jumps, speed changes and loiters, the items reached and the current one;
-- :class:`envs.vehicle.geofence.FenceGuard` (``geofence``): the fence and what a
-  (predicted) breach does;
+- :class:`envs.vehicle.geofence.FenceGuard` (``geofence``): the fence (uploaded zones
+  and preloaded keep-outs with their tops) and what a (predicted) breach does;
 - :class:`envs.vehicle.rtl.ReturnToLaunch` (``rtl``): AUTO.RTL and the rally points;
 - :class:`envs.vehicle.terrain.TerrainDatabase` (``terrain``): the scenario's terrain,
   for the terrain protocol and the items above the terrain.
@@ -53,7 +53,7 @@ from envs.vehicle.flight import (
     Vec3,
     stopping_point,
 )
-from envs.vehicle.geofence import Fence, FenceGuard
+from envs.vehicle.geofence import Fence, FenceGuard, KeepOutZone
 from envs.vehicle.mission import ABSOLUTE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.modes import ModeMachine, Result
 from envs.vehicle.params import Params
@@ -68,13 +68,15 @@ __all__ = ["TERRAIN_CLEARANCE_M", "Autopilot", "Home", "MissionProgress"]
 
 class Autopilot:
     """See the module docstring. ``wall_clock`` gives the wall time of the operator
-    timeouts (tests pass their own)."""
+    timeouts (tests pass their own); ``keepouts`` are preloaded into the geofence
+    (:class:`envs.vehicle.geofence.KeepOutZone`, world ENU metres)."""
 
     name = "autopilot"
     done = False
 
     def __init__(self, stepper: Stepper, params: Params | None = None, *,
-                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 keepouts: Sequence[KeepOutZone] = ()) -> None:
         self.stepper = stepper
         self.agent = stepper.agents[0]
         self.vehicle = self.agent.vehicle
@@ -106,7 +108,7 @@ class Autopilot:
         self._ground = (math.inf, math.inf, 0.0)  # (e, n, height) of the last lookup
         self.modes = ModeMachine(self)
         self.executor = MissionExecutor(self)
-        self.geofence = FenceGuard(self)
+        self.geofence = FenceGuard(self, keepouts)
         self.rtl = ReturnToLaunch(self)
         self._sync()
         self._prev_pos = self._pos

@@ -1,15 +1,27 @@
 """The geofence: the zones in the vehicle's ENU frame and the keep-in logic (PX4 rules).
 
 :class:`Fence` holds the zones: allowed = inside at least one inclusion zone (polygon
-or circle; no inclusion zone: anywhere) and inside no exclusion zone. Altitude is not
-fenced. :class:`FenceGuard` acts on it every tick: a breach is predicted on the
-stopping point (GF_PREDICT) :data:`FENCE_MARGIN_M` beyond it and acted upon once per
-breach (GF_ACTION: 1 a warning, 2 hold at the last stopping point that was inside, 3
-return, 5 land; not in AUTO.RTL and AUTO.LAND).
+or circle; no inclusion zone: anywhere) and inside no exclusion zone. The uploaded zones
+(MAVLink fence items) are horizontal: altitude is not fenced. Keep-outs preloaded at
+start (:class:`KeepOutZone`: a polygon or a circle in world ENU metres, with an optional
+top, its height above the ground: a keep-out may be flown over above its top, one
+without a top never) are exclusion zones too, kept across fence uploads
+(:meth:`Fence.with_keepouts`; ``Autopilot(..., keepouts=...)``).
+
+:class:`FenceGuard` acts on the fence every tick: a breach is predicted on the stopping
+point (GF_PREDICT) :data:`FENCE_MARGIN_M` beyond it (and, for a keep-out's top, that
+much below it) and acted upon once per breach (GF_ACTION: 0 nothing, 1 a warning, 2
+hold at the last stopping point that was allowed, 3 return, 5 land). The uploaded zones
+are not enforced in AUTO.RTL and AUTO.LAND (PX4); the keep-outs are: a return or a
+landing that would enter one holds at its last allowed stopping point instead (GF_ACTION
+2, 3 and 5), so with an action the vehicle never enters a keep-out below its top, as
+far as its navigation estimate knows (draw keep-outs with the navigation error as a
+margin).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -49,19 +61,81 @@ def _inside_polygon(x: float, y: float, poly: Sequence[tuple[float, float]]) -> 
     return inside
 
 
+@dataclass(frozen=True, kw_only=True)
+class KeepOutZone:
+    """A keep-out preloaded at start: a polygon (``polygon_enu_m``, >= 3 vertices) or a
+    circle (``circle_enu_m`` = (e, n, radius)) in world ENU metres, and ``top_m``: its
+    height above the ground (above it the vehicle may fly over; None: never)."""
+
+    polygon_enu_m: tuple[tuple[float, float], ...] = ()
+    circle_enu_m: tuple[float, float, float] | None = None
+    top_m: float | None = None
+
+    def __post_init__(self) -> None:
+        poly = tuple((float(e), float(n)) for e, n in self.polygon_enu_m)
+        object.__setattr__(self, "polygon_enu_m", poly)
+        if (len(poly) >= 3) == (self.circle_enu_m is not None):
+            raise ValueError("a keep-out is one polygon (>= 3 vertices) or one circle")
+        values = [v for vertex in poly for v in vertex]
+        if self.circle_enu_m is not None:
+            c = tuple(float(v) for v in self.circle_enu_m)
+            if len(c) != 3 or not c[2] > 0:
+                raise ValueError(f"a keep-out circle is (e, n, radius > 0), got {c}")
+            object.__setattr__(self, "circle_enu_m", c)
+            values += list(c)
+        if self.top_m is not None:
+            if not (math.isfinite(self.top_m) and self.top_m >= 0):
+                raise ValueError(f"a keep-out's top must be >= 0 m, got {self.top_m}")
+            object.__setattr__(self, "top_m", float(self.top_m))
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("a keep-out's coordinates must be finite")
+
+    @classmethod
+    def circle(cls, e_m: float, n_m: float, radius_m: float,
+               top_m: float | None = None) -> KeepOutZone:
+        return cls(circle_enu_m=(e_m, n_m, radius_m), top_m=top_m)
+
+    @classmethod
+    def polygon(cls, vertices_enu_m: Sequence[tuple[float, float]],
+                top_m: float | None = None) -> KeepOutZone:
+        return cls(polygon_enu_m=tuple(vertices_enu_m), top_m=top_m)
+
+    def covers(self, e: float, n: float) -> bool:
+        """Is (e, n) inside the keep-out's outline (whatever the height)?"""
+        if self.circle_enu_m is not None:
+            ce, cn, r = self.circle_enu_m
+            return math.hypot(e - ce, n - cn) < r
+        return _inside_polygon(e, n, self.polygon_enu_m)
+
+
 @dataclass(frozen=True)
 class Fence:
-    """Zones in ENU metres: polygons as vertex tuples, circles as (e, n, radius)."""
+    """Zones in ENU metres: polygons as vertex tuples, circles as (e, n, radius), and
+    the preloaded keep-outs."""
 
     inclusion_polygons: tuple[tuple[tuple[float, float], ...], ...] = ()
     exclusion_polygons: tuple[tuple[tuple[float, float], ...], ...] = ()
     inclusion_circles: tuple[tuple[float, float, float], ...] = ()
     exclusion_circles: tuple[tuple[float, float, float], ...] = ()
+    keepouts: tuple[KeepOutZone, ...] = ()
 
     @property
     def empty(self) -> bool:
         return not (self.inclusion_polygons or self.exclusion_polygons
-                    or self.inclusion_circles or self.exclusion_circles)
+                    or self.inclusion_circles or self.exclusion_circles or self.keepouts)
+
+    def with_keepouts(self, zones: Sequence[KeepOutZone]) -> Fence:
+        """This fence and the keep-outs ``zones`` too."""
+        return dataclasses.replace(self, keepouts=(*self.keepouts, *zones))
+
+    def keepout_at(self, e: float, n: float, agl_m: Callable[[float, float], float],
+                   z: float, margin_m: float = 0.0) -> KeepOutZone | None:
+        """The keep-out that a point at ENU height ``z`` over (e, n) is in (below its top
+        plus ``margin_m``; ``agl_m(e, n)`` the ground), or None."""
+        for k in self.keepouts:
+            if k.covers(e, n) and (k.top_m is None or z - agl_m(e, n) < k.top_m + margin_m):
+                return k
+        return None
 
     def allows(self, e: float, n: float) -> bool:
         """Is (e, n) inside the fence?"""
@@ -98,11 +172,13 @@ FENCE_COMMANDS = (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
 
 
 class FenceGuard:
-    """The autopilot's keep-in logic (see the module docstring); ``ap`` the autopilot."""
+    """The autopilot's keep-in logic (see the module docstring); ``ap`` the autopilot,
+    ``keepouts`` preloaded for good (fence uploads add to them)."""
 
-    def __init__(self, ap: Autopilot) -> None:
+    def __init__(self, ap: Autopilot, keepouts: Sequence[KeepOutZone] = ()) -> None:
         self.ap = ap
-        self.fence = Fence()
+        self.keepouts = tuple(keepouts)
+        self.fence = Fence(keepouts=self.keepouts)
         self.items: list[WireItem] = []
         self._ok = True
         self._safe_stop: Vec3 | None = None
@@ -116,25 +192,32 @@ class FenceGuard:
             e, n, _ = ap.frame.to_enu(lat, lon, ap.home.alt_m)
             return float(e), float(n)
 
-        self.fence = fence_from_items(items, to_en)
+        self.fence = fence_from_items(items, to_en).with_keepouts(self.keepouts)
         self._ok = True
         self._safe_stop = None
 
     def allows(self, p: Vec3) -> bool:
         """May the vehicle be at ``p`` (arming)?"""
-        return self.fence.empty or self.fence.allows(p[0], p[1])
+        f = self.fence
+        return f.empty or (f.allows(p[0], p[1])
+                           and f.keepout_at(p[0], p[1], self.ap.ground_m, p[2]) is None)
 
     def check(self, p: Vec3, v: Vec3) -> bool:
         """Edge-triggered geofence action (True when it fired)."""
         ap = self.ap
-        if self.fence.empty or ap.mode in (Mode.RTL, Mode.LAND):
+        f = self.fence
+        zones = ap.mode not in (Mode.RTL, Mode.LAND)  # the uploaded zones: not there (PX4)
+        if f.empty or not (zones or f.keepouts):
             return False
         lim = ap.limits
         point = stopping_point(p, v, lim) if ap.params["GF_PREDICT"] else p
         sh = math.hypot(v[0], v[1])
         m = FENCE_MARGIN_M / sh if sh > 0.1 else 0.0  # look a margin beyond the stop
-        ok = self.fence.allows(point[0] + v[0] * m, point[1] + v[1] * m)
-        if ok:
+        qe, qn = point[0] + v[0] * m, point[1] + v[1] * m
+        ok = not zones or f.allows(qe, qn)
+        keepout = ok and bool(f.keepouts) \
+            and f.keepout_at(qe, qn, ap.ground_m, point[2], FENCE_MARGIN_M) is not None
+        if ok and not keepout:
             self._ok = True
             self._safe_stop = point
             return False
@@ -142,8 +225,9 @@ class FenceGuard:
             return False
         self._ok = False
         action = int(ap.params["GF_ACTION"])
-        ap.text(MAV_SEVERITY_CRITICAL, "geofence breached" + (" (predicted)" if point != p else ""))
-        if action == 2:
+        what = "keep-out ahead" if keepout else "geofence breached"
+        ap.text(MAV_SEVERITY_CRITICAL, what + (" (predicted)" if point != p else ""))
+        if action == 2 or (not zones and action >= 2):  # a return or landing: hold
             ap.modes.enter(Mode.LOITER)
             ap.hold_here(self._safe_stop or p)
         elif action == 3:

@@ -70,6 +70,7 @@ from pymavlink.dialects.v20.common import (
 )
 
 from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.geofence import KeepOutZone
 from envs.vehicle.links import ConnectionURLError, Links
 from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.params import Params
@@ -123,7 +124,9 @@ class VirtualVehicle:
 
     ``with VirtualVehicle(scenario, ["udpin:127.0.0.1:14540"], speedup=20) as v:``
     runs it in a background thread (tests, benchmarks); :meth:`run` runs it in the
-    calling thread until ``should_stop()`` (the CLI).
+    calling thread until ``should_stop()`` (the CLI). ``keepouts``
+    (:class:`envs.vehicle.geofence.KeepOutZone`, world ENU metres) are preloaded into
+    the autopilot's geofence.
     """
 
     LOOP_PERIOD_S = 0.02
@@ -135,7 +138,8 @@ class VirtualVehicle:
                  params: dict[str, float] | None = None, sysid: int = 1, compid: int = 1,
                  step_s: float | None = None, status: Callable[[str], None] | None = None,
                  transfer_timeout_s: float = 5.0,
-                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 keepouts: Sequence[KeepOutZone] = ()) -> None:
         if not connections:
             raise ConnectionURLError("a vehicle needs at least one --connection")
         if not speedup > 0:
@@ -153,7 +157,7 @@ class VirtualVehicle:
         # the configured H_AGL of a search is its height (as in osa search)
         agl = scenario.search.height_m if scenario.search is not None else None
         self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
-        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock)
+        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock, keepouts=keepouts)
         for name, value in (params or {}).items():
             why = self.autopilot.params.set(name, value)
             if why is not None:
