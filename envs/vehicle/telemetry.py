@@ -39,6 +39,7 @@ from pymavlink.dialects.v20.common import (
 
 from envs.vehicle.autopilot import Autopilot
 from envs.vehicle.px4 import Mode, base_mode
+from envs.vehicle.terrain import TerrainReport
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
 from planner.mission import deg_to_e7
@@ -223,8 +224,8 @@ class Telemetry:
                 0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LION, 32767, cells,
                 round(amps * 100), -1, -1, left, 0, 0)
         if msg_id == MAVLINK_MSG_ID_TERRAIN_REPORT:
-            lat, lon, _ = ap.geodetic(ap.position)
-            return self.terrain_report(deg_to_e7(lat), deg_to_e7(lon))
+            p = ap.position
+            return _terrain_report(ap.terrain.report_below(p, ap.geodetic(p)))
         if msg_id == MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return mavlink.MAVLink_autopilot_version_message(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
@@ -235,10 +236,7 @@ class Telemetry:
         """TERRAIN_REPORT for (lat, lon): the ground there and the vehicle's height
         above it (envs/vehicle/terrain.py)."""
         ap = self.ap
-        r = ap.terrain.report(lat_e7, lon_e7, ap.geodetic(ap.position)[2])
-        return mavlink.MAVLink_terrain_report_message(
-            r.lat_e7, r.lon_e7, r.spacing, r.terrain_height_m, r.current_height_m, r.pending,
-            r.loaded)
+        return _terrain_report(ap.terrain.report(lat_e7, lon_e7, ap.geodetic(ap.position)[2]))
 
     def _heading_deg(self) -> float:
         yaw = self.ap.vehicle.state.yaw_rad  # ENU, counter-clockwise from east
@@ -280,6 +278,12 @@ class Telemetry:
             min(round(acc * 100), 65534), min(round(vacc * 100), 65534), round(gs * 100), cog,
             f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
             round(vacc * 1000), 0, 0, 0)
+
+
+def _terrain_report(r: TerrainReport) -> object:
+    return mavlink.MAVLink_terrain_report_message(
+        r.lat_e7, r.lon_e7, r.spacing, r.terrain_height_m, r.current_height_m, r.pending,
+        r.loaded)
 
 
 def _cms(v_mps: float) -> int:

@@ -17,7 +17,8 @@ As ArduPilot speaks the protocol (the vehicle's side):
   terrain there, beyond :data:`sim.world.MAX_EXTENT_M` of the origin), ``pending`` 0,
   ``loaded`` the 4x4 blocks of that spacing that cover the database's extent (at most
   65535, the field's limit);
-- TERRAIN_REPORT for its own position is sent about once a second (simulated time);
+- TERRAIN_REPORT for its own position (the ground below its navigation position) is
+  sent about once a second (simulated time);
 - TERRAIN_REQUEST (a ground station asking for blocks; normally the vehicle asks) is
   answered with the TERRAIN_DATA blocks of its mask from the database, laid out as
   ground stations lay them out (an 8 x 7 array of 4 x 4 blocks from the south-west
@@ -34,6 +35,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from planner.mission import deg_to_e7
 from sim.world import MAX_EXTENT_M, World
 
 NOMINAL_SPACING_M = 100  # an analytic terrain has no grid: ArduPilot's TERRAIN_SPACING
@@ -114,6 +116,17 @@ class TerrainDatabase:
         if not math.isfinite(h):
             return TerrainReport(lat_e7, lon_e7, 0, 0.0, 0.0, 0, self.loaded)
         return TerrainReport(lat_e7, lon_e7, self.spacing, h, vehicle_alt_m - h, 0, self.loaded)
+
+    def report_below(self, p: tuple[float, float, float],
+                     geodetic: tuple[float, float, float]) -> TerrainReport:
+        """TERRAIN_REPORT for a vehicle at ENU ``p`` = ``geodetic`` (lat, lon, alt), the
+        ground straight below it: its height above the ground along ENU up is its height
+        above it along the ellipsoid's normal to a millimetre (the two differ by the
+        angle from the origin, 0.003 rad at 20 km), so no second conversion is needed."""
+        agl = p[2] - self.ground_m(p[0], p[1])
+        lat, lon, alt = geodetic
+        return TerrainReport(deg_to_e7(lat), deg_to_e7(lon), self.spacing, alt - agl, agl, 0,
+                             self.loaded)
 
     def block(self, lat_e7: int, lon_e7: int, spacing_m: int, gridbit: int) -> list[int] | None:
         """The 16 heights (whole metres, int16) of block ``gridbit`` of a TERRAIN_REQUEST
