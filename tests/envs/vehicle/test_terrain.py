@@ -258,3 +258,25 @@ def test_terrain_frame_commands() -> None:
             assert math.hypot(target[0] + 200.0, target[1] - 200.0) < 0.05
         finally:
             gcs.close()
+
+
+def test_the_database_of_a_grid_terrain() -> None:
+    """A grid terrain (the planner's terrain protocol, any kind): its cell size is the
+    database's spacing, heights are the grid's, in the world's datum."""
+    from envs.vehicle.terrain import TerrainDatabase
+    from sim.terrain import GridTerrain
+    from sim.world import Origin, World
+
+    rng = np.random.default_rng(3)
+    grid = GridTerrain(rng.uniform(-20.0, 60.0, size=(41, 41)), -1000.0, -1000.0, 50.0)
+    world = World(Origin(lat_deg=47.3, lon_deg=8.5, h_m=400.0), grid, ())
+    db = TerrainDatabase(world)
+    assert db.spacing == 50 and db.loaded == min((40_000 // 200) ** 2, 65535)
+    for e, n in ((0.0, 0.0), (-975.0, 630.0), (412.5, -333.3), (999.0, 999.0)):
+        u = float(grid.height_m(e, n))
+        lat, lon, h = world.frame.to_geodetic(e, n, u)
+        r = db.report(deg_to_e7(lat), deg_to_e7(lon), h + 25.0)
+        assert r.terrain_height_m == pytest.approx(h, abs=0.02)  # (1e-7 deg, 80 m/km grade)
+        assert r.current_height_m == pytest.approx(25.0, abs=0.02)
+        assert (r.spacing, r.pending) == (50, 0)
+        assert db.above_ground(lat, lon, 12.0)[2] - u == pytest.approx(12.0, abs=0.02)
