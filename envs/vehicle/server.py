@@ -15,7 +15,9 @@ clock instead of drifting silently. ``--log`` receives the phone's records as th
 reach the file (:class:`sim.stepper.LogSink`, flushed): :meth:`VirtualVehicle._on_phone_records`
 is the one place the phone's records leave the simulation.
 
-Replies go to the link and system that asked; telemetry to every link. Every
+Replies go to the link and system that asked; telemetry to every link; a ground
+station heard for the first time gets a HEARTBEAT at once (it need not wait a second to
+discover the vehicle). Every
 COMMAND_LONG and COMMAND_INT is answered with a COMMAND_ACK, malformed ones too (NaN
 or out-of-range parameters: DENIED; a command it does not know: UNSUPPORTED; one that
 fails: FAILED). Any message from another system keeps the ground-station link alive;
@@ -93,6 +95,7 @@ from sim.stepper import Emitted, LogSink, Stepper
 from sim.vehicle import FlightError
 
 mavlink = mavutil.mavlink
+MAX_PEERS = 1024  # ground stations remembered (to greet a new one with a HEARTBEAT)
 
 
 @dataclass
@@ -117,6 +120,7 @@ class _Link:
     seen: bool = False
     lost: bool = False
     gcs: set[tuple[int, int]] = field(default_factory=set)
+    peers: set[Peer] = field(default_factory=set)  # (link, system, component) heard from
 
 
 class VirtualVehicle:
@@ -363,6 +367,12 @@ class VirtualVehicle:
             return
         self.stats.received += 1
         self._link.last_rx_wall = now
+        here = (link, *src)
+        if here not in self._link.peers:  # a new ground station: it hears from us at once
+            if len(self._link.peers) >= MAX_PEERS:
+                self._link.peers.clear()
+            self._link.peers.add(here)
+            self._send_msg(here, self.telemetry.heartbeat())
         if not self._link.seen or self._link.lost:
             if self._link.lost:
                 self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
