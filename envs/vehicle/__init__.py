@@ -4,8 +4,9 @@
 describes what it answers and how it flies. Modules: :mod:`.px4` (modes and codes),
 :mod:`.params`, :mod:`.flight` (flight tasks), :mod:`.autopilot` (the guidance: shared
 state, terrain clearance, landing) with its parts :mod:`.modes` (modes, arming,
-commands, link loss), :mod:`.executor` (the mission flown), :mod:`.geofence` (zones
-and breach actions) and :mod:`.rtl` (return, rally points); :mod:`.mission` (what
+commands, link loss), :mod:`.executor` (the mission flown), :mod:`.geofence` (zones,
+keep-outs and breach actions), :mod:`.rtl` (return, rally points) and :mod:`.terrain`
+(the terrain database and protocol); :mod:`.mission` (what
 storage accepts), :mod:`.protocol` (mission protocol server), :mod:`.telemetry`,
 :mod:`.links` (the MAVLink ports and the ground stations on them), :mod:`.server`
 (the loop).
