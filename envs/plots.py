@@ -138,13 +138,16 @@ def gnss_track_enu(report: ReplayReport, log_paths: Sequence[str | Path]) -> lis
 
 @dataclasses.dataclass(frozen=True)
 class PlacedResponder:
-    """A surveyed responder placed in a replay's frame, with its best status."""
+    """A surveyed responder placed in a replay's frame, with its best status; or, for a
+    log without ``truth`` (a real flight), an estimated one placed at its best-observed
+    estimate (``surveyed`` False)."""
 
     bssid: str
     enu_m: tuple[float, float, float]
     concealment: str
     status: str  # the best status over the modes
     has_estimate: bool
+    surveyed: bool = True
 
 
 _STATUS_RANK = ("converged", "tracking", "weak_geometry", "bootstrapping", "diverged", "no_data")
@@ -171,6 +174,23 @@ def responders(report: ReplayReport) -> list[PlacedResponder]:
             if bssid not in by:  # surveyed, never ranged
                 enu = tuple(report.frame.to_enu(tru.lat_deg, tru.lon_deg, tru.alt_m))
                 out.append(PlacedResponder(bssid, enu, tru.concealment, "not ranged", False))
+    return out
+
+
+def unsurveyed_estimates(report: ReplayReport) -> list[PlacedResponder]:
+    """The responders with estimates but no ``truth`` record, each placed at the
+    estimate of its mode with the most accepted ranges (what the zoom panels centre on
+    for a real flight)."""
+    by: dict[str, list[TrackResult]] = {}
+    for t in report.tracks:
+        if t.estimate is not None and t.truth_enu_m is None and t.bssid not in report.truth:
+            by.setdefault(t.bssid, []).append(t)
+    out = []
+    for bssid, rows in by.items():
+        best = max(rows, key=lambda t: t.counts["n_acc"])
+        ranks = [_STATUS_RANK.index(r.status) if r.status in _STATUS_RANK else 9 for r in rows]
+        out.append(PlacedResponder(bssid, tuple(best.estimate.enu_m), "no survey",
+                                   rows[int(np.argmin(ranks))].status, True, surveyed=False))
     return out
 
 
@@ -413,7 +433,9 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
     report = with_plot_frame(report, log_paths)
     plt = pyplot()
     resp = responders(report)
-    zoomed = [r for r in resp if r.has_estimate][:MAX_ZOOMS]
+    estimated = unsurveyed_estimates(report)  # a real flight's: no truth to place them
+    candidates = [r for r in resp if r.has_estimate] + estimated
+    zoomed = candidates[:MAX_ZOOMS]
     n_rows = min(3, max(1, len(zoomed)))
     n_cols = max(1, math.ceil(len(zoomed) / 3))
     fig = plt.figure(figsize=(7.8 + 3.1 * n_cols, 7.2), layout="constrained")
@@ -452,15 +474,17 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
         st = mode_style(m)
         handles.append(Line2D([], [], ls="--", lw=0.8, marker="o", ms=5, color=st["color"],
                               label=f"{m}: estimate, sigma_H circle"))
-    handles.append(Line2D([], [], ls="none", marker="*", ms=11, mfc="none", mec="k",
-                          label="truth (zoom panels)"))
+    if resp:
+        handles.append(Line2D([], [], ls="none", marker="*", ms=11, mfc="none", mec="k",
+                              label="truth (zoom panels)"))
     ax.set_xlabel("East [m]")
     ax.set_ylabel("North [m]")
     ax.grid(alpha=0.3)
     ax.set_title(title or "Trajectory, surveyed and estimated responders")
     fig.canvas.draw()
     place_labels(ax, [(r.enu_m[0], r.enu_m[1],
-                       f"{short_id(r.bssid)} ({r.concealment}): {r.status}") for r in resp])
+                       f"{short_id(r.bssid)} ({r.concealment}): {r.status}")
+                      for r in resp + estimated])
     right = gs[0, 1].subgridspec(n_rows, n_cols)
     if not zoomed:
         ins = fig.add_subplot(right[0, 0])
@@ -475,7 +499,7 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
             ins.set_xlabel("East [m]", fontsize=8)
         if k < 3:
             ins.set_ylabel("North [m]", fontsize=8)
-    more = sum(r.has_estimate for r in resp) - len(zoomed)
+    more = len(candidates) - len(zoomed)
     if more > 0:
         fig.text(0.99, 0.01, f"{more} more responders with estimates: not zoomed",
                  ha="right", fontsize=7)
@@ -485,12 +509,14 @@ def trajectory_figure(report: ReplayReport, log_paths: Sequence[str | Path], tit
 
 
 def _zoom_panel(ax, report: ReplayReport, r: PlacedResponder) -> None:
-    """Every mode's estimate of ``r`` and its sigma_H circle, the truth on top."""
+    """Every mode's estimate of ``r`` and its sigma_H circle, the truth on top (when
+    surveyed)."""
     rows = [t for t in report.tracks if t.bssid == r.bssid and t.estimate is not None]
     _draw_estimates(ax, report, only=r.bssid)
     t = r.enu_m
-    ax.plot(t[0], t[1], marker="*", ms=14, mfc="none", mec="k", mew=1.2, ls="none", zorder=8,
-            gid=f"{RESPONDER_GID}:{r.bssid}")
+    if r.surveyed:
+        ax.plot(t[0], t[1], marker="*", ms=14, mfc="none", mec="k", mew=1.2, ls="none",
+                zorder=8, gid=f"{RESPONDER_GID}:{r.bssid}")
     set_extent(ax, zoom_extent(t[:2], [(x.estimate.enu_m[0], x.estimate.enu_m[1],
                                         x.estimate.sigma_h_m) for x in rows]))
     ax.grid(alpha=0.3)
