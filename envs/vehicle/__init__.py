@@ -13,11 +13,9 @@ storage accepts), :mod:`.protocol` (mission protocol server), :mod:`.telemetry`,
 """
 
 from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.geofence import KeepOutZone
 from envs.vehicle.links import ConnectionURLError, vehicle_url
 from envs.vehicle.params import Params
 from envs.vehicle.px4 import Mode
 from envs.vehicle.server import VirtualVehicle
 
-__all__ = ["Autopilot", "ConnectionURLError", "KeepOutZone", "Mode", "Params", "VirtualVehicle",
-           "vehicle_url"]
+__all__ = ["Autopilot", "ConnectionURLError", "Mode", "Params", "VirtualVehicle", "vehicle_url"]

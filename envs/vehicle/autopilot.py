@@ -53,7 +53,7 @@ from envs.vehicle.flight import (
     Vec3,
     stopping_point,
 )
-from envs.vehicle.geofence import Fence, FenceGuard, KeepOutZone
+from envs.vehicle.geofence import Fence, FenceGuard
 from envs.vehicle.mission import ABSOLUTE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.modes import ModeMachine, Result
 from envs.vehicle.params import Params
@@ -61,6 +61,7 @@ from envs.vehicle.px4 import Mode
 from envs.vehicle.rtl import ReturnToLaunch
 from envs.vehicle.terrain import TerrainDatabase
 from planner.mavlink_wire import WireItem
+from sim.scenario import KeepOutZone
 from sim.stepper import Emitted, Stepper
 
 __all__ = ["TERRAIN_CLEARANCE_M", "Autopilot", "Home", "MissionProgress"]
@@ -69,7 +70,7 @@ __all__ = ["TERRAIN_CLEARANCE_M", "Autopilot", "Home", "MissionProgress"]
 class Autopilot:
     """See the module docstring. ``wall_clock`` gives the wall time of the operator
     timeouts (tests pass their own); ``keepouts`` are preloaded into the geofence
-    (:class:`envs.vehicle.geofence.KeepOutZone`, world ENU metres)."""
+    (:class:`sim.scenario.KeepOutZone`, world ENU metres: a scenario's keep-outs)."""
 
     name = "autopilot"
     done = False

@@ -3,10 +3,10 @@
 :class:`Fence` holds the zones: allowed = inside at least one inclusion zone (polygon
 or circle; no inclusion zone: anywhere) and inside no exclusion zone. The uploaded zones
 (MAVLink fence items) are horizontal: altitude is not fenced. Keep-outs preloaded at
-start (:class:`KeepOutZone`: a polygon or a circle in world ENU metres, with an optional
-top, its height above the ground: a keep-out may be flown over above its top, one
-without a top never) are exclusion zones too, kept across fence uploads
-(:meth:`Fence.with_keepouts`; ``Autopilot(..., keepouts=...)``).
+start (the scenario's :class:`sim.scenario.KeepOutZone`: a polygon or a circle in world
+ENU metres, with an optional top, its height above the ground: a keep-out may be flown
+over above its top, one without a top never) are exclusion zones too, kept across fence
+uploads (:meth:`Fence.with_keepouts`; ``Autopilot(..., keepouts=...)``).
 
 :class:`FenceGuard` acts on the fence every tick: a breach is predicted on the stopping
 point (GF_PREDICT) :data:`FENCE_MARGIN_M` beyond it (and, for a keep-out's top, that
@@ -22,6 +22,7 @@ margin).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -42,6 +43,7 @@ from planner.mission import (
     FenceCircle,
     FencePolygon,
 )
+from sim.scenario import KeepOutZone
 
 if TYPE_CHECKING:
     from envs.vehicle.autopilot import Autopilot
@@ -59,53 +61,6 @@ def _inside_polygon(x: float, y: float, poly: Sequence[tuple[float, float]]) -> 
             inside = not inside
         xj, yj = xi, yi
     return inside
-
-
-@dataclass(frozen=True, kw_only=True)
-class KeepOutZone:
-    """A keep-out preloaded at start: a polygon (``polygon_enu_m``, >= 3 vertices) or a
-    circle (``circle_enu_m`` = (e, n, radius)) in world ENU metres, and ``top_m``: its
-    height above the ground (above it the vehicle may fly over; None: never)."""
-
-    polygon_enu_m: tuple[tuple[float, float], ...] = ()
-    circle_enu_m: tuple[float, float, float] | None = None
-    top_m: float | None = None
-
-    def __post_init__(self) -> None:
-        poly = tuple((float(e), float(n)) for e, n in self.polygon_enu_m)
-        object.__setattr__(self, "polygon_enu_m", poly)
-        if (len(poly) >= 3) == (self.circle_enu_m is not None):
-            raise ValueError("a keep-out is one polygon (>= 3 vertices) or one circle")
-        values = [v for vertex in poly for v in vertex]
-        if self.circle_enu_m is not None:
-            c = tuple(float(v) for v in self.circle_enu_m)
-            if len(c) != 3 or not c[2] > 0:
-                raise ValueError(f"a keep-out circle is (e, n, radius > 0), got {c}")
-            object.__setattr__(self, "circle_enu_m", c)
-            values += list(c)
-        if self.top_m is not None:
-            if not (math.isfinite(self.top_m) and self.top_m >= 0):
-                raise ValueError(f"a keep-out's top must be >= 0 m, got {self.top_m}")
-            object.__setattr__(self, "top_m", float(self.top_m))
-        if not all(math.isfinite(v) for v in values):
-            raise ValueError("a keep-out's coordinates must be finite")
-
-    @classmethod
-    def circle(cls, e_m: float, n_m: float, radius_m: float,
-               top_m: float | None = None) -> KeepOutZone:
-        return cls(circle_enu_m=(e_m, n_m, radius_m), top_m=top_m)
-
-    @classmethod
-    def polygon(cls, vertices_enu_m: Sequence[tuple[float, float]],
-                top_m: float | None = None) -> KeepOutZone:
-        return cls(polygon_enu_m=tuple(vertices_enu_m), top_m=top_m)
-
-    def covers(self, e: float, n: float) -> bool:
-        """Is (e, n) inside the keep-out's outline (whatever the height)?"""
-        if self.circle_enu_m is not None:
-            ce, cn, r = self.circle_enu_m
-            return math.hypot(e - ce, n - cn) < r
-        return _inside_polygon(e, n, self.polygon_enu_m)
 
 
 @dataclass(frozen=True)
@@ -128,14 +83,28 @@ class Fence:
         """This fence and the keep-outs ``zones`` too."""
         return dataclasses.replace(self, keepouts=(*self.keepouts, *zones))
 
-    def keepout_at(self, e: float, n: float, agl_m: Callable[[float, float], float],
+    def keepout_at(self, e: float, n: float, ground_m: Callable[[float, float], float],
                    z: float, margin_m: float = 0.0) -> KeepOutZone | None:
         """The keep-out that a point at ENU height ``z`` over (e, n) is in (below its top
-        plus ``margin_m``; ``agl_m(e, n)`` the ground), or None."""
-        for k in self.keepouts:
-            if k.covers(e, n) and (k.top_m is None or z - agl_m(e, n) < k.top_m + margin_m):
+        plus ``margin_m``; ``ground_m(e, n)`` the ground), or None."""
+        for k, (e0, e1, n0, n1) in zip(self.keepouts, self._keepout_boxes, strict=True):
+            if e0 <= e <= e1 and n0 <= n <= n1 and k.contains(e, n) \
+                    and (k.top_m is None or z - ground_m(e, n) < k.top_m + margin_m):
                 return k
         return None
+
+    @functools.cached_property
+    def _keepout_boxes(self) -> tuple[tuple[float, float, float, float], ...]:
+        """(e_min, e_max, n_min, n_max) of each keep-out: most points are far from all."""
+        out = []
+        for k in self.keepouts:
+            if k.center_enu_m is not None:
+                (ce, cn), r = k.center_enu_m, float(k.radius_m or 0.0)
+                out.append((ce - r, ce + r, cn - r, cn + r))
+            else:
+                es, ns = zip(*k.polygon_enu_m, strict=True)
+                out.append((min(es), max(es), min(ns), max(ns)))
+        return tuple(out)
 
     def allows(self, e: float, n: float) -> bool:
         """Is (e, n) inside the fence?"""

@@ -72,7 +72,6 @@ from pymavlink.dialects.v20.common import (
 )
 
 from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.geofence import KeepOutZone
 from envs.vehicle.links import ConnectionURLError, Links
 from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.params import Params
@@ -90,7 +89,7 @@ from estimator.records import GnssFix
 from planner.mavlink import mavutil
 from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
 from sim.realisation import realise
-from sim.scenario import Scenario
+from sim.scenario import KeepOutZone, Scenario
 from sim.stepper import Emitted, LogSink, Stepper
 from sim.vehicle import FlightError
 
@@ -129,8 +128,8 @@ class VirtualVehicle:
     ``with VirtualVehicle(scenario, ["udpin:127.0.0.1:14540"], speedup=20) as v:``
     runs it in a background thread (tests, benchmarks); :meth:`run` runs it in the
     calling thread until ``should_stop()`` (the CLI). ``keepouts``
-    (:class:`envs.vehicle.geofence.KeepOutZone`, world ENU metres) are preloaded into
-    the autopilot's geofence.
+    (:class:`sim.scenario.KeepOutZone`, world ENU metres; None: the scenario's
+    ``[[search.keepout]]``) are preloaded into the autopilot's geofence.
     """
 
     LOOP_PERIOD_S = 0.02
@@ -143,7 +142,7 @@ class VirtualVehicle:
                  step_s: float | None = None, status: Callable[[str], None] | None = None,
                  transfer_timeout_s: float = 5.0,
                  wall_clock: Callable[[], float] = time.monotonic,
-                 keepouts: Sequence[KeepOutZone] = ()) -> None:
+                 keepouts: Sequence[KeepOutZone] | None = None) -> None:
         if not connections:
             raise ConnectionURLError("a vehicle needs at least one --connection")
         if not speedup > 0:
@@ -161,7 +160,8 @@ class VirtualVehicle:
         # the configured H_AGL of a search is its height (as in osa search)
         agl = scenario.search.height_m if scenario.search is not None else None
         self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
-        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock, keepouts=keepouts)
+        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock,
+                                   keepouts=scenario.keepouts if keepouts is None else keepouts)
         for name, value in (params or {}).items():
             why = self.autopilot.params.set(name, value)
             if why is not None:

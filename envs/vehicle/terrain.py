@@ -63,7 +63,10 @@ class TerrainDatabase:
     def __init__(self, world: World) -> None:
         self.world = world
         self.frame = world.frame
-        spacing = getattr(world.terrain, "spacing_m", None)
+        spacing = getattr(world.terrain, "spacing_m", None)  # a grid's cell
+        pixel = getattr(world.terrain, "pixel_m", None)  # a DEM's pixel on the ground
+        if spacing is None and pixel is not None:
+            spacing = min(pixel)
         self.spacing = int(min(max(round(spacing), 1), 65535)) if spacing else \
             NOMINAL_SPACING_M
         self._h0 = float(self.frame.to_geodetic(0.0, 0.0, 0.0)[2])  # the origin's height

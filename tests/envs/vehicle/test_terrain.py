@@ -282,3 +282,33 @@ def test_the_database_of_a_grid_terrain() -> None:
         assert r.current_height_m == pytest.approx(25.0, abs=0.02)
         assert (r.spacing, r.pending) == (50, 0)
         assert db.above_ground(lat, lon, 12.0)[2] - u == pytest.approx(12.0, abs=0.02)
+
+
+def test_a_dem_site_database_and_a_terrain_following_tour() -> None:
+    """site-valley (a GeoTIFF DEM in UTM, datum_offset_m 51): the database's heights are
+    the DEM's own (``elevation_m``: the cells plus the offset), its spacing the DEM's
+    pixel; a frame-11 tour across the valley holds its height above that ground."""
+    from envs.vehicle.terrain import TerrainDatabase
+
+    ap = make_autopilot("site-valley-rtk", seed=1)
+    world = ap.world
+    dem = world.terrain
+    db = TerrainDatabase(world)
+    assert db.spacing == round(min(dem.pixel_m)) == 10
+    for e, n in ((0.0, 0.0), (300.0, 100.0), (520.0, 350.0), (-120.0, 180.0)):
+        lat, lon, _ = _ground_geodetic(world, e, n)
+        assert db.height_m(lat, lon) == pytest.approx(float(dem.elevation_m(e, n)), abs=0.01)
+    h = ap.home.enu
+    tour = [(300.0, 100.0), (520.0, 350.0), (350.0, 520.0), (0.0, 150.0)]
+    ap.set_mission(numbered(
+        [item(ap, MAV_CMD_NAV_TAKEOFF, 0, 0, 45.0, frame=MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)]
+        + [item(ap, e=e - h[0], n=n - h[1], alt=45.0, frame=MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
+           for e, n in tour]))
+    ap.set_mode(Mode.MISSION)
+    ap.arm()
+    s = fly(ap, 900.0, until=lambda a: len(a.reached_log) == len(tour) + 1)
+    assert [r[0] for r in ap.reached_log] == list(range(len(tour) + 1))
+    legs = [x for x in s if ap.reached_log[1][1] <= x.t_s <= ap.reached_log[-1][1]]
+    ground = [float(dem.height_m(x.truth[0], x.truth[1])) for x in legs]
+    assert max(ground) - min(ground) > 20.0
+    assert max(abs(x.truth[2] - g - 45.0) for x, g in zip(legs, ground, strict=True)) < 1.0
