@@ -1,7 +1,8 @@
 """What the planner needs of the world, as protocols: a terrain and a link model.
 
 The planner declares them; the simulator implements them (``sim.HillsTerrain``,
-``sim.GridTerrain``, ``sim.FtmLink``); ``envs`` (the CLI, the closed loop) wires the
+``sim.GridTerrain``, ``sim.FtmLink``, whose response probability between two points
+knows the terrain's obstruction of the link); ``envs`` (the CLI, the closed loop) wires the
 simulator's objects in, so the planner plans over the same hills and with the same
 response probability as the world it is flown in. Both protocols evaluate NumPy
 arrays and CasADi symbols alike (the optimal planner differentiates through them).
@@ -42,7 +43,8 @@ class TerrainModel(Protocol):
 
     # Optional: ``max_height_m(e_min, e_max, n_min, n_max) -> float``, an upper bound of
     # the height over a box, lets the simulated vehicle skip its below-the-terrain check
-    # where it flies clearly above (sim.vehicle.Multirotor.advance).
+    # where it flies clearly above (sim.vehicle.Multirotor.advance) and the FTM radio skip
+    # the terrain profile of links that clearly clear it (sim.occlusion.Occluder).
 
 
 @runtime_checkable
@@ -128,8 +130,11 @@ class LogisticLink:
     def obstruction_loss_db(self, p_drone_enu_m, p_resp_enu_m, terrain):
         """Nothing obstructs this stand-in (zeros)."""
         if is_symbolic(p_drone_enu_m) or is_symbolic(p_resp_enu_m):
-            b = p_drone_enu_m if is_symbolic(p_drone_enu_m) else p_resp_enu_m
-            return 0.0 * b[0, :]
+            import casadi as ca
+
+            b = p_drone_enu_m if is_symbolic(p_drone_enu_m) else ca.DM(p_drone_enu_m)
+            a = p_resp_enu_m if is_symbolic(p_resp_enu_m) else ca.DM(p_resp_enu_m)
+            return 0.0 * ca.repmat(b[0, 0] + a[0, 0], 1, max(a.shape[1], b.shape[1]))
         a, b = np.broadcast_arrays(np.asarray(p_resp_enu_m, dtype=float).reshape(-1, 3),
                                    np.asarray(p_drone_enu_m, dtype=float).reshape(-1, 3))
         return np.zeros(len(a))

@@ -10,7 +10,10 @@ information with the FTM bias marginalised (:mod:`planner.scoring`), i.e.
     h_ik = ((s_k - p_i) / d_ik, 1),  d_ik = |s_k - p_i|,
     maximise (1/K) sum_k log det( J_k[pp] - J_k[pb] J_k[pb]^T / J_k[bb] ),
 
-with P(d) the logistic response probability and sigma^2(d) Empirical-R, eq. (13), at
+with P(d) the link's response probability (lowered, with a terrain in the scoring
+configuration, by the terrain's loss on each waypoint's link to the prior's centre:
+a second, warm-started solve when the first plan is partly hidden, see
+:meth:`OptimalPlanner._occluded_stage`) and sigma^2(d) Empirical-R, eq. (13), at
 the eq. (11) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
 ((q + sqrt(q^2 + 1 dB^2)) / 2) so Ipopt sees a smooth problem. P0^-1 is the IEKF's initial
 information, P0 = diag(25, 25, 100, 4) (sec. IEKF3D): it keeps log det finite for any

@@ -21,6 +21,11 @@ Per result, with d the true slant range from the drone's antenna to the responde
   the Empirical-R form, eq. (13), with the estimator's :class:`EmpiricalRConfig` and a
   scale s (``noise_scale``, 0.3: see its comment).
 - ``successful`` of ``attempted = 8`` frames and a ``range_std_m`` spread estimate.
+- terrain occlusion (:mod:`sim.occlusion`, ``occlusion``): the knife-edge loss J(nu) of
+  the terrain profile's dominant obstacle lowers the mean RSSI (reach and response);
+  a blocked link (nu > 0) reads longer by the path over the edge plus an NLoS-like
+  exponential excess of mean ``occlusion_excess_m_per_db`` x (J(nu) - J(0)), drawn with
+  the class's own exponential (occlusion draws nothing).
 """
 
 from __future__ import annotations
