@@ -12,17 +12,18 @@ information objective and the adaptive policy's coarse fit.
 
     r = sqrt(max(|p - u|^2, RANGE_FLOOR_M^2)),   RANGE_FLOOR_M = 1 nm,
 
-and the unit vector (the geometric part of the Jacobian) is (p - u) / r. Away from the
-anchor (|p - u| >= 1 nm, i.e. always in practice: the drone flies tens of metres from
-any estimate) this is exactly sqrt(dx^2 + dy^2 + dz^2), bit for bit. When the anchor
-sits on the estimate (|p - u| < 1 nm) the predicted range is 1 nm (+ b) and the unit
-vector shrinks to (p - u) / 1 nm, which is the zero vector when p = u: such a range
-says nothing about the direction of the responder, only about the bias, so a filter
-update moves the bias alone and the position rows of a normal matrix or a Fisher
-information get nothing from it. Nothing divides by zero and nothing becomes NaN, and
-the CasADi form stays differentiable (the floor is applied to |p - u|^2, under the
-square root). 1 nm is far below anything the radio resolves (centimetres) and far
-above the underflow of its square (1e-18 m^2).
+and the Jacobian's position part is its derivative: (p - u) / r, and zero where the
+floor holds. Away from the anchor (|p - u| > 1 nm, i.e. always in practice: the drone
+flies tens of metres from any estimate) this is exactly sqrt(dx^2 + dy^2 + dz^2) and
+(p - u) / r, bit for bit. When the anchor sits on the estimate (|p - u| <= 1 nm) the
+predicted range is 1 nm (+ b) and the position part of the Jacobian is the zero
+vector: such a range says nothing about the direction of the responder, only about
+the bias, so a filter update moves the bias alone and the position rows of a normal
+matrix or a Fisher information get nothing from it. Nothing divides by zero, nothing
+becomes NaN, and the CasADi form is the same function (the floor applied to |p - u|^2,
+under the square root), so its derivatives are finite and the same. 1 nm is far below
+anything the radio resolves (centimetres) and far above the underflow of its square
+(1e-18 m^2).
 
 Three forms of the same arithmetic: NumPy (vectorised over anchors, broadcasting),
 scalar (plain floats, for the unrolled filter updates) and CasADi (symbolic). The
@@ -39,6 +40,7 @@ from numpy.typing import ArrayLike
 
 RANGE_FLOOR_M = 1e-9  # the near-zero rule's floor on |p - u| (module docstring)
 RANGE_FLOOR2_M2 = RANGE_FLOOR_M * RANGE_FLOOR_M
+_R_MIN = math.sqrt(RANGE_FLOOR2_M2)  # the range where the floor holds (1 nm, as rounded)
 
 # ----------------------------------------------------------------------------- NumPy
 
@@ -63,7 +65,8 @@ def predicted_range_m(p_enu_m: ArrayLike, u_enu_m: ArrayLike, bias_m: ArrayLike 
 
 def jacobian_rows(diff_m: np.ndarray, r_m: np.ndarray, *, scale: ArrayLike | None = None,
                   bias: bool = False) -> np.ndarray:
-    """Rows of dh/dp = (p - u) / r (eq. 14) from the differences and their ranges.
+    """Rows of dh/dp = (p - u) / r (eq. 14; zero where the floor holds) from the
+    differences and their ranges (:func:`range_of_difference`).
 
     ``scale`` (one weight per row, e.g. 1 / sigma) gives the whitened rows
     (p - u) * (scale / r) (and ``scale`` in the bias column), the product taken in that
@@ -76,6 +79,9 @@ def jacobian_rows(diff_m: np.ndarray, r_m: np.ndarray, *, scale: ArrayLike | Non
         s = np.asarray(scale, dtype=float)
         J = diff_m * (s / r_m)[..., None]
         last = np.broadcast_to(s, r_m.shape)
+    near = r_m <= _R_MIN
+    if near.any():  # on the anchor: no direction
+        J[near] = 0.0
     if bias:
         J = np.concatenate([J, last[..., None]], axis=-1)
     return J
@@ -102,11 +108,14 @@ def range_of(dx: float, dy: float, dz: float) -> float:
 
 def range_and_unit(dx: float, dy: float, dz: float) -> tuple[float, float, float, float]:
     """(r, dx / r, dy / r, dz / r): the range and the position part of eq. (14)'s
-    Jacobian row for the difference p - u (plain floats; the bias part is 1)."""
+    Jacobian row for the difference p - u (plain floats; the bias part is 1; zero where
+    the floor holds)."""
     d2 = dx * dx + dy * dy + dz * dz
     if d2 < RANGE_FLOOR2_M2:
         d2 = RANGE_FLOOR2_M2
     r = math.sqrt(d2)
+    if r <= _R_MIN:  # on the anchor: no direction
+        return r, 0.0, 0.0, 0.0
     return r, dx / r, dy / r, dz / r
 
 
