@@ -181,34 +181,35 @@ class IEKF3D:
         (eqs. 15-16); iteration i relinearises at x_i:
         x_{i+1} = x^- + K_i (d - h(x_i) - H_i (x^- - x_i)).
         """
-        x0 = self.x
+        cfg = self.cfg
         P = self.P
         ux, uy, uz = anchor[0], anchor[1], anchor[2]
-        X, Y, Z, B = x0
-        P0, P1, P2, P3 = P
+        X, Y, Z, B = self.x
+        (p00, p01, p02, p03), (p10, p11, p12, p13), (p20, p21, p22, p23), (
+            p30, p31, p32, p33) = P
         r, h0, h1, h2 = range_and_unit(X - ux, Y - uy, Z - uz)  # eqs. (13)-(14)
-        q0 = P0[0] * h0 + P0[1] * h1 + P0[2] * h2 + P0[3]
-        q1 = P1[0] * h0 + P1[1] * h1 + P1[2] * h2 + P1[3]
-        q2 = P2[0] * h0 + P2[1] * h1 + P2[2] * h2 + P2[3]
-        q3 = P3[0] * h0 + P3[1] * h1 + P3[2] * h2 + P3[3]
+        q0 = p00 * h0 + p01 * h1 + p02 * h2 + p03  # q = P^- H^T
+        q1 = p10 * h0 + p11 * h1 + p12 * h2 + p13
+        q2 = p20 * h0 + p21 * h1 + p22 * h2 + p23
+        q3 = p30 * h0 + p31 * h1 + p32 * h2 + p33
         hph = h0 * q0 + h1 * q1 + h2 * q2 + q3
         nu = range_m - (r + B)
         if callable(r_m2):
             r_m2 = r_m2(nu, hph)
-        S = hph + r_m2
+        S = hph + r_m2  # eq. (15)
         nis = nu * nu / S
-        if not nis <= self.cfg.nis_gate:
+        if not nis <= cfg.nis_gate:  # eq. (16)
             return UpdateResult(False, nu, S, nis, r_m2)
         Si = S
         innov = nu
         xi0, xi1, xi2, xi3 = X, Y, Z, B
-        for it in range(self.cfg.iterations):
+        for it in range(cfg.iterations):
             if it > 0:
                 r, h0, h1, h2 = range_and_unit(xi0 - ux, xi1 - uy, xi2 - uz)
-                q0 = P0[0] * h0 + P0[1] * h1 + P0[2] * h2 + P0[3]
-                q1 = P1[0] * h0 + P1[1] * h1 + P1[2] * h2 + P1[3]
-                q2 = P2[0] * h0 + P2[1] * h1 + P2[2] * h2 + P2[3]
-                q3 = P3[0] * h0 + P3[1] * h1 + P3[2] * h2 + P3[3]
+                q0 = p00 * h0 + p01 * h1 + p02 * h2 + p03
+                q1 = p10 * h0 + p11 * h1 + p12 * h2 + p13
+                q2 = p20 * h0 + p21 * h1 + p22 * h2 + p23
+                q3 = p30 * h0 + p31 * h1 + p32 * h2 + p33
                 Si = h0 * q0 + h1 * q1 + h2 * q2 + q3 + r_m2
                 innov = range_m - (r + xi3) - (
                     h0 * (X - xi0) + h1 * (Y - xi1) + h2 * (Z - xi2) + (B - xi3)
