@@ -15,8 +15,8 @@ import re
 import sys
 from collections.abc import Sequence
 
-COMMANDS = ("run", "replay", "simulate", "plan", "upload", "search", "evaluate", "train",
-            "vehicle")
+COMMANDS = ("run", "replay", "simulate", "import", "plan", "upload", "search", "evaluate",
+            "train", "vehicle")
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what a shell reports for `yes | head`
 
 # a value that argparse would take for an option: -33.86,151.21 or -.5

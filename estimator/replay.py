@@ -29,6 +29,7 @@ from estimator.modes import (  # parse_modes: the command line imports it from h
 from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
 from estimator.pipeline import ModeSpec, PipelineConfig, Published
 from estimator.records import Estimate, TruthRecord
+from estimator.tables import Column, fit_columns, text_table
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -296,6 +297,15 @@ def _result(
     return res
 
 
+# the replay table's columns (least widths: the paper-style layout of short names)
+REPLAY_COLUMNS = (
+    Column("Mode", "<", 12), Column("status", "<", 14), Column("n_gate", ">", 7),
+    Column("n_acc", ">", 7), Column("sigma_H", ">", 9), Column("sigma_Z", ">", 9),
+    Column("err_2D", ">", 8), Column("TWM", ">", 7), Column("err_3D", ">", 8),
+    Column("bias", ">", 7),
+)
+
+
 def format_table(report: ReplayReport) -> str:
     """A readable table, one block per responder, shaped like the paper's Table."""
     lines = []
@@ -306,23 +316,22 @@ def format_table(report: ReplayReport) -> str:
     def f(v: float | None, nd: int = 1) -> str:
         return "-" if v is None else f"{v:.{nd}f}"
 
+    cells = {
+        b: [(t.mode, t.status, str(t.counts["n_gate"]), str(t.counts["n_acc"]),
+             f(t.estimate.sigma_h_m if t.estimate else None),
+             f(t.estimate.sigma_z_m if t.estimate else None), f(t.err_h_m), f(t.twm_h_m),
+             f(t.err_3d_m), f(t.estimate.bias_m if t.estimate and t.has_bias else None, 2))
+            for t in rows]
+        for b, rows in by_bssid.items()
+    }
+    # one set of widths for every block: the blocks line up under each other
+    columns = fit_columns(REPLAY_COLUMNS, [r for rows in cells.values() for r in rows])
     for b, rows in by_bssid.items():
         conc = rows[0].concealment
         c0 = rows[0].counts
         head = f"{b}" + (f"  ({conc})" if conc else "")
         lines.append(f"{head}  n_meas={c0['n_meas']}  n_bootstrap={c0['n_bootstrap']}")
-        lines.append(
-            f"  {'Mode':<12}{'status':<14}{'n_gate':>7}{'n_acc':>7}{'sigma_H':>9}{'sigma_Z':>9}"
-            f"{'err_2D':>8}{'TWM':>7}{'err_3D':>8}{'bias':>7}"
-        )
-        for t in rows:
-            e = t.estimate
-            lines.append(
-                f"  {t.mode:<12}{t.status:<14}{t.counts['n_gate']:>7}{t.counts['n_acc']:>7}"
-                f"{f(e.sigma_h_m if e else None):>9}{f(e.sigma_z_m if e else None):>9}"
-                f"{f(t.err_h_m):>8}{f(t.twm_h_m):>7}{f(t.err_3d_m):>8}"
-                f"{f(e.bias_m if e and t.has_bias else None, 2):>7}"
-            )
+        lines.extend(text_table(columns, cells[b], indent="  "))
         lines.append("")
     rj = report.rejected.rejected
     if rj:

@@ -217,10 +217,13 @@ def run(args: argparse.Namespace) -> int:
         if client is not None:
             client.close(timeout=args.connect_timeout)
     bar.close()
-    return _report(args, ev, out, fig_dir)
+    from sim import realise
+
+    # the ground under the example worlds (the same terrain for every seed)
+    return _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
 
 
-def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path) -> int:
+def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None) -> int:
     from envs.evaluate import format_summary, summarise, write_rows
 
     rows = ev.rows
@@ -229,7 +232,7 @@ def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path) -> int:
     if not args.no_figures:
         from envs.evaluate_plots import plot_evaluation
 
-        figures = plot_evaluation(ev, fig_dir)
+        figures = plot_evaluation(ev, fig_dir, terrain=terrain)
     if args.json:
         print(json.dumps(rows, allow_nan=False))
         return 0

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from envs.commands._args import non_negative_int
+from estimator.tables import Column, text_table
 
 POLICY_HELP = ("lawnmower (the QGroundControl-style survey), expanding-square, adaptive "
                "(default: search until heard, then plan around the estimate), or ppo:PATH "
@@ -123,8 +124,10 @@ def run(args: argparse.Namespace) -> int:
     figures: list[Path] = []
     if not args.no_figures:
         from envs.search_plots import plot_search
+        from sim import realise
 
-        figures = list(plot_search(result, out))
+        figures = list(plot_search(result, out,
+                                   terrain=realise(scenario, args.seed).world.terrain))
     if args.rerun:
         from envs.viz import record_search
 
@@ -163,15 +166,15 @@ def _link_problem(args: argparse.Namespace, scenario) -> str | None:
     return None
 
 
+SUMMARY_COLUMNS = (
+    Column("responder", "<", 18), Column("class", "<", 19), Column("heard", ">", 8),
+    Column("localised", ">", 11), Column("status", ">", 15), Column("sigma_H", ">", 9),
+    Column("err_2D", ">", 8),
+)
+
+
 def summary(result) -> str:
     """A readable report: how the search ended, then one line per responder."""
-    lines = [
-        f"{result.scenario}, seed {result.seed}: {result.policy} ({result.mode}) ended "
-        f"{result.ended} after {result.flight_time_s / 60:.1f} min, "
-        f"{result.path_length_m / 1000:.2f} km, {result.replans} re-plans",
-        f"  {'responder':<18}{'class':<19}{'heard':>8}{'localised':>11}{'status':>15}"
-        f"{'sigma_H':>9}{'err_2D':>8}",
-    ]
 
     def t(v):
         return "-" if v is None else f"{v / 60:.1f} min"
@@ -179,10 +182,12 @@ def summary(result) -> str:
     def m(v):
         return "-" if v is None else f"{v:.2f}"
 
-    for r in result.responders:
-        lines.append(
-            f"  {r['bssid']:<18}{r.get('concealment', '-'):<19}{t(r.get('detected_at_s')):>8}"
-            f"{t(r.get('localised_at_s')):>11}{r['status']:>15}{m(r.get('sigma_h_m')):>9}"
-            f"{m(r.get('err_h_m')):>8}"
-        )
-    return "\n".join(lines)
+    rows = [(r["bssid"], r.get("concealment", "-"), t(r.get("detected_at_s")),
+             t(r.get("localised_at_s")), r["status"], m(r.get("sigma_h_m")),
+             m(r.get("err_h_m"))) for r in result.responders]
+    return "\n".join([
+        f"{result.scenario}, seed {result.seed}: {result.policy} ({result.mode}) ended "
+        f"{result.ended} after {result.flight_time_s / 60:.1f} min, "
+        f"{result.path_length_m / 1000:.2f} km, {result.replans} re-plans",
+        *text_table(SUMMARY_COLUMNS, rows, indent="  "),
+    ])
