@@ -74,15 +74,13 @@ def jacobian_rows(diff_m: np.ndarray, r_m: np.ndarray, *, scale: ArrayLike | Non
     """
     if scale is None:
         J = diff_m / r_m[..., None]
-        last = np.ones(r_m.shape)
     else:
-        s = np.asarray(scale, dtype=float)
-        J = diff_m * (s / r_m)[..., None]
-        last = np.broadcast_to(s, r_m.shape)
-    near = r_m <= _R_MIN
-    if near.any():  # on the anchor: no direction
-        J[near] = 0.0
+        scale = np.asarray(scale, dtype=float)
+        J = diff_m * (scale / r_m)[..., None]
+    if r_m.size and r_m.min() <= _R_MIN:  # on the anchor: no direction
+        J[r_m <= _R_MIN] = 0.0
     if bias:
+        last = np.ones(r_m.shape) if scale is None else np.broadcast_to(scale, r_m.shape)
         J = np.concatenate([J, last[..., None]], axis=-1)
     return J
 
