@@ -42,6 +42,7 @@ from planner.observation import (
     ResponderView,
     SearchMission,
 )
+from planner.patterns import KeepOut, KeepOutPolygon
 from sim.ftm import FtmLink
 from sim.realisation import Realisation, realise
 from sim.scenario import Scenario
@@ -75,8 +76,16 @@ def mission_of(scenario: Scenario, realisation: Realisation | None = None,
         raise ValueError(f"scenario {scenario.name} has no [search] table")
     o = scenario.world.origin
     world = realisation.world if realisation is not None else scenario.world
+    # the keep-outs: those whose top is well below the search height are flown over (the
+    # policies then never fly below it); every other one is a hole in the area
+    keep_outs = tuple(
+        KeepOut(east_m=k.center_enu_m[0], north_m=k.center_enu_m[1], radius_m=k.radius_m,
+                top_m=k.top_m) if k.center_enu_m is not None
+        else KeepOutPolygon(vertices_m=k.polygon_enu_m, top_m=k.top_m)
+        for k in scenario.keepouts)
     return SearchMission(
-        area=SearchArea(tuple(tuple(v) for v in s.area_enu_m), margin_m),
+        area=SearchArea(tuple(tuple(v) for v in s.area_enu_m), margin_m, keep_outs=keep_outs,
+                        floor_m=s.height_m if keep_outs else None),
         start_enu_m=(s.start_e_m, s.start_n_m),
         budget_s=s.budget_s,
         height_m=s.height_m,

@@ -14,6 +14,7 @@ ranges before the estimator can.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from planner.observation import (
     ResponderView,
     SearchMission,
 )
+from planner.patterns import KeepOut, KeepOutPolygon
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -77,13 +79,37 @@ class Manoeuvres:
         cx, cy = float(xy[0]), float(xy[1])
         if not area.contains(np.array([[cx, cy]]), area.margin_m)[0]:
             cx, cy = area.pull_inside(np.array([cx, cy]))
+        th = np.linspace(0.0, 2.0 * math.pi, 73)
+        r0 = radius
         for _ in range(40):
-            th = np.linspace(0.0, 2.0 * math.pi, 73)
             ring = np.column_stack([cx + radius * np.cos(th), cy + radius * np.sin(th)])
             if area.path_inside(ring, area.margin_m):
                 break
             radius *= 0.85
+        if area.blocking and not area.path_inside(
+                np.column_stack([cx + max(radius, 8.0) * np.cos(th),
+                                 cy + max(radius, 8.0) * np.sin(th)]), area.margin_m):
+            return self._clear_center((cx, cy), r0)
         return (cx, cy), max(radius, 8.0)
+
+    def _clear_center(self, xy: Sequence[float], radius: float) -> tuple[XY, float]:
+        """A circle near ``xy`` clear of the area's edges and blocking keep-outs: the
+        nearest centre (rings of candidates 10 m apart, out to 300 m) where the largest
+        radius of radius, 0.85 radius, ... down to 8 m fits."""
+        area = self.mission.area
+        th = np.linspace(0.0, 2.0 * math.pi, 73)
+        radii = [radius * 0.85**k for k in range(40) if radius * 0.85**k >= 8.0] or [8.0]
+        for dist in np.arange(0.0, 301.0, 10.0):
+            n = 1 if dist == 0 else max(8, math.ceil(2 * math.pi * dist / 10.0))
+            for a in 2 * math.pi * np.arange(n) / n:
+                c = (float(xy[0] + dist * math.cos(a)), float(xy[1] + dist * math.sin(a)))
+                if not area.contains(np.array([c]), area.margin_m)[0]:
+                    continue
+                for r in radii:
+                    ring = np.column_stack([c[0] + r * np.cos(th), c[1] + r * np.sin(th)])
+                    if area.path_inside(ring, area.margin_m):
+                        return c, r
+        return (float(xy[0]), float(xy[1])), 8.0  # nothing fits: the loop refuses it
 
     def helix(self, center: XY, radius: float, z0: float, z1: float, turns: float,
               a: AgentView, name: str) -> Trajectory:
@@ -163,6 +189,8 @@ class Manoeuvres:
         assert r.mean_enu_m is not None
         (cx, cy), radius = self.inside_center(r.mean_enu_m[:2], c.close_radius_m)
         lo = max(10.0, m.height_m + c.close_climb_m[0])
+        if m.area.min_height_m is not None:  # a keep-out is flown over: never below it
+            lo = max(lo, m.area.min_height_m)
         return self.helix((cx, cy), radius, lo, m.height_m + c.close_climb_m[1],
                           c.close_turns, a, "close")
 
@@ -206,6 +234,8 @@ class AdaptivePolicy:
     estimate (see the module docstring)."""
 
     name = "adaptive"
+    MAX_PLANNER_CIRCLES = 6  # keep-out cylinders the CasADi problem holds at most
+    MAX_PLANNER_POLYGONS = 2  # keep-out polygons (convex hulls) it holds at most
     # one built OptimalPlanner per configuration per process, shared by the adaptive
     # policies (building takes ~1 s; re-solving a built one takes milliseconds)
     _planners: ClassVar[dict[tuple, object]] = {}
@@ -253,6 +283,15 @@ class AdaptivePolicy:
         m, c = self.mission, self.cfg
         lo = max(10.0, m.height_m + c.agl_band_m[0])
         hi = m.height_m + c.agl_band_m[1]
+        keep: dict = {}
+        if m.area.min_height_m is not None:  # a keep-out is flown over: never below it
+            lo = max(lo, m.area.min_height_m)
+        if m.area.blocking:  # room for the keep-outs near the responder, and their margin
+            n_poly = sum(isinstance(k, KeepOutPolygon) for k in m.area.blocking)
+            keep = dict(max_keep_outs=min(max(len(m.area.blocking) - n_poly, 1),
+                                          self.MAX_PLANNER_CIRCLES),
+                        max_keep_out_polygons=min(n_poly, self.MAX_PLANNER_POLYGONS),
+                        keep_out_margin_m=0.5 * m.area.margin_m)
         ocfg = OptimalConfig(
             n_waypoints=c.n_waypoints, horizon_s=c.horizon_s, n_prior_points=c.n_prior_points,
             max_iter=c.max_iter,
@@ -260,6 +299,8 @@ class AdaptivePolicy:
             agl_min_m=lo, agl_max_m=hi, terrain=m.terrain,
             scoring=ScoringConfig(link=m.link),
         )
+        if keep:
+            ocfg = dataclasses.replace(ocfg, **keep)
         # terrain and link hash by value (frozen dataclasses; a grid by identity)
         key = (m.terrain, m.link, repr(ocfg))
         if self._planner is None or self._planner_key != key:
@@ -374,10 +415,17 @@ class AdaptivePolicy:
             fence = None
         agl0 = float(start[2] - float(np.asarray(m.terrain.height_m(start[0], start[1]))))
         band = (min(self.ocfg.agl_min_m, agl0), max(self.ocfg.agl_max_m, agl0))
+        kw: dict = {}
+        if m.area.blocking:  # the blocking keep-outs the horizon can reach
+            reach = self.ocfg.horizon_s * self.ocfg.max_speed_m_s + m.area.margin_m
+            near = [k for k in m.area.blocking
+                    if float(k.signed_distance_m(start[None, :2])[0]) <= reach]
+            kw = dict(keep_outs=[k for k in near if isinstance(k, KeepOut)],
+                      keep_out_polygons=[k for k in near if isinstance(k, KeepOutPolygon)])
         try:
             res = self._planner.plan(r.mean_enu_m, cov, start, vel, fence=fence,
-                                     agl_band_m=band, origin=m.origin)
-        except ValueError:
+                                     agl_band_m=band, origin=m.origin, **kw)
+        except ValueError:  # outside the fence, in a keep-out, more keep-outs than it holds
             return self._probe(r, a), 0
         self.solve_time_s += res.solve_time_s
         traj = res.trajectory

@@ -41,7 +41,14 @@ between waypoints):
   conservative; convexity keeps whole legs inside when their ends are);
 - keep-out cylinders: (x - c_x)^2 + (y - c_y)^2 >= R^2 with R^2 = (r + margin)^2 +
   (v_max dt / 2)^2 at the waypoints, which keeps every straight leg (length <= v_max
-  dt) out of r + margin; several cylinders are joined by a smooth min (conservative).
+  dt) out of r + margin; several cylinders are joined by a smooth min (conservative);
+- keep-out polygons (``max_keep_out_polygons``, a power line's corridor): each by its
+  convex hull (a superset), as half-planes a_j . (x, y) <= b_j with unit outward
+  normals; a point is out by at least max_j (a_j . q - b_j), which a log-mean-exp
+  tau log (1/E sum_j exp((a_j . q - b_j) / tau)) bounds from below (by at most
+  tau log E), so requiring it >= margin + v_max dt / (2 q) at the centres of q equal
+  pieces of every leg (``keep_out_leg_points``; every point of a leg lies within
+  v_max dt / 2q of one) keeps whole legs out of the hull by the margin.
 
 The problem is built once; the prior points, start pose, dt, limits, altitude band,
 fence and keep-outs are ``opti.parameter``s, so :meth:`OptimalPlanner.plan` only
@@ -70,7 +77,14 @@ import numpy as np
 from estimator.measurement import jacobian_rows, range_casadi, range_of_difference
 from estimator.records import Trajectory
 from planner.models import FlatTerrain, TerrainModel
-from planner.patterns import PAPER_SITE, Geofence, KeepOut, airspace_violations, densify
+from planner.patterns import (
+    PAPER_SITE,
+    Geofence,
+    KeepOut,
+    KeepOutPolygon,
+    airspace_violations,
+    densify,
+)
 from planner.scoring import ScoringConfig, prior_points
 
 _FAR_M = 1e5  # padding: an unused fence edge or keep-out this far away never binds
@@ -111,6 +125,10 @@ class OptimalConfig:
     fence_smoothing_m: float = 1.0  # log-sum-exp scale of the keep-in edges
     keep_out_smoothing: float = 0.05  # soft-min scale of (d / R)^2 - 1 over keep-outs
     keep_out_margin_m: float = 2.0
+    max_keep_out_polygons: int = 0  # keep-out polygons the problem holds (convex hulls)
+    max_keep_out_edges: int = 8  # hull edges per keep-out polygon
+    keep_out_leg_points: int = 4  # polygon clearance checked at this many points per leg
+    keep_out_polygon_smoothing_m: float = 1.0  # log-mean-exp scale of the hull's edges
     terrain: TerrainModel = field(default_factory=FlatTerrain)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
     prior_information: tuple[float, float, float, float] = (1 / 25, 1 / 25, 1 / 100, 1 / 4)
@@ -173,6 +191,18 @@ def _smooth_max(rows, tau):
     for j in range(rows.shape[0]):
         total = total + ca.exp((rows[j, :] - top) / tau)
     return top + tau * ca.log(total)
+
+
+def _smooth_mean(rows, tau):
+    """Column-wise tau log (1/n sum_j exp(row_j / tau)): <= the max, by at most
+    tau log n (a lower bound of the max, for constraints that it be large)."""
+    top = rows[0, :]
+    for j in range(1, rows.shape[0]):
+        top = ca.fmax(top, rows[j, :])
+    total = 0
+    for j in range(rows.shape[0]):
+        total = total + ca.exp((rows[j, :] - top) / tau)
+    return top + tau * ca.log(total / rows.shape[0])
 
 
 def _weights(d, cfg: OptimalConfig, dwell):
@@ -410,6 +440,21 @@ class OptimalPlanner:
             ]
         )
         per_leg(_smooth_max(-clear, cfg.keep_out_smoothing) <= 0)
+        # keep-out polygons: their hulls' half-planes, a log-mean-exp (<= the max, so
+        # conservative) at q points per leg, each clear by the margin + half a piece
+        Pn, Q, q = cfg.max_keep_out_polygons, cfg.max_keep_out_edges, cfg.keep_out_leg_points
+        p_poly = opti.parameter(Pn * Q, 3) if Pn else None  # a_x, a_y, b (m)
+        if p_poly is not None:
+            tau = cfg.keep_out_polygon_smoothing_m / S
+            need = (cfg.keep_out_margin_m + p_lim[0] * p_dt / (2 * q)) / S
+            for k in range(q):
+                f = (k + 0.5) / q
+                pts = X[:2, :-1] + f * (X[:2, 1:] - X[:2, :-1])
+                for j in range(Pn):
+                    rows = ca.vertcat(*[
+                        p_poly[j * Q + r, 0] * pts[0, :] + p_poly[j * Q + r, 1] * pts[1, :]
+                        - p_poly[j * Q + r, 2] / S for r in range(Q)])
+                    per_leg(_smooth_mean(rows, tau) >= need)
         self._leg_blocks = tuple(blocks)
 
         common = {
@@ -432,7 +477,8 @@ class OptimalPlanner:
             "warm_start_mult_bound_push": 1e-6,
             "warm_start_slack_bound_push": 1e-6,
         }
-        args = [p_prior, p_start, p_vel, p_dt, p_lim, p_band, p_fence, p_keep, X, Fv, opti.lam_g]
+        args = [p_prior, p_start, p_vel, p_dt, p_lim, p_band, p_fence, p_keep,
+                *([p_poly] if p_poly is not None else []), X, Fv, opti.lam_g]
         outs = [X, Fv, opti.lam_g, opti.f]
         plugin = {"expand": True, "print_time": False, "show_eval_warnings": False}
         # the same problem, two Ipopt set-ups: a cold start from the default barrier and
@@ -466,6 +512,20 @@ class OptimalPlanner:
             rows[j] = (ko.east_m, ko.north_m, r * r + 0.25 * leg_m * leg_m)
         return rows
 
+    def _poly_rows(self, polygons: Sequence[KeepOutPolygon]) -> np.ndarray:
+        Pn, Q = self.cfg.max_keep_out_polygons, self.cfg.max_keep_out_edges
+        if len(polygons) > Pn:
+            raise ValueError(f"{len(polygons)} keep-out polygons; the planner holds {Pn}")
+        rows = np.tile([0.0, 0.0, -_FAR_M], (Pn * Q, 1))
+        for j, poly in enumerate(polygons):
+            hp = poly.hull_half_planes()
+            if len(hp) > Q:
+                raise ValueError(f"a keep-out polygon's hull has {len(hp)} edges; the planner "
+                                 f"holds {Q}")
+            rows[j * Q:(j + 1) * Q] = hp[0]  # unused edges repeat one (the max is unchanged)
+            rows[j * Q:j * Q + len(hp)] = hp
+        return rows
+
     # ---------------------------------------------------------------- check
     def check(
         self,
@@ -478,6 +538,7 @@ class OptimalPlanner:
         keep_outs: Sequence[KeepOut] = (),
         agl_band_m: tuple[float, float] | None = None,
         limits: tuple[float, float, float] | None = None,
+        keep_out_polygons: Sequence[KeepOutPolygon] = (),
     ) -> list[str]:
         """Every constraint of the problem, checked numerically; empty when all hold.
 
@@ -517,7 +578,7 @@ class OptimalPlanner:
                     f"{name}height above terrain {agl.min():.2f}..{agl.max():.2f} m"
                     f" outside {b_lo:g}..{b_hi:g}"
                 )
-        out += airspace_violations(W, fence, keep_outs, tolerance_m=tol)
+        out += airspace_violations(W, fence, [*keep_outs, *keep_out_polygons], tolerance_m=tol)
         return out
 
     def first_leg_band(
@@ -550,6 +611,7 @@ class OptimalPlanner:
         origin: tuple[float, float, float] = PAPER_SITE,
         prior_points_enu_m: np.ndarray | None = None,
         warm_start: bool = True,
+        keep_out_polygons: Sequence[KeepOutPolygon] = (),
     ) -> PlanResult:
         """Plan the next horizon from the current pose against the prior N(mean, cov).
 
@@ -586,8 +648,13 @@ class OptimalPlanner:
         for ko in keep_outs:
             if math.hypot(start[0] - ko.east_m, start[1] - ko.north_m) < ko.radius_m:
                 raise ValueError("the start pose is inside a keep-out cylinder")
+        for poly in keep_out_polygons:
+            if poly.signed_distance_m(start[None, :2])[0] < 0:
+                raise ValueError("the start pose is inside a keep-out polygon")
         fence_rows = self._fence_rows(fence)
         keep_rows = self._keep_rows(keep_outs, lim[0] * dt)
+        poly = self._poly_rows(keep_out_polygons)  # refuses more than the problem holds
+        poly_rows = [poly] if cfg.max_keep_out_polygons else []
 
         agl0 = float(start[2] - np.asarray(cfg.terrain.height_m(start[0], start[1]), dtype=float))
         band4 = (*band, min(band[0], agl0), max(band[1], agl0))
@@ -600,6 +667,8 @@ class OptimalPlanner:
         else:
             solve = self._solve_cold
             r0, W0 = self._initial_guess(start, vel, mean, pts, dt, lim, band)
+            if keep_out_polygons:
+                W0 = self._stop_before(W0, keep_out_polygons, lim[0] * dt)
             x0 = W0.T / S
             lam0 = np.zeros(self._n_g)
             guess = f"orbit r={r0:g} m"
@@ -609,7 +678,8 @@ class OptimalPlanner:
         error = None
         try:
             x, _fv, lam, _ = solve(
-                pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, x0, f0, lam0
+                pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, *poly_rows, x0, f0,
+                lam0
             )
             stats = solve.stats()
         except RuntimeError as exc:  # CasADi evaluation errors: no optimiser path
@@ -619,7 +689,8 @@ class OptimalPlanner:
         status = str(stats.get("return_status", "unknown"))
         W = np.asarray(x).T * S
         violations = self.check(
-            W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim
+            W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim,
+            keep_out_polygons=keep_out_polygons,
         )
         # only an optimiser path that passed the check warm-starts the next solve
         self._warm = None if violations or error else (np.asarray(x), np.asarray(lam).ravel())
@@ -631,7 +702,8 @@ class OptimalPlanner:
             if feasible:
                 fallback = f"initial guess: {guess}"
         if not feasible:
-            ok, r, W = self._fallback(start, vel, mean, pts, dt, lim, band, fence, keep_outs)
+            ok, r, W = self._fallback(start, vel, mean, pts, dt, lim, band, fence,
+                                      [*keep_outs, *keep_out_polygons])
             fallback = f"orbit r={r:g} m"
             feasible = ok
         return PlanResult(
@@ -658,6 +730,21 @@ class OptimalPlanner:
             W = guidance_orbit(start, vel, mean, r, alt, cfg.n_waypoints, dt, *lim)
             yield r, W, planning_objective(W, pts, dt, cfg)
 
+    def _stop_before(self, W: np.ndarray, polygons: Sequence[KeepOutPolygon],
+                     leg_m: float) -> np.ndarray:
+        """The guess waits at its last waypoint whose leg stays clear of the polygons'
+        hulls (the NLP cannot carry a path across a keep-out: it would be infeasible on
+        both sides; Ipopt moves the waiting points along the clear side)."""
+        need = self.cfg.keep_out_margin_m + leg_m / (2 * self.cfg.keep_out_leg_points)
+        hps = [poly.hull_half_planes() for poly in polygons]
+        W = W.copy()
+        for i in range(1, len(W)):
+            seg = densify(W[i - 1:i + 1], 1.0)[:, :2]
+            if any(((seg @ hp[:, :2].T - hp[:, 2]).max(axis=1) < need).any() for hp in hps):
+                W[i:] = W[i - 1]
+                break
+        return W
+
     def _initial_guess(self, start, vel, mean, pts, dt, lim, band):
         """Cold start: the guidance orbit with the best objective."""
         r, W, _ = max(self._orbits(start, vel, mean, pts, dt, lim, band), key=lambda c: c[2])
@@ -668,7 +755,9 @@ class OptimalPlanner:
         best = None
         for r, W, obj in self._orbits(start, vel, mean, pts, dt, lim, band):
             ok = not self.check(
-                W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim
+                W, start, vel, dt, fence=fence, agl_band_m=band, limits=lim,
+                keep_outs=[k for k in keep_outs if isinstance(k, KeepOut)],
+                keep_out_polygons=[k for k in keep_outs if isinstance(k, KeepOutPolygon)],
             )
             if best is None or (ok, obj) > (best[0], best[3]):
                 best = (ok, r, W, obj)

@@ -12,6 +12,9 @@ horizontal line (how far a straight leg can sag towards the ground). Two kinds:
   terrain" (sec. Experimental Setup).
 - :class:`GridTerrain`: a user-supplied regular grid with bilinear interpolation;
   outside the grid the edge value is held.
+
+A real place's ground comes from a DEM file: :class:`sim.dem.DemTerrain` (GeoTIFF in
+any CRS, SRTM ``.hgt``), the same protocol.
 """
 
 from __future__ import annotations
@@ -269,7 +272,7 @@ class GridTerrain:
             e, n = ca.MX.sym("e"), ca.MX.sym("n")
             f = ca.Function("terrain_height", [e, n], [lut(ca.vertcat(e, n))])
             object.__setattr__(self, "_ca_interp", f)
-        return lambda e, n: _map2(f, e, n)
+        return lambda e, n: map_elementwise(f, e, n)
 
     def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
         """An upper bound of the height over the box [e_min, e_max] x [n_min, n_max]: the
@@ -301,7 +304,7 @@ class GridTerrain:
         return 1.5 * concave, 1.5 * convex
 
 
-def _map2(f, e, n):
+def map_elementwise(f, e, n):
     """Evaluate a scalar CasADi function elementwise over matching row/column vectors."""
     import casadi as ca
 
