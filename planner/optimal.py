@@ -10,8 +10,8 @@ information with the FTM bias marginalised (:mod:`planner.scoring`), i.e.
     h_ik = ((s_k - p_i) / d_ik, 1),  d_ik = |s_k - p_i|,
     maximise (1/K) sum_k log det( J_k[pp] - J_k[pb] J_k[pb]^T / J_k[bb] ),
 
-with P(d) the logistic response probability and sigma^2(d) Empirical-R, eq. (13), at
-the eq. (11) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
+with P(d) the logistic response probability and sigma^2(d) Empirical-R, eq. (23), at
+the eq. (21) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
 ((q + sqrt(q^2 + 1 dB^2)) / 2) so Ipopt sees a smooth problem. P0^-1 is the IEKF's initial
 information, P0 = diag(25, 25, 100, 4) (sec. IEKF3D): it keeps log det finite for any
 path, as the filter's own prior does. The K prior points are the deterministic
@@ -74,6 +74,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from estimator.measurement import jacobian_rows, range_casadi, range_of_difference
 from estimator.records import Trajectory
 from planner.models import FlatTerrain, TerrainModel
 from planner.patterns import (
@@ -218,11 +219,12 @@ def _weights(d, cfg: OptimalConfig, dwell):
 def _info_entries(P, s, cfg: OptimalConfig, dwell):
     """(xx, yy, zz, xy, xz, yz, xb, yb, zb, bb) of sum_i w_i h_i h_i^T for one AP s.
 
-    ``P`` is 3 x N (CasADi) or N x 3 (NumPy)."""
+    ``P`` is 3 x N (CasADi) or N x 3 (NumPy); h_i = ((s - p_i) / d_i, 1) and d_i from
+    the estimator's measurement model (:mod:`estimator.measurement`, its near-zero rule
+    in both forms)."""
     if _is_symbolic(P):
         D = ca.repmat(s, 1, P.shape[1]) - P
-        d2 = ca.sum1(D * D) + 1e-6
-        d = ca.sqrt(d2)
+        d2, d = range_casadi(D)
         w = _weights(d, cfg, dwell)
         u = w / d2  # w g g^T = u D D^T, w g = v D
         v = w / d
@@ -235,8 +237,8 @@ def _info_entries(P, s, cfg: OptimalConfig, dwell):
             tot(v * dx), tot(v * dy), tot(v * dz), tot(w),
         )  # fmt: skip
     D = np.asarray(s, dtype=float)[None, :] - P
-    d = np.sqrt((D * D).sum(axis=1) + 1e-6)
-    g = D / d[:, None]
+    d = range_of_difference(D)
+    g = jacobian_rows(D, d)
     w = _weights(d, cfg, dwell)
     gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
     return np.array(
