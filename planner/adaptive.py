@@ -22,6 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from estimator.measurement import geometric_range_m
 from estimator.records import Trajectory
 from planner.coverage import Sweep, polyline_trajectory, search_spacing_m
 from planner.observation import (
@@ -479,7 +480,8 @@ def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,
                noise_m: float = 3.0) -> tuple[XY, float] | None:
     """Where the heard ranges put a responder before the estimator can: the best points
     of a grid over the area (the map's terrain under each), scored by the robust sum of
-    (range - distance)^2 over the heard (position, range) pairs. Returns the centre of
+    (range - h)^2 over the heard (position, range) pairs, h the estimator's range model
+    without bias (:mod:`estimator.measurement`). Returns the centre of
     the near-best cells and their spread (two mirror minima of a straight track give a
     wide spread), or None with fewer than 3 ranges."""
     heard = np.asarray(r.heard_enu_m, dtype=float).reshape(-1, 3)
@@ -493,8 +495,7 @@ def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,
     gx, gy = np.meshgrid(xs, ys)
     g = np.column_stack([gx.ravel(), gy.ravel()])
     gz = np.asarray(mission.terrain.height_m(g[:, 0], g[:, 1]), dtype=float)
-    d = np.sqrt((g[:, None, 0] - heard[None, :, 0]) ** 2 + (g[:, None, 1] - heard[None, :, 1]) ** 2
-                + (gz[:, None] - heard[None, :, 2]) ** 2)
+    d = geometric_range_m(np.column_stack([g, gz])[:, None, :], heard[None, :, :])
     res = (rng[None, :] - d) / noise_m
     cost = np.minimum(res * res, 9.0).sum(axis=1)  # robust: a far outlier costs at most 9
     best = float(cost.min())

@@ -13,8 +13,8 @@ information with the FTM bias marginalised (:mod:`planner.scoring`), i.e.
 with P(d) the link's response probability (lowered, with a terrain in the scoring
 configuration, by the terrain's loss on each waypoint's link to the prior's centre:
 a second, warm-started solve when the first plan is partly hidden, see
-:meth:`OptimalPlanner._occluded_stage`) and sigma^2(d) Empirical-R, eq. (13), at
-the eq. (11) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
+:meth:`OptimalPlanner._occluded_stage`) and sigma^2(d) Empirical-R, eq. (23), at
+the eq. (21) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
 ((q + sqrt(q^2 + 1 dB^2)) / 2) so Ipopt sees a smooth problem. P0^-1 is the IEKF's initial
 information, P0 = diag(25, 25, 100, 4) (sec. IEKF3D): it keeps log det finite for any
 path, as the filter's own prior does. The K prior points are the deterministic
@@ -77,6 +77,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from estimator.measurement import jacobian_rows, range_casadi, range_of_difference
 from estimator.records import Trajectory
 from planner.models import FlatTerrain, TerrainModel
 from planner.patterns import (
@@ -245,12 +246,13 @@ def link_loss_db(P, prior_points, cfg: OptimalConfig):
 def _info_entries(P, s, cfg: OptimalConfig, dwell, loss_db=None):
     """(xx, yy, zz, xy, xz, yz, xb, yb, zb, bb) of sum_i w_i h_i h_i^T for one AP s.
 
-    ``P`` is 3 x N (CasADi) or N x 3 (NumPy); ``loss_db`` the terrain's loss on each
-    waypoint's link (:func:`link_loss_db`)."""
+    ``P`` is 3 x N (CasADi) or N x 3 (NumPy); h_i = ((s - p_i) / d_i, 1) and d_i from
+    the estimator's measurement model (:mod:`estimator.measurement`, its near-zero rule
+    in both forms); ``loss_db`` the terrain's loss on each waypoint's link
+    (:func:`link_loss_db`)."""
     if _is_symbolic(P):
         D = ca.repmat(s, 1, P.shape[1]) - P
-        d2 = ca.sum1(D * D) + 1e-6
-        d = ca.sqrt(d2)
+        d2, d = range_casadi(D)
         w = _weights(d, cfg, dwell, loss_db)
         u = w / d2  # w g g^T = u D D^T, w g = v D
         v = w / d
@@ -263,8 +265,8 @@ def _info_entries(P, s, cfg: OptimalConfig, dwell, loss_db=None):
             tot(v * dx), tot(v * dy), tot(v * dz), tot(w),
         )  # fmt: skip
     D = np.asarray(s, dtype=float)[None, :] - P
-    d = np.sqrt((D * D).sum(axis=1) + 1e-6)
-    g = D / d[:, None]
+    d = range_of_difference(D)
+    g = jacobian_rows(D, d)
     w = _weights(d, cfg, dwell, loss_db)
     gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
     return np.array(
