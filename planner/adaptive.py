@@ -58,6 +58,8 @@ class AdaptiveConfig:
     close_turns: float = 2.0
     max_localise_s: float = 420.0  # give up on one responder after this long
     reserve_s: float = 20.0  # stop planning new work this close to the budget
+    responder_height_m: float = 0.5  # a responder's antenna above the ground (the link's)
+    view_radii: tuple[float, ...] = (1.0, 0.8, 0.6, 0.45)  # probe radii tried when hidden
 
 
 
@@ -158,9 +160,48 @@ class Manoeuvres:
                 return self.ring(r, a)
             center, spread = fit
             radius = float(np.clip(spread + 15.0, *c.probe_radius_m))
-        (cx, cy), radius = self.inside_center(center, radius)
+        (cx, cy), radius = self.in_view(center, radius)
         return self.helix((cx, cy), radius, m.height_m, m.height_m + c.probe_climb_m, 1.25, a,
                           "probe")
+
+    def orbit_view(self, center: Sequence[float], radius: float,
+                   height_m: float) -> tuple[float, bool]:
+        """The mean response probability of a level orbit ``height_m`` above the
+        terrain to a responder on the ground at ``center`` (the link model's, the
+        terrain's obstruction included), and whether the terrain hides it from any
+        point of the orbit."""
+        m, c = self.mission, self.cfg
+        th = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
+        e = float(center[0]) + radius * np.cos(th)
+        n = float(center[1]) + radius * np.sin(th)
+        pts = np.column_stack([e, n, np.asarray(m.terrain.height_m(e, n), dtype=float)
+                               + height_m])
+        ground = float(np.asarray(m.terrain.height_m(float(center[0]), float(center[1]))))
+        target = np.array([float(center[0]), float(center[1]), ground + c.responder_height_m])
+        p = np.asarray(m.link.response_probability_between(pts, target, m.terrain), dtype=float)
+        free = np.asarray(m.link.response_probability(np.linalg.norm(pts - target, axis=1)),
+                          dtype=float)
+        return float(p.mean()), bool(np.any(p < free * (1.0 - 1e-9)))
+
+    def in_view(self, center: Sequence[float], radius: float) -> tuple[XY, float]:
+        """:meth:`inside_center`, and when the terrain hides the centre (the likely
+        area) from part of that orbit (at the probe's mid height), the radius of
+        ``view_radii`` x radius (at least the smallest probe radius) whose orbit has the
+        highest mean response probability: closer orbits look down over a ridge."""
+        m, c = self.mission, self.cfg
+        (cx, cy), r0 = self.inside_center(center, radius)
+        mid = m.height_m + 0.5 * c.probe_climb_m
+        p0, hidden = self.orbit_view((cx, cy), r0, mid)
+        if not hidden:
+            return (cx, cy), r0
+        best = (p0, r0, (cx, cy))
+        for f in c.view_radii[1:]:
+            r = max(radius * f, c.probe_radius_m[0])
+            (x, y), r = self.inside_center(center, r)
+            p, _ = self.orbit_view((x, y), r, mid)
+            if p > best[0]:
+                best = (p, r, (x, y))
+        return best[2], best[1]
 
     def ring(self, r: ResponderView, a: AgentView) -> Trajectory:
         """Too few ranges to place it: the responder lies about the horizontal range
@@ -297,7 +338,8 @@ class AdaptivePolicy:
             max_iter=c.max_iter,
             max_fence_edges=8, max_keep_outs=1, max_speed_m_s=m.speed_mps,
             agl_min_m=lo, agl_max_m=hi, terrain=m.terrain,
-            scoring=ScoringConfig(link=m.link),
+            scoring=ScoringConfig(link=m.link, terrain=m.terrain,
+                                  responder_height_m=c.responder_height_m),
         )
         if keep:
             ocfg = dataclasses.replace(ocfg, **keep)

@@ -8,6 +8,10 @@ b the residual FTM bias. Per sample of the path the scorer predicts:
 - the response probability P(d_i) and the mean RSSI from the link model
   (:class:`planner.models.LinkModel`: the simulator's ``sim.FtmLink`` when ``osa``
   plans for a known world, else the generic :class:`planner.models.LogisticLink`);
+  with a terrain in the configuration (``ScoringConfig.terrain``), P of the link from
+  u_i to p with the terrain's obstruction of it (``response_probability_between``: a
+  ridge between them lowers it), so a path in view of the AP's likely area scores
+  higher;
 - the range variance sigma_i^2 from Empirical-R, eq. (23), with that RSSI and the MAD
   gate's floor sigma_floor as sigma_gate (the outer max of eq. 23 then never binds);
 - the expected number of measurements n_i = rate x dwell_i x P(d_i).
@@ -63,11 +67,16 @@ class ScoringConfig:
     ``link`` gives the response probability and the mean RSSI against slant range;
     ``osa`` passes the simulator's calibrated link (``sim.FtmLink``), the default is the
     generic :class:`planner.models.LogisticLink`. ``noise`` is the estimator's R
-    (Empirical-R, eq. 23), the variance the filter will assign.
+    (Empirical-R, eq. 23), the variance the filter will assign. ``terrain`` is what
+    obstructs the link (None: nothing); a candidate AP position less than
+    ``responder_height_m`` above it is lifted there for the link (the height is the
+    least known coordinate of an estimate, and a responder lies on the ground).
     """
 
     link: LinkModel = field(default_factory=LogisticLink)
     concealment: str = "open"  # the class the responder is assumed to be in
+    terrain: TerrainModel | None = None  # obstructs the link; None: nothing does
+    responder_height_m: float = 0.5  # a responder's antenna is at least this high
     noise: EmpiricalRConfig = field(default_factory=EmpiricalRConfig)  # eq. (23)
     sigma_gate_m: float = 0.12  # sigma_floor of eq. (4): the smallest MAD-gate scale
     rcond: float = 1e-10  # eigenvalues below rcond x the largest count as zero
@@ -78,6 +87,21 @@ class ScoringConfig:
 
     def response_probability(self, slant_m) -> np.ndarray:
         return self.link.response_probability(slant_m, self.concealment)
+
+    def link_point(self, ap_enu_m: Sequence[float] | np.ndarray) -> np.ndarray:
+        """The AP as the link sees it: its height floored at ``responder_height_m``
+        above the terrain."""
+        p = np.array(ap_enu_m, dtype=float).reshape(3)
+        if self.terrain is not None:
+            ground = float(np.asarray(self.terrain.height_m(p[0], p[1]), dtype=float))
+            p[2] = max(p[2], ground + self.responder_height_m)
+        return p
+
+    def response_probability_between(self, anchors_enu_m: np.ndarray,
+                                     ap_enu_m: Sequence[float] | np.ndarray) -> np.ndarray:
+        """P of each anchor's link to the AP, the terrain's obstruction included."""
+        return np.asarray(self.link.response_probability_between(
+            anchors_enu_m, self.link_point(ap_enu_m), self.terrain, self.concealment))
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -144,7 +168,9 @@ def fisher_information(
     u = np.asarray(anchors_enu_m, dtype=float).reshape(-1, 3)
     p = np.asarray(ap_enu_m, dtype=float).reshape(3)
     d, h = range_jacobian(p, u, bias=True)  # slant ranges and rows (g_i, 1), eq. (14)
-    counts = cfg.ranging_rate_hz * np.asarray(dwell_s, dtype=float) * cfg.response_probability(d)
+    prob = (cfg.response_probability(d) if cfg.terrain is None
+            else cfg.response_probability_between(u, p))
+    counts = cfg.ranging_rate_hz * np.asarray(dwell_s, dtype=float) * prob
     w = counts / range_variance_m2(d, cfg)
     return (h * w[:, None]).T @ h, counts
 

@@ -1,7 +1,7 @@
 """Every compiled kernel (numba: sim._kernels, and the loops given to
-estimator._jit.compiled: the WGS84 conversion's and the FTM radio's) gives the
-interpreted source's values bit for bit, so a flight is the same flight with and
-without numba's compiler."""
+estimator._jit.compiled: the WGS84 conversion's, the FTM radio's and its terrain
+occlusion's) gives the interpreted source's values bit for bit, so a flight is the
+same flight with and without numba's compiler."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from sim import _kernels as kn
 from sim._random import BlockedGaussMarkov
 from sim.clock import ClockConfig
 from sim.ftm import FtmConfig, simulate_ftm
-from sim.terrain import HillsTerrain
+from sim.terrain import GridTerrain, HillsTerrain
 from sim.vehicle import (
     WALKER,
     HoldGuidance,
@@ -106,8 +106,11 @@ def flights_digest() -> str:
     track = VehicleTrack(t, p, np.gradient(p, t, axis=0), np.zeros(len(t)),
                          world.ground_m(p[:, 0], p[:, 1]))
     f = simulate_ftm(track, world, FtmConfig(), ClockConfig(), 4)
-    for name in ("t_s", "request", "responder", "status", "range_m", "rssi_dbm", "request_peers"):
+    for name in ("t_s", "request", "responder", "status", "range_m", "rssi_dbm", "request_peers",
+                 "occlusion_loss_db", "occlusion_excess_m"):
         h.update(np.ascontiguousarray(getattr(f, name)).tobytes())
+    # the radio's terrain occlusion (its clearance test, profile sampling and nu)
+    h.update(occlusion_digest().encode())
     return h.hexdigest()
 
 
@@ -165,6 +168,8 @@ def test_compiled_flights_equal_the_interpreted_source_bit_for_bit() -> None:
             ran.add((p.relative_to(ROOT).as_posix(), name))
     kernels = compiled_kernels()
     assert {("sim/ftm.py", k) for k in ("_warp", "_scan", "_maybe_reached")} <= kernels
+    assert {("sim/occlusion.py", k) for k in ("_profile_samples", "_profile_max_nu",
+                                               "_cleared_annuli")} <= kernels
     assert len(kernels) >= 21 and not kernels - ran, f"not exercised: {sorted(kernels - ran)}"
 
 
@@ -206,3 +211,25 @@ def test_walker_and_generic_guidance_tick_by_tick_equal_the_compiled_run() -> No
     st = v.state_log.view
     assert np.allclose(st[:, 3], world.ground_m(st[:, 1], st[:, 2]) + 1.5)
     assert math.dist(st[-1, 1:3], (20.0, 5.0)) < 0.5
+
+
+def occlusion_digest() -> str:
+    """SHA-256 of the FTM occlusion profiles (sim.occlusion's compiled sampling and nu
+    loops) of seeded random links over hills and a grid, with and without the
+    clearance tables' cleared annuli."""
+    from sim.occlusion import Occluder, profile_nu
+
+    rng = np.random.default_rng(9)
+    h = hashlib.sha256()
+    grid = GridTerrain(rng.normal(0.0, 2.0, (81, 81)).cumsum(0) * 0.3, -200.0, -200.0, 5.0)
+    for terrain in (HillsTerrain(), grid):
+        resp = np.column_stack([rng.uniform(-150, 150, (3, 2)), np.zeros(3)])
+        resp[:, 2] = terrain.height_m(resp[:, 0], resp[:, 1]) + 0.5
+        k = rng.integers(0, 3, 400)
+        p = resp[k] + np.column_stack([rng.uniform(-250, 250, (400, 2)),
+                                       rng.uniform(-5.0, 60.0, 400)])
+        occ = Occluder(terrain, resp, 5.18e9, 2.0)
+        ob = occ.obstruction(k, p)
+        for a in (profile_nu(resp[k], p, terrain, 0.0579, 3.0), ob.nu, ob.loss_db, ob.excess_m):
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
