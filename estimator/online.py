@@ -34,15 +34,16 @@ from typing import Protocol
 from estimator.association import AssociationConfig, AssociationStats, Associator, GeoRange
 from estimator.geodesy import EnuFrame, make_frame
 from estimator.logio import LogWarning
+from estimator.modes import resolve_mode, resolve_modes
 from estimator.pipeline import (
     DEFAULT_AGL_M,
-    MODES,
+    ModeSpec,
     PipelineConfig,
     Published,
     SharedFront,
     Track,
     TrackObserver,
-    resolve_modes,
+    make_track,
 )
 from estimator.records import (
     AssociatedRange,
@@ -52,7 +53,6 @@ from estimator.records import (
     LogHeader,
     RangeSample,
 )
-from estimator.refined import make_track
 
 _ASSOCIATION_STATS = ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated")
 
@@ -105,9 +105,14 @@ class Agent:
 
 @dataclass(frozen=True, kw_only=True)
 class EstimatorOptions:
-    """What the online estimator runs: modes, pipeline, association and frame."""
+    """What the online estimator runs: modes, pipeline, association and frame.
 
-    modes: tuple[str, ...] = ("baseline",)
+    ``modes`` are :class:`estimator.pipeline.ModeSpec` objects, or names (and aliases)
+    resolved once, here, through the registry :data:`estimator.modes.MODES`; after
+    construction they are specs.
+    """
+
+    modes: tuple[ModeSpec | str, ...] = ("baseline",)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
     projection: str = "tangent"  # "tangent" (eq. 1) or "wgs84" (exact, pymap3d)
@@ -115,9 +120,6 @@ class EstimatorOptions:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
-        unknown = [m for m in self.modes if m not in MODES]
-        if unknown:
-            raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)}")
         if not self.modes:
             raise ValueError("at least one mode is needed")
 
@@ -367,7 +369,7 @@ class OnlineEstimator:
             self.bssids.append(g.bssid)
             front = SharedFront(opts.pipeline)
             for mode in opts.modes:
-                self.tracks[(g.bssid, mode)] = make_track(
+                self.tracks[(g.bssid, mode.name)] = make_track(
                     g.bssid,
                     mode,
                     opts.pipeline,
@@ -377,7 +379,7 @@ class OnlineEstimator:
                 )
         out = []
         for mode in opts.modes:
-            pub = self.tracks[(g.bssid, mode)].process(m)
+            pub = self.tracks[(g.bssid, mode.name)].process(m)
             if pub is not None:
                 out.append(pub)
         return out
@@ -401,19 +403,22 @@ class OnlineEstimator:
         seen += sorted(b for b in rtt if b not in self.bssids)
         return seen
 
-    def track(self, bssid: str, mode: str | None = None) -> Track | None:
-        mode = resolve_modes((mode,))[0] if mode else self.options.modes[0]
-        return self.tracks.get((bssid, mode))
+    def _mode_name(self, mode: ModeSpec | str | None) -> str:
+        return resolve_mode(mode).name if mode else self.options.modes[0].name
 
-    def estimate(self, bssid: str, mode: str | None = None) -> Estimate:
+    def track(self, bssid: str, mode: ModeSpec | str | None = None) -> Track | None:
+        """The track of ``bssid`` in ``mode`` (a spec or a name; default: the first mode)."""
+        return self.tracks.get((bssid, self._mode_name(mode)))
+
+    def estimate(self, bssid: str, mode: ModeSpec | str | None = None) -> Estimate:
         """The reported estimate of ``bssid`` in ``mode`` (default: the first mode)."""
-        mode = resolve_modes((mode,))[0] if mode else self.options.modes[0]
-        tr = self.tracks.get((bssid, mode))
+        name = self._mode_name(mode)
+        tr = self.tracks.get((bssid, name))
         if tr is None:
-            return Estimate(t_s=self.now_s(), bssid=bssid, mode=mode, status="no_data")
+            return Estimate(t_s=self.now_s(), bssid=bssid, mode=name, status="no_data")
         return track_estimate(tr, self.frame, self.now_s())
 
-    def estimates(self, mode: str | None = None) -> list[Estimate]:
+    def estimates(self, mode: ModeSpec | str | None = None) -> list[Estimate]:
         """The reported estimate of every responder seen, in one mode (default the first)."""
         return [self.estimate(b, mode) for b in self.seen_bssids()]
 

@@ -22,24 +22,24 @@ from estimator.association import AssociationConfig, AssociationStats
 from estimator.evaluation import TruthScorer, errors_m, twm_of_history
 from estimator.geodesy import EnuFrame
 from estimator.logio import LogStream, RejectCounts, iter_log_sorted
-from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
-from estimator.pipeline import (
-    MODE_ALIASES,
-    MODES,
-    PAPER_MODES,
-    PipelineConfig,
-    Published,
+from estimator.modes import (  # parse_modes: the command line imports it from here
+    parse_modes,  # noqa: F401
     resolve_modes,
 )
+from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
+from estimator.pipeline import ModeSpec, PipelineConfig, Published
 from estimator.records import Estimate, TruthRecord
 from estimator.tables import Column, fit_columns, text_table
 
 
 @dataclass(frozen=True, kw_only=True)
 class ReplayOptions:
-    """What to replay and how; ``None`` overrides fall back to the log header, then defaults."""
+    """What to replay and how; ``None`` overrides fall back to the log header, then defaults.
 
-    modes: tuple[str, ...] = ("baseline",)
+    ``modes``: specs or names, resolved once here (as :class:`EstimatorOptions`).
+    """
+
+    modes: tuple[ModeSpec | str, ...] = ("baseline",)
     agl_m: float | None = None  # --agl
     range_offset_m: float | None = None  # --range-offset
     projection: str = "tangent"  # "tangent" (eq. 1) or "wgs84" (exact, pymap3d)
@@ -49,32 +49,10 @@ class ReplayOptions:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
-        unknown = [m for m in self.modes if m not in MODES]
-        if unknown:
-            raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)} or 'all'")
         for name in ("agl_m", "range_offset_m"):
             v = getattr(self, name)
             if v is not None and not math.isfinite(v):
                 raise ValueError(f"{name} must be finite")
-
-
-def parse_modes(text: str) -> tuple[str, ...]:
-    """``all`` (the paper's six), one name, or a list joined by ``,`` or ``+``
-    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped.
-
-    Aliases resolve to the mode's real name (``best`` -> ``refined``, the recommended
-    mode), so the estimates carry it.
-    """
-    names = [m.strip() for m in text.replace("+", ",").split(",") if m.strip()]
-    expanded: list[str] = []
-    for m in names:
-        expanded.extend(PAPER_MODES if m == "all" else (m,))
-    modes = resolve_modes(expanded)
-    bad = [m for m in modes if m not in MODES]
-    if bad or not modes:
-        choices = ", ".join([*MODES, *MODE_ALIASES])
-        raise ValueError(f"unknown mode {text!r}; choose from {choices} or all")
-    return modes
 
 
 @dataclass
@@ -98,15 +76,11 @@ class TrackResult:
     history: list[Published] = field(default_factory=list, repr=False)
     bootstrap_t_s: float | None = None
     estimated: Estimate | None = field(default=None, repr=False)
+    has_bias: bool = True  # the mode's filter estimates a range bias (the UKF's has none)
 
     @property
     def converged(self) -> bool:
         return self.status == "converged"
-
-    @property
-    def has_bias(self) -> bool:
-        """Whether the mode's filter estimates a range bias (the UKF's state has none)."""
-        return MODES[self.mode].filter != "ukf"
 
     def to_json(self) -> dict:
         d: dict = {"bssid": self.bssid, "mode": self.mode, "status": self.status,
@@ -278,23 +252,25 @@ def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> 
     results = [
         _result(b, mode, est, scorer, truth.get(b))
         for b in est.seen_bssids()
-        for mode in opts.modes
+        for mode in est.options.modes
     ]
     return ReplayReport(results, rejected, est.association, len(streams), est.frame, truth)
 
 
 def _result(
     bssid: str,
-    mode: str,
+    spec: ModeSpec,
     est: OnlineEstimator,
     scorer: TruthScorer,
     truth: TruthRecord | None,
 ) -> TrackResult:
     empty = {k: 0 for k in ("n_meas", "n_bootstrap", "n_acc", "n_gate", "n_mad", "n_nis")}
-    tr = est.track(bssid, mode)
+    mode, has_bias = spec.name, spec.filter.has_bias
+    tr = est.track(bssid, spec)
     conc = truth.concealment if truth is not None else None
     if tr is None:
-        return TrackResult(bssid, mode, "no_data", empty, None, concealment=conc)
+        return TrackResult(bssid, mode, "no_data", empty, None, concealment=conc,
+                           has_bias=has_bias)
     c = tr.counts
     counts = {
         "n_meas": c.n_meas,
@@ -307,7 +283,7 @@ def _result(
     e = track_estimate(tr, est.frame, est.now_s())
     res = TrackResult(
         bssid, mode, tr.status, counts, tr.reported(), kappa=e.kappa, history=tr.history,
-        bootstrap_t_s=tr.bootstrap_t_s, concealment=conc, estimated=e,
+        bootstrap_t_s=tr.bootstrap_t_s, concealment=conc, estimated=e, has_bias=has_bias,
     )
     frame = est.frame
     if frame is not None and truth is not None:

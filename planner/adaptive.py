@@ -22,6 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from estimator.measurement import geometric_range_m
 from estimator.records import Trajectory
 from planner.coverage import Sweep, polyline_trajectory, search_spacing_m
 from planner.observation import (
@@ -57,6 +58,8 @@ class AdaptiveConfig:
     close_turns: float = 2.0
     max_localise_s: float = 420.0  # give up on one responder after this long
     reserve_s: float = 20.0  # stop planning new work this close to the budget
+    responder_height_m: float = 0.5  # a responder's antenna above the ground (the link's)
+    view_radii: tuple[float, ...] = (1.0, 0.8, 0.6, 0.45)  # probe radii tried when hidden
 
 
 
@@ -157,9 +160,48 @@ class Manoeuvres:
                 return self.ring(r, a)
             center, spread = fit
             radius = float(np.clip(spread + 15.0, *c.probe_radius_m))
-        (cx, cy), radius = self.inside_center(center, radius)
+        (cx, cy), radius = self.in_view(center, radius)
         return self.helix((cx, cy), radius, m.height_m, m.height_m + c.probe_climb_m, 1.25, a,
                           "probe")
+
+    def orbit_view(self, center: Sequence[float], radius: float,
+                   height_m: float) -> tuple[float, bool]:
+        """The mean response probability of a level orbit ``height_m`` above the
+        terrain to a responder on the ground at ``center`` (the link model's, the
+        terrain's obstruction included), and whether the terrain hides it from any
+        point of the orbit."""
+        m, c = self.mission, self.cfg
+        th = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
+        e = float(center[0]) + radius * np.cos(th)
+        n = float(center[1]) + radius * np.sin(th)
+        pts = np.column_stack([e, n, np.asarray(m.terrain.height_m(e, n), dtype=float)
+                               + height_m])
+        ground = float(np.asarray(m.terrain.height_m(float(center[0]), float(center[1]))))
+        target = np.array([float(center[0]), float(center[1]), ground + c.responder_height_m])
+        p = np.asarray(m.link.response_probability_between(pts, target, m.terrain), dtype=float)
+        free = np.asarray(m.link.response_probability(np.linalg.norm(pts - target, axis=1)),
+                          dtype=float)
+        return float(p.mean()), bool(np.any(p < free * (1.0 - 1e-9)))
+
+    def in_view(self, center: Sequence[float], radius: float) -> tuple[XY, float]:
+        """:meth:`inside_center`, and when the terrain hides the centre (the likely
+        area) from part of that orbit (at the probe's mid height), the radius of
+        ``view_radii`` x radius (at least the smallest probe radius) whose orbit has the
+        highest mean response probability: closer orbits look down over a ridge."""
+        m, c = self.mission, self.cfg
+        (cx, cy), r0 = self.inside_center(center, radius)
+        mid = m.height_m + 0.5 * c.probe_climb_m
+        p0, hidden = self.orbit_view((cx, cy), r0, mid)
+        if not hidden:
+            return (cx, cy), r0
+        best = (p0, r0, (cx, cy))
+        for f in c.view_radii[1:]:
+            r = max(radius * f, c.probe_radius_m[0])
+            (x, y), r = self.inside_center(center, r)
+            p, _ = self.orbit_view((x, y), r, mid)
+            if p > best[0]:
+                best = (p, r, (x, y))
+        return best[2], best[1]
 
     def ring(self, r: ResponderView, a: AgentView) -> Trajectory:
         """Too few ranges to place it: the responder lies about the horizontal range
@@ -296,7 +338,8 @@ class AdaptivePolicy:
             max_iter=c.max_iter,
             max_fence_edges=8, max_keep_outs=1, max_speed_m_s=m.speed_mps,
             agl_min_m=lo, agl_max_m=hi, terrain=m.terrain,
-            scoring=ScoringConfig(link=m.link),
+            scoring=ScoringConfig(link=m.link, terrain=m.terrain,
+                                  responder_height_m=c.responder_height_m),
         )
         if keep:
             ocfg = dataclasses.replace(ocfg, **keep)
@@ -443,7 +486,8 @@ def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,
                noise_m: float = 3.0) -> tuple[XY, float] | None:
     """Where the heard ranges put a responder before the estimator can: the best points
     of a grid over the area (the map's terrain under each), scored by the robust sum of
-    (range - distance)^2 over the heard (position, range) pairs. Returns the centre of
+    (range - h)^2 over the heard (position, range) pairs, h the estimator's range model
+    without bias (:mod:`estimator.measurement`). Returns the centre of
     the near-best cells and their spread (two mirror minima of a straight track give a
     wide spread), or None with fewer than 3 ranges."""
     heard = np.asarray(r.heard_enu_m, dtype=float).reshape(-1, 3)
@@ -457,8 +501,7 @@ def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,
     gx, gy = np.meshgrid(xs, ys)
     g = np.column_stack([gx.ravel(), gy.ravel()])
     gz = np.asarray(mission.terrain.height_m(g[:, 0], g[:, 1]), dtype=float)
-    d = np.sqrt((g[:, None, 0] - heard[None, :, 0]) ** 2 + (g[:, None, 1] - heard[None, :, 1]) ** 2
-                + (gz[:, None] - heard[None, :, 2]) ** 2)
+    d = geometric_range_m(np.column_stack([g, gz])[:, None, :], heard[None, :, :])
     res = (rng[None, :] - d) / noise_m
     cost = np.minimum(res * res, 9.0).sum(axis=1)  # robust: a far outlier costs at most 9
     best = float(cost.min())

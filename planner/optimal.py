@@ -10,8 +10,11 @@ information with the FTM bias marginalised (:mod:`planner.scoring`), i.e.
     h_ik = ((s_k - p_i) / d_ik, 1),  d_ik = |s_k - p_i|,
     maximise (1/K) sum_k log det( J_k[pp] - J_k[pb] J_k[pb]^T / J_k[bb] ),
 
-with P(d) the logistic response probability and sigma^2(d) Empirical-R, eq. (13), at
-the eq. (11) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
+with P(d) the link's response probability (lowered, with a terrain in the scoring
+configuration, by the terrain's loss on each waypoint's link to the prior's centre:
+a second, warm-started solve when the first plan is partly hidden, see
+:meth:`OptimalPlanner._occluded_stage`) and sigma^2(d) Empirical-R, eq. (23), at
+the eq. (21) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
 ((q + sqrt(q^2 + 1 dB^2)) / 2) so Ipopt sees a smooth problem. P0^-1 is the IEKF's initial
 information, P0 = diag(25, 25, 100, 4) (sec. IEKF3D): it keeps log det finite for any
 path, as the filter's own prior does. The K prior points are the deterministic
@@ -74,6 +77,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from estimator.measurement import jacobian_rows, range_casadi, range_of_difference
 from estimator.records import Trajectory
 from planner.models import FlatTerrain, TerrainModel
 from planner.patterns import (
@@ -170,6 +174,7 @@ class PlanResult:
     violations: tuple[str, ...]
     feasible: bool
     fallback: str | None = None
+    occlusion: str = ""  # with a terrain in the scoring: "in view", "replanned in view", ...
 
 
 # --------------------------------------------------------------------------- model
@@ -204,26 +209,51 @@ def _smooth_mean(rows, tau):
     return top + tau * ca.log(total / rows.shape[0])
 
 
-def _weights(d, cfg: OptimalConfig, dwell):
-    """Expected measurements per unit variance rate dt P(d) / sigma^2(d) (smooth)."""
+def _weights(d, cfg: OptimalConfig, dwell, loss_db=None):
+    """Expected measurements per unit variance rate dt P(d) / sigma^2(d) (smooth), P
+    with the terrain's loss ``loss_db`` on each waypoint's link when given."""
     sc = cfg.scoring
     link = sc.link
     q = _smooth_relu(-link.mean_rssi_dbm(d, sc.concealment) - sc.noise.r_ref_db, cfg.smoothing_db)
     n = sc.noise
     var = n.sigma0_m**2 + n.alpha * d * d + n.beta_m2_per_db2 * q * q
-    prob = link.response_probability(d, sc.concealment)
+    if loss_db is None:
+        prob = link.response_probability(d, sc.concealment)
+    else:
+        prob = link.response_probability(d, sc.concealment, loss_db)
     return sc.ranging_rate_hz * dwell * prob / var
 
 
-def _info_entries(P, s, cfg: OptimalConfig, dwell):
+def link_loss_db(P, prior_points, cfg: OptimalConfig):
+    """The terrain's loss (dB) on the link of each waypoint to the likely area's centre
+    (the prior points' mean, lifted to ``responder_height_m`` above the ground as
+    :meth:`planner.scoring.ScoringConfig.link_point` does), shared by the prior points;
+    None without a terrain in ``cfg.scoring``. ``P`` and ``prior_points`` 3 x N and
+    3 x K CasADi (the link's smooth approximation) or N x 3 and K x 3 NumPy (its exact
+    profile)."""
+    sc = cfg.scoring
+    if sc.terrain is None:
+        return None
+    if _is_symbolic(P):
+        c = ca.sum2(prior_points) / prior_points.shape[1]
+        ground = sc.terrain.height_m(c[0], c[1])
+        a = ca.vertcat(c[0], c[1], ca.fmax(c[2], ground + sc.responder_height_m))
+        return sc.link.obstruction_loss_db(P, a, sc.terrain)
+    a = sc.link_point(np.mean(np.asarray(prior_points, dtype=float).reshape(-1, 3), axis=0))
+    return np.asarray(sc.link.obstruction_loss_db(P, a, sc.terrain), dtype=float)
+
+
+def _info_entries(P, s, cfg: OptimalConfig, dwell, loss_db=None):
     """(xx, yy, zz, xy, xz, yz, xb, yb, zb, bb) of sum_i w_i h_i h_i^T for one AP s.
 
-    ``P`` is 3 x N (CasADi) or N x 3 (NumPy)."""
+    ``P`` is 3 x N (CasADi) or N x 3 (NumPy); h_i = ((s - p_i) / d_i, 1) and d_i from
+    the estimator's measurement model (:mod:`estimator.measurement`, its near-zero rule
+    in both forms); ``loss_db`` the terrain's loss on each waypoint's link
+    (:func:`link_loss_db`)."""
     if _is_symbolic(P):
         D = ca.repmat(s, 1, P.shape[1]) - P
-        d2 = ca.sum1(D * D) + 1e-6
-        d = ca.sqrt(d2)
-        w = _weights(d, cfg, dwell)
+        d2, d = range_casadi(D)
+        w = _weights(d, cfg, dwell, loss_db)
         u = w / d2  # w g g^T = u D D^T, w g = v D
         v = w / d
         dx, dy, dz = D[0, :], D[1, :], D[2, :]
@@ -235,9 +265,9 @@ def _info_entries(P, s, cfg: OptimalConfig, dwell):
             tot(v * dx), tot(v * dy), tot(v * dz), tot(w),
         )  # fmt: skip
     D = np.asarray(s, dtype=float)[None, :] - P
-    d = np.sqrt((D * D).sum(axis=1) + 1e-6)
-    g = D / d[:, None]
-    w = _weights(d, cfg, dwell)
+    d = range_of_difference(D)
+    g = jacobian_rows(D, d)
+    w = _weights(d, cfg, dwell, loss_db)
     gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
     return np.array(
         [
@@ -274,7 +304,9 @@ def planning_objective(
     prior points of log det of the bias-marginalised position information, P0 included."""
     P = np.asarray(waypoints_enu_m, dtype=float).reshape(-1, 3)
     pts = np.asarray(prior_points_enu_m, dtype=float).reshape(-1, 3)
-    vals = [_log_det_marginal(_info_entries(P, s, cfg, dt_s), cfg.prior_information) for s in pts]
+    loss = link_loss_db(P, pts, cfg)
+    vals = [_log_det_marginal(_info_entries(P, s, cfg, dt_s, loss), cfg.prior_information)
+            for s in pts]
     return float(np.mean(vals))
 
 
@@ -364,6 +396,17 @@ class OptimalPlanner:
 
     # ---------------------------------------------------------------- build
     def _build(self) -> None:
+        """The problem without the terrain's loss (``_solve_cold``, ``_solve_warm``) and,
+        with a terrain in ``cfg.scoring``, the same problem with it (``_solve_occluded``,
+        a warm start: same variables and constraints, the weights lowered by the
+        loss)."""
+        self._solve_occluded = self._loss_fn = None
+        if self.cfg.scoring.terrain is not None:
+            self._build_problem(occlusion=True)
+            self._solve_occluded = self._solve_warm
+        self._build_problem(occlusion=False)
+
+    def _build_problem(self, occlusion: bool) -> None:
         cfg = self.cfg
         N, K, E, M = cfg.n_waypoints, cfg.n_prior_points, cfg.max_fence_edges, cfg.max_keep_outs
         S = cfg.position_scale_m
@@ -380,22 +423,27 @@ class OptimalPlanner:
         p_keep = opti.parameter(M, 3)  # c_x, c_y (m), effective radius^2 (m^2)
         P = S * X
 
-        objective = 0
-        for k in range(K):
-            entries = _info_entries(P, p_prior[:, k], cfg, p_dt)
-            opti.subject_to(cfg.information_scale * Fv[:, k] == entries)
-            objective += _log_det_marginal(cfg.information_scale * Fv[:, k], cfg.prior_information)
-        acc = X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]
-        amax_dt2 = p_lim[1] * p_dt * p_dt / S
-        smooth = ca.sum2(ca.sum1(acc * acc)) / ((N - 2) * amax_dt2 * amax_dt2)
-        opti.minimize(-objective / K + cfg.smoothness_weight * smooth)
-
         blocks: list[tuple[int, int]] = []  # (first row, rows) of per-leg constraint rows
 
         def per_leg(constraint) -> None:
             first_row = opti.ng
             opti.subject_to(constraint)
             blocks.append((first_row, opti.ng - first_row))
+
+        # the terrain's loss on each waypoint's link to the likely area
+        loss = link_loss_db(P, p_prior, cfg) if occlusion else None
+        if loss is not None:
+            self._loss_fn = ca.Function("link_loss", [X, p_prior], [loss])
+
+        objective = 0
+        for k in range(K):
+            entries = _info_entries(P, p_prior[:, k], cfg, p_dt, loss)
+            opti.subject_to(cfg.information_scale * Fv[:, k] == entries)
+            objective += _log_det_marginal(cfg.information_scale * Fv[:, k], cfg.prior_information)
+        acc = X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]
+        amax_dt2 = p_lim[1] * p_dt * p_dt / S
+        smooth = ca.sum2(ca.sum1(acc * acc)) / ((N - 2) * amax_dt2 * amax_dt2)
+        opti.minimize(-objective / K + cfg.smoothness_weight * smooth)
 
         opti.subject_to(X[:, 0] == p_start / S)
         step = X[:, 1:] - X[:, :-1]
@@ -672,13 +720,11 @@ class OptimalPlanner:
             guess = f"orbit r={r0:g} m"
         f0 = np.column_stack([_info_entries(x0.T * S, s, cfg, dt) for s in pts])
         f0 /= cfg.information_scale
+        params = (pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, *poly_rows)
         t0 = time.perf_counter()
         error = None
         try:
-            x, _fv, lam, _ = solve(
-                pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, *poly_rows, x0, f0,
-                lam0
-            )
+            x, _fv, lam, _ = solve(*params, x0, f0, lam0)
             stats = solve.stats()
         except RuntimeError as exc:  # CasADi evaluation errors: no optimiser path
             error = f"error: {exc}".splitlines()[0]
@@ -690,6 +736,15 @@ class OptimalPlanner:
             W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim,
             keep_out_polygons=keep_out_polygons,
         )
+        occlusion = ""
+        if self._solve_occluded is not None and error is None and not violations:
+            occlusion = "in view"
+            if np.any(link_loss_db(W, pts, cfg) > 0.0):  # the terrain hides part of it
+                occlusion, x, lam, W, stats, dt_solve = self._occluded_stage(
+                    params, x, lam, W, stats, pts, dt, start, vel, band, lim, fence,
+                    [*keep_outs, *keep_out_polygons])
+                solve_time += dt_solve
+                status = str(stats.get("return_status", "unknown"))
         # only an optimiser path that passed the check warm-starts the next solve
         self._warm = None if violations or error else (np.asarray(x), np.asarray(lam).ravel())
         fallback = None
@@ -716,7 +771,40 @@ class OptimalPlanner:
             violations=tuple(violations),
             feasible=feasible,
             fallback=fallback,
+            occlusion=occlusion,
         )
+
+    def _occluded_stage(self, params, x, lam, W, stats, pts, dt, start, vel, band, lim, fence,
+                        keep_outs):
+        """The second solve, when the terrain hides part of the first plan from the likely
+        area: the problem with the terrain's loss, warm-started from the first plan; its
+        path is kept when it passes the check and scores higher on the objective with
+        the loss (:func:`planning_objective`). Without the loss every objective is at
+        least as high, so a first plan in full view needs no second solve."""
+        cfg, S = self.cfg, self.cfg.position_scale_m
+        loss0 = np.asarray(self._loss_fn(x, pts.T), dtype=float).reshape(-1)
+        f0 = np.column_stack([_info_entries(W, s, cfg, dt, loss0) for s in pts])
+        f0 /= cfg.information_scale
+        t0 = time.perf_counter()
+        try:
+            x2, _fv, lam2, _ = self._solve_occluded(*params, x, f0, lam)
+            stats2 = self._solve_occluded.stats()
+        except RuntimeError:
+            return "hidden in part, the second solve failed", x, lam, W, stats, (
+                time.perf_counter() - t0)
+        elapsed = time.perf_counter() - t0
+        stats2 = {**stats2, "iter_count": int(stats.get("iter_count", 0))
+                  + int(stats2.get("iter_count", 0))}
+        W2 = np.asarray(x2).T * S
+        ok = not self.check(
+            W2, start, vel, dt, fence=fence, agl_band_m=band, limits=lim,
+            keep_outs=[k for k in keep_outs if isinstance(k, KeepOut)],
+            keep_out_polygons=[k for k in keep_outs if isinstance(k, KeepOutPolygon)],
+        )
+        if ok and planning_objective(W2, pts, dt, cfg) > planning_objective(W, pts, dt, cfg):
+            return "replanned in view", np.asarray(x2), np.asarray(lam2), W2, stats2, elapsed
+        return "hidden in part, kept", x, lam, W, {**stats, "iter_count":
+                                                    stats2["iter_count"]}, elapsed
 
     def _orbits(self, start, vel, mean, pts, dt, lim, band):
         """Guidance orbits about the prior mean at the start's height above terrain."""

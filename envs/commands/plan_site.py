@@ -44,7 +44,6 @@ ABOVE_M = 25.0  # a leg may rise this far above the wanted height above ground
 BELOW_M = 2.0  # ... and dip this far below it
 CLEARANCE_M = 10.0  # over a keep-out's top
 ALT_FRAMES = ("relative", "terrain", "amsl")
-MAV_FRAME_GLOBAL = 0
 
 
 def site_requested(args: argparse.Namespace) -> bool:
@@ -356,6 +355,7 @@ def _reframe(mission, frame_name: str, traj, dem, home_h: float):
     from planner.mission import (
         MAV_CMD_NAV_TAKEOFF,
         MAV_CMD_NAV_WAYPOINT,
+        MAV_FRAME_GLOBAL,
         MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
         MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
     )

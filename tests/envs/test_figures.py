@@ -677,7 +677,8 @@ def test_text_table_widens_columns_for_long_cells():
 def test_replay_table_keeps_columns_with_long_modes(default_run, monkeypatch):
     import dataclasses
 
-    from estimator.pipeline import MODES, ModeSpec
+    from estimator.modes import MODES
+    from estimator.pipeline import ModeSpec
     from estimator.replay import format_table
 
     _, rep = default_run
