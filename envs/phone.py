@@ -91,10 +91,9 @@ _MARK = struct.Struct("<BBIqq")  # version, kind, next seq, through t_ns, clock 
 _PACE = struct.Struct("<BI")  # version, time_boot_ms
 CHUNK_DATA_BYTES = TUNNEL_PAYLOAD_BYTES - _CHUNK.size  # 120
 MAX_CHUNKS = 255
-PENDING_RECORDS = 4096  # incomplete records kept at most (older ones count as lost)
+PENDING_RECORDS = 4096  # records waiting for a missing one, at most (then it is given up)
 
 Record = GnssFix | RangeSample
-TimedRecord = GnssFix | RangeSample
 
 
 # ----------------------------------------------------------------------------- wire
