@@ -29,6 +29,7 @@ import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
+from typing import Protocol
 
 from estimator.association import AssociationConfig, AssociationStats, Associator, GeoRange
 from estimator.geodesy import EnuFrame, make_frame
@@ -54,6 +55,15 @@ from estimator.records import (
 )
 
 _ASSOCIATION_STATS = ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated")
+
+
+class RangeObserver(Protocol):
+    """Told of every associated range as it is released to the tracks (in the order the
+    tracks see them): the range, corrected, with its GNSS anchor (WGS84), the time it was
+    taken on its agent's phone clock (``g.t_ns``) and the agent's index. A closed loop
+    learns from it where each range was heard, from the phone's own GNSS."""
+
+    def associated(self, agent: int, g: GeoRange) -> None: ...
 
 
 def utc_epoch_s(text: str | None) -> float | None:
@@ -128,9 +138,11 @@ class OnlineEstimator:
         options: EstimatorOptions = EstimatorOptions(),
         *,
         observers: Sequence[TrackObserver] = (),
+        range_observers: Sequence[RangeObserver] = (),
     ) -> None:
         self.options = options
         self.observers = tuple(observers)
+        self.range_observers = tuple(range_observers)
         self.agents: list[Agent] = []
         self._by_name: dict[str, Agent] = {}
         self.frame: EnuFrame | None = None
@@ -336,6 +348,8 @@ class OnlineEstimator:
 
     def _process(self, t_s: float, g: GeoRange, a: Agent) -> list[Published]:
         opts = self.options
+        for ob in self.range_observers:
+            ob.associated(a.index, g)
         if self.frame is None:
             self.frame = make_frame(opts.projection, g.lat_deg, g.lon_deg, g.alt_m)
         e, n, u = self.frame.to_enu(g.lat_deg, g.lon_deg, g.alt_m)

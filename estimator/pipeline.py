@@ -20,6 +20,7 @@ restart at zero (``n_restarts`` counts restarts), so the identity holds and ``n_
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -268,7 +269,8 @@ class FilterRun:
         self.spec = spec
         self.cfg = cfg
         self.front = front
-        self._noise_factory = noise_factory or (lambda: spec.noise.make(cfg))
+        # a partial, not a lambda: a track (and every env holding one) must pickle
+        self._noise_factory = noise_factory or functools.partial(spec.noise.make, cfg)
         self.ground_prior = spec.ground_prior and cfg.ground.enabled
         self.shared_bootstrap = shared_bootstrap
         self.counts = TrackCounts()

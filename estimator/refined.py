@@ -25,6 +25,7 @@ mixture mean and covariance, and :attr:`RefinedTrack.candidates` lists them.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -147,7 +148,9 @@ class RefinedTrack(Track):
             self.spec,
             cfg,
             self._agent_gates,  # type: ignore[arg-type]  # index and gated() only
-            noise_factory=lambda: noise.make(cfg, self.scales),
+            # a partial, not a lambda (a track must pickle); the scales dict is updated
+            # in place: the partial sees every calibration
+            noise_factory=functools.partial(noise.make, cfg, self.scales),
             shared_bootstrap=False,
         )
 

@@ -396,12 +396,18 @@ class AdaptivePolicy:
             self.sweep.advance(here)
             return Decision(localised=loc)
         self._resume = False
-        if self._started and a.segment_done and self.sweep.at_end:
-            heard = {r.bssid for r in obs.responders}
-            if m.expected_responders is None and heard and heard <= set(loc):
-                self.sweep.passes += 1
-                return Decision(localised=loc, done=True, note="covered, all localised")
-            self.sweep.reverse()
+        if self._started:
+            # mark what was flown first: a segment flown to its end has passed its last
+            # waypoint, and resuming at a waypoint the vehicle stands on would be an
+            # empty segment, done at once, forever (a hover that nobody asked for)
+            self.sweep.advance(here)
+            if self.sweep.at_end:
+                heard = {r.bssid for r in obs.responders}
+                if a.segment_done and m.expected_responders is None and heard and \
+                        heard <= set(loc):
+                    self.sweep.passes += 1
+                    return Decision(localised=loc, done=True, note="covered, all localised")
+                self.sweep.reverse()
         self._started = True
         return Decision(plans={0: self.sweep.resume(here)}, localised=loc, note="search")
 

@@ -180,10 +180,13 @@ class Sweep:
         self.next = 0
 
     def resume(self, here: Sequence[float]) -> Trajectory:
-        """The segment from ``here`` through the waypoints not flown yet."""
+        """The segment from ``here`` through the waypoints not flown yet (those within
+        :attr:`PASSED_M` of ``here`` count as flown; past the end, the pass reversed)."""
         m = self.mission
-        if self.next >= len(self.waypoints):
-            self.next = 0
+        self.advance(here)
+        if self.at_end:
+            self.reverse()
+            self.advance(here)
         pts = m.area.join([here, *self.waypoints[self.next:]])
         return polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "search")
 

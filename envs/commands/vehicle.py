@@ -74,6 +74,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "e.g. NAV_DLL_ACT=1 GF_ACTION=3; see docs/vehicle.md")
     p.add_argument("--sysid", type=int, default=1, metavar="N",
                    help="MAVLink system id (default 1)")
+    p.add_argument("--lockstep", type=float, default=None, metavar="S",
+                   help="never run more than S seconds of simulated time ahead of the "
+                   "ground station's last acknowledgement (osa search sends one per "
+                   "decision: use its --decision-period): reproducible closed loops")
     add_force_option(p)
     p.set_defaults(func=run)
     return p
@@ -96,6 +100,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(EXIT_USAGE, f"--seed must be >= 0, got {args.seed}")
     if not 1 <= args.sysid <= 254:
         return _fail(EXIT_USAGE, f"--sysid must be in 1..254, got {args.sysid}")
+    if args.lockstep is not None and not (math.isfinite(args.lockstep)
+                                          and 0.05 <= args.lockstep <= 600):
+        return _fail(EXIT_USAGE, f"--lockstep must be in [0.05, 600] s, got {args.lockstep}")
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
@@ -114,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         vehicle = VirtualVehicle(
             scenario, args.connection, seed=args.seed, speedup=args.speedup,
             log_path=args.log, params=dict(args.param), sysid=args.sysid,
+            lockstep_s=args.lockstep,
             status=lambda message: print(f"osa vehicle: {message}", file=sys.stderr,
                                          flush=True))
     except ConnectionURLError as exc:
@@ -133,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"osa vehicle: {scenario.name} seed {args.seed}: PX4 quadrotor, system "
           f"{args.sysid}, landed and disarmed at {home.lat_deg:.7f}, {home.lon_deg:.7f} "
           f"({home.alt_m:.1f} m); MAVLink on {', '.join(args.connection)}; speed-up {speed}"
+          + (f"; lockstep {args.lockstep:g} s" if args.lockstep else "")
           + (f"; log {args.log}" if args.log else ""), flush=True)
     try:
         vehicle.run(lambda: stop["signal"] is not None)

@@ -67,6 +67,7 @@ from pymavlink.dialects.v20.common import (
     MAV_TYPE_GCS,
     MAVLINK_MSG_ID_AUTOPILOT_VERSION,
     MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
     MAVLINK_MSG_ID_HOME_POSITION,
     MAVLINK_MSG_ID_MISSION_CURRENT,
 )
@@ -83,6 +84,7 @@ from envs.vehicle.px4 import (
     mode_from_main_sub,
     mode_name,
 )
+from envs.vehicle.relay import RecordRelay
 from envs.vehicle.telemetry import REQUESTABLE, Telemetry
 from envs.vehicle.terrain import REQUEST_BLOCKS_E, REQUEST_BLOCKS_N
 from estimator.records import GnssFix
@@ -142,7 +144,8 @@ class VirtualVehicle:
                  step_s: float | None = None, status: Callable[[str], None] | None = None,
                  transfer_timeout_s: float = 5.0,
                  wall_clock: Callable[[], float] = time.monotonic,
-                 keepouts: Sequence[KeepOutZone] | None = None) -> None:
+                 keepouts: Sequence[KeepOutZone] | None = None,
+                 lockstep_s: float | None = None) -> None:
         if not connections:
             raise ConnectionURLError("a vehicle needs at least one --connection")
         if not speedup > 0:
@@ -167,6 +170,9 @@ class VirtualVehicle:
             if why is not None:
                 raise ValueError(why)
         self.telemetry = Telemetry(self.autopilot)
+        # the phone's records to the ground stations (TUNNEL), lockstep pacing
+        self.relay = RecordRelay(self._broadcast, self.stepper.agents[0].header,
+                                 lockstep_s=lockstep_s, tick_s=self.autopilot.dt)
         self.protocol = MissionServer(self._send_to, self._on_commit,
                                       lambda: self.autopilot.mission.seq,
                                       timeout_s=transfer_timeout_s, clock=wall_clock)
@@ -238,8 +244,11 @@ class VirtualVehicle:
             if not window or now - window[-1][0] >= 0.5:
                 window.append((now, self.t_s))
             self._receive(now)
+            limit = self.relay.limit_s
             if math.isfinite(self.speedup):
                 target = sim0 + (now - wall0) * self.speedup
+                if target > limit:  # lockstep: waiting for the ground station is not lag
+                    target, sim0, wall0 = limit, self.t_s, now
                 if (target - self.t_s) / self.speedup > self.BEHIND_WALL_S:
                     self.stats.behind_events += 1
                     if now >= next_report:
@@ -249,10 +258,10 @@ class VirtualVehicle:
                                     f"simulated time ran at {ratio:.0f}x real time over the "
                                     f"last {now - w0:.0f} s; it runs as fast as it can")
                         next_report = now + 30.0
-                    target = self.t_s + self.step_s
+                    target = min(self.t_s + self.step_s, limit)
                     sim0, wall0 = target, now
             else:
-                target = self.t_s + self.step_s
+                target = min(self.t_s + self.step_s, limit)
             try:
                 self._advance_to(target)
             except FlightError as exc:
@@ -272,7 +281,8 @@ class VirtualVehicle:
             self._publish_events()
             self.stats.wall_s = self.clock() - start_wall
             self.stats.sim_s = self.t_s - start_sim
-            self._wait(0.0 if not math.isfinite(self.speedup) else self.LOOP_PERIOD_S)
+            waiting = self.t_s >= limit - 1e-9
+            self._wait(self.LOOP_PERIOD_S if math.isfinite(self.speedup) or waiting else 0.0)
 
     def _advance_to(self, target_s: float) -> None:
         """Step towards ``target_s``, for at most STEP_WALL_S of wall time (the ports
@@ -287,6 +297,8 @@ class VirtualVehicle:
             self._on_phone_records(emitted, self.t_s)
             self._publish_events()
             self._publish_streams()
+        if self.relay.held(self.t_s):  # lockstep: where it waits, at that instant
+            self._broadcast(self.telemetry.build(MAVLINK_MSG_ID_GLOBAL_POSITION_INT))
 
     def _on_phone_records(self, emitted: list[Emitted], now_s: float) -> None:
         """The phone's new records (delivery order, :class:`sim.stepper.Emitted`) at
@@ -297,6 +309,7 @@ class VirtualVehicle:
                 self.telemetry.last_fix = e.record
         if self._sink is not None:
             self._sink.add(emitted, now_s)
+        self.relay.relay(emitted)  # to the ground stations that asked (TUNNEL)
 
     def _publish_streams(self) -> None:
         for msg_id in self.telemetry.streams.due(self.t_s):
@@ -394,6 +407,9 @@ class VirtualVehicle:
             if kind not in self._bad_kinds:
                 self._bad_kinds.add(kind)
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
+
+    def _on_tunnel(self, peer: Peer, msg: Any) -> None:
+        self.relay.on_tunnel(msg, self.t_s)
 
     def _on_heartbeat(self, peer: Peer, msg: Any) -> None:
         if msg.type == MAV_TYPE_GCS:

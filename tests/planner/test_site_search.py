@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import sim
-from envs.loop import ClosedLoop, LoopConfig, drive, mission_of
+from envs.loop import ClosedLoop, drive, mission_of
 from estimator.geometry import signed_distance_to_polygon_m
 from planner.policy import make_policy
 
@@ -22,7 +22,7 @@ def _site(budget_s: float):
 
 def _true_track(scenario, policy: str, seed: int) -> tuple[np.ndarray, ClosedLoop]:
     loop = ClosedLoop(scenario, seed)
-    drive(loop, make_policy(policy), LoopConfig())
+    drive(loop, make_policy(policy))  # the loop holds its LoopConfig
     loop.finish()
     return loop.stepper.vehicle_track(0).enu_m, loop  # every vehicle tick (0.05 s)
 
