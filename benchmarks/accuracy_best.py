@@ -41,8 +41,8 @@ sys.path.insert(0, str(ROOT))
 
 from estimator.batch import r_circle_m  # noqa: E402
 from estimator.geodesy import ExactENU  # noqa: E402
-from estimator.pipeline import MODES, SharedFront  # noqa: E402
-from estimator.refined import make_track  # noqa: E402
+from estimator.modes import MODES, resolve_mode  # noqa: E402
+from estimator.pipeline import SharedFront, make_track  # noqa: E402
 from estimator.replay import ReplayOptions, replay_logs  # noqa: E402
 from tests.estimator import worlds as W  # noqa: E402, N812
 
@@ -59,7 +59,7 @@ def cost_per_update_us(paths, modes) -> dict[str, float]:
     ms, _ = W.associated_ranges(paths)
     out = {}
     for mode in modes:
-        tr = make_track(W.BSSID, mode, front=SharedFront(), keep_history=False)
+        tr = make_track(W.BSSID, resolve_mode(mode), front=SharedFront(), keep_history=False)
         t0 = time.perf_counter()
         for m in ms:
             tr.process(m)

@@ -24,7 +24,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import sim
-from estimator.pipeline import MODES
+from estimator.modes import MODES
 from estimator.replay import ReplayOptions, replay_logs
 
 

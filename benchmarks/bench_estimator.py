@@ -25,7 +25,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimator.filters import IEKF3D, UKF3D, IekfConfig, UkfConfig
-from estimator.pipeline import PAPER_MODES, SharedFront, Track
+from estimator.modes import MODES, PAPER_MODES
+from estimator.pipeline import SharedFront, Track
 from estimator.refined import RefinedTrack
 
 ANCHORS = [(40.0 * math.cos(a), 40.0 * math.sin(a), 45.0) for a in np.linspace(0, 6.28, 64)]
@@ -166,7 +167,7 @@ def make_replay_input(n_meas: int = 455, seed: int = 1):
 
 def six_modes(ms) -> list[Track]:
     front = SharedFront()
-    tracks = [Track(ms[0].bssid, m, front=front, keep_history=False) for m in PAPER_MODES]
+    tracks = [Track(ms[0].bssid, MODES[m], front=front, keep_history=False) for m in PAPER_MODES]
     for m in ms:
         for t in tracks:
             t.process(m)

@@ -106,7 +106,11 @@ def comparison(scenario, policies, seeds, workers: int, figures: str | None,
         write_rows(ev.rows, rows_out)
         print(f"wrote {rows_out}")
     if figures:
-        print("wrote " + ", ".join(str(p) for p in plot_evaluation(ev, figures)))
+        from sim import realise
+
+        terrain = realise(scenario, seeds[0]).world.terrain  # the ground of the examples
+        print("wrote " + ", ".join(str(p) for p in plot_evaluation(ev, figures,
+                                                                   terrain=terrain)))
 
 
 def main() -> None:

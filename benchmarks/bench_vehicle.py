@@ -10,10 +10,12 @@ vehicle thread in the benchmark's process would share its interpreter lock):
    wall time from MISSION_START to the disarm after landing, simulated time (from
    the vehicle's time_boot_ms), and the simulated/real ratio;
 3. the closed loop (``osa search``, adaptive on search-random-los-rtk, seeds 0-2) in
-   process and over MAVLink against ``osa vehicle --speedup 50`` on the same scenario
-   and seed: wall time, final horizontal error, distance between the two estimates.
+   process and over MAVLink against ``osa vehicle --speedup 50 --lockstep 5`` on the
+   same scenario and seed (the phone's records relayed on the link): how each ended,
+   when the responder was localised, wall time, final horizontal error, distance
+   between the two estimates against the sum of their 95 % radii.
 
-    python benchmarks/bench_vehicle.py [--items 100] [--runs 20] [--skip-loop]
+    python benchmarks/bench_vehicle.py [--items 100] [--runs 20] [--skip-loop | --loop-only]
         [--loop-scenario S] [--loop-policy P] [--loop-seeds N] [--loop-speedup X]
 
 Prints medians and ratios; never asserts timings.
@@ -202,27 +204,30 @@ def _distance_m(a: dict, b: dict) -> float:
 
 def bench_loop(scenario: str, policy: str, seeds: int, speedup: str) -> None:
     print(f"3. closed loop {policy} on {scenario}: in process vs over MAVLink "
-          f"(osa vehicle --speedup {speedup})")
+          f"(osa vehicle --speedup {speedup} --lockstep 5)")
     walls: dict[str, list[float]] = {"in": [], "mav": []}
     for seed in range(seeds):
         with tempfile.TemporaryDirectory() as tmp:
             inp, w_in = _search([scenario, "--policy", policy, "--seed", str(seed), "-o",
                                  f"{tmp}/in"])
-            vlog = f"{tmp}/vehicle.jsonl"
-            with vehicle_process("--speedup", speedup, "--seed", str(seed), "--log", vlog,
-                                 scenario=scenario) as port:
+            with vehicle_process("--speedup", speedup, "--seed", str(seed), "--lockstep",
+                                 "5", scenario=scenario) as port:
                 mav, w_mav = _search([scenario, "--policy", policy, "--seed", str(seed),
                                       "-o", f"{tmp}/mav", "--connection",
-                                      f"udpout:127.0.0.1:{port}", "--vehicle-log", vlog])
+                                      f"udpout:127.0.0.1:{port}"])
         walls["in"].append(w_in)
         walls["mav"].append(w_mav)
         for a, b in zip(inp["responders"], mav["responders"], strict=True):
             d = f"{_distance_m(a, b):5.2f} m" if "lat" in a and "lat" in b else "  -    "
+            nan = float("nan")
             print(f"   seed {seed}: in process {inp['ended']:>9s} {inp['flight_time_s']:6.0f} s "
-                  f"{a['status']:>13s} err {a.get('err_h_m', float('nan')):5.2f} m, wall "
-                  f"{w_in:5.1f} s | MAVLink {mav['ended']:>9s} {mav['flight_time_s']:6.0f} s "
-                  f"{b['status']:>13s} err {b.get('err_h_m', float('nan')):5.2f} m, wall "
-                  f"{w_mav:5.1f} s | estimates {d} apart")
+                  f"loc {a.get('localised_at_s', nan):5.0f} s {a['status']:>13s} err "
+                  f"{a.get('err_h_m', nan):5.2f} m, wall {w_in:5.1f} s | MAVLink "
+                  f"{mav['ended']:>9s} {mav['flight_time_s']:6.0f} s loc "
+                  f"{b.get('localised_at_s', nan):5.0f} s {b['status']:>13s} err "
+                  f"{b.get('err_h_m', nan):5.2f} m, wall {w_mav:5.1f} s, lost "
+                  f"{mav['phone']['lost']} | estimates {d} apart (r95 sum "
+                  f"{a.get('r95_h_m', nan) + b.get('r95_h_m', nan):.2f} m)")
     m_in, m_mav = statistics.median(walls["in"]), statistics.median(walls["mav"])
     print(f"   median wall: in process {m_in:.1f} s, over MAVLink {m_mav:.1f} s "
           f"(ratio {m_mav / m_in:.1f})")
@@ -234,13 +239,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--minutes", type=float, default=20.0)
     parser.add_argument("--skip-loop", action="store_true")
+    parser.add_argument("--loop-only", action="store_true", help="only part 3")
     parser.add_argument("--loop-scenario", default="search-random-los-rtk")
     parser.add_argument("--loop-policy", default="adaptive")
     parser.add_argument("--loop-seeds", type=int, default=3)
     parser.add_argument("--loop-speedup", default="50")
     args = parser.parse_args(argv)
-    bench_upload(args.items, args.runs)
-    bench_fly(args.minutes)
+    if not args.loop_only:
+        bench_upload(args.items, args.runs)
+        bench_fly(args.minutes)
     if not args.skip_loop:
         bench_loop(args.loop_scenario, args.loop_policy, args.loop_seeds, args.loop_speedup)
     return 0

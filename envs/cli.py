@@ -29,8 +29,8 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-COMMANDS = ("run", "replay", "simulate", "plan", "upload", "search", "evaluate", "train",
-            "vehicle")
+COMMANDS = ("run", "replay", "simulate", "import", "plan", "upload", "search", "evaluate",
+            "train", "vehicle")
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what a shell reports for `yes | head`
 EXIT_SOFTWARE = 70  # sysexits.h EX_SOFTWARE: an internal error (a bug), see crash_report
 EXIT_INTERRUPTED = 130  # 128 + SIGINT

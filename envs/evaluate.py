@@ -47,6 +47,7 @@ from envs.loop import LoopConfig, SearchResult, run_search
 from envs.metrics import median, quantile, time_within_s
 from envs.policies import load_policy
 from envs.seeds import split_of
+from estimator.tables import Column, text_table
 from sim.scenario import Scenario
 
 # (name, type) of every column, in order. The first eleven are the spec's
@@ -591,22 +592,24 @@ def _metres(v: float) -> str:
     return "-" if not math.isfinite(v) else f"{v:.2f}"
 
 
+SUMMARY_COLUMNS = (
+    Column("policy", "<", 20), Column("seeds", ">", 6), Column("localised", ">", 14),
+    Column("t_loc med", ">", 11), Column("t_loc p90", ">", 11), Column("err med", ">", 9),
+    Column("err p90", ">", 9), Column("<=1 m", ">", 7), Column("t_1m med", ">", 10),
+)
+
+
 def format_summary(summaries: Sequence[PolicySummary]) -> str:
     """The per-policy table ``osa evaluate`` prints (times in minutes, errors in m)."""
-    head = (f"{'policy':<20}{'seeds':>6}{'localised':>14}{'t_loc med':>11}{'t_loc p90':>11}"
-            f"{'err med':>9}{'err p90':>9}{'<=1 m':>7}{'t_1m med':>10}")
-    lines = [head, "-" * len(head)]
-    for s in summaries:
-        rate = f"{s.localised}/{s.responders} {s.success_rate:4.0%}"
-        lines.append(
-            f"{s.policy:<20}{s.episodes:>6}{rate:>14}"
-            f"{_minutes(s.localised_at_s_median, s.localised_at_s_median_censored):>11}"
-            f"{_minutes(s.localised_at_s_p90, s.localised_at_s_p90_censored):>11}"
-            f"{_metres(s.err_h_m_median):>9}{_metres(s.err_h_m_p90):>9}"
-            f"{s.within_1m:>7}"
-            f"{_minutes(s.time_within_1m_s_median, s.time_within_1m_s_median_censored):>10}"
-        )
-    return "\n".join(lines)
+    rows = [
+        (s.policy, str(s.episodes), f"{s.localised}/{s.responders} {s.success_rate:4.0%}",
+         _minutes(s.localised_at_s_median, s.localised_at_s_median_censored),
+         _minutes(s.localised_at_s_p90, s.localised_at_s_p90_censored),
+         _metres(s.err_h_m_median), _metres(s.err_h_m_p90), str(s.within_1m),
+         _minutes(s.time_within_1m_s_median, s.time_within_1m_s_median_censored))
+        for s in summaries
+    ]
+    return "\n".join(text_table(SUMMARY_COLUMNS, rows, rule="-"))
 
 
 # ---------------------------------------------------------------------- files

@@ -8,8 +8,11 @@
   horizontal error and (b) the estimator's sigma_H against flight time, with the
   25-75 % band. A seed whose search ended keeps its final estimate; a seed without an
   estimate yet counts as an infinite error (a median that is infinite is not drawn).
-* :func:`trajectories_figure`: a few example worlds, one panel each, every policy's
-  path on the same world (common random numbers), the responders and the estimates.
+* :func:`trajectories_figure`: a few example worlds, one panel each framed on the
+  search area, over the ground (flat ground is not drawn), every policy's path on the
+  same world (common random numbers) in its own colour, line style and marker, the
+  responders (open stars, the truth) and each policy's final estimates (its marker)
+  with their unfilled 95 % circles.
 """
 
 from __future__ import annotations
@@ -21,12 +24,26 @@ from pathlib import Path
 import numpy as np
 
 from envs.evaluate import Evaluation
-from envs.plots import _plt, _save
+from envs.plots import (
+    draw_ground,
+    ground_colorbar,
+    ground_grid,
+    ground_norm,
+    plain_log_ticks,
+    pyplot,
+    r95_radius_m,
+    save_figure,
+    set_extent,
+)
+from envs.search_plots import search_extent
+from planner.models import TerrainModel
 
 POLICY_COLOURS = {"lawnmower": "tab:blue", "expanding-square": "tab:orange",
                   "adaptive": "tab:green"}
 OTHER_COLOURS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 POLICY_STYLES = ("-", "--", "-.", ":")
+POLICY_MARKERS = {"lawnmower": "s", "expanding-square": "D", "adaptive": "o"}
+OTHER_MARKERS = ("^", "v", "P", "X", "h", "<", ">", "p")
 FIGURES = ("time_to_localise.png", "error_vs_time.png", "trajectories.png")
 
 
@@ -35,6 +52,15 @@ def policy_colour(policies: Sequence[str], policy: str) -> str:
         return POLICY_COLOURS[policy]
     others = [p for p in policies if p not in POLICY_COLOURS]
     return OTHER_COLOURS[others.index(policy) % len(OTHER_COLOURS)]
+
+
+def policy_marker(policies: Sequence[str], policy: str) -> str:
+    """The policy's marker: its own for the built-in policies, else one of
+    :data:`OTHER_MARKERS` in the order the others were given."""
+    if policy in POLICY_MARKERS:
+        return POLICY_MARKERS[policy]
+    others = [p for p in policies if p not in POLICY_MARKERS]
+    return OTHER_MARKERS[others.index(policy) % len(OTHER_MARKERS)]
 
 
 def _style(ev: Evaluation, policy: str) -> dict:
@@ -54,7 +80,7 @@ def ecdf_censored(times: Sequence[float | None], budget_s: float) -> tuple[np.nd
 
 
 def time_to_localise_figure(ev: Evaluation):
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11.5, 4.8), sharey=True)
     budget_min = ev.budget_s / 60.0
     keys = (("localised_at_s", "(a) judged localised by the policy"),
@@ -112,16 +138,8 @@ def error_bands(ev: Evaluation, policy: str, column: int, dt_s: float | None = N
     return grid, np.quantile(a, qs, axis=0, method="inverted_cdf")
 
 
-def _plain_log_ticks(ax) -> None:
-    from matplotlib.ticker import FuncFormatter, LogLocator
-
-    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
-
-
 def error_vs_time_figure(ev: Evaluation):
-    plt = _plt()
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9.6, 7.4), sharex=True)
     drawn = False
     for ax, column in ((ax1, 1), (ax2, 2)):
@@ -138,7 +156,7 @@ def error_vs_time_figure(ev: Evaluation):
     if drawn:
         for ax in (ax1, ax2):
             ax.set_yscale("log")
-            _plain_log_ticks(ax)
+            plain_log_ticks(ax)
             ax.grid(alpha=0.3, which="both")
     else:
         for ax in (ax1, ax2):
@@ -162,59 +180,98 @@ def error_vs_time_figure(ev: Evaluation):
     return fig
 
 
-def trajectories_figure(ev: Evaluation):
-    plt = _plt()
+def trajectories_figure(ev: Evaluation, *, terrain: TerrainModel | None = None):
+    """The example worlds; ``terrain`` (the scenario world's) draws the ground."""
+    from matplotlib.lines import Line2D
+
+    plt = pyplot()
     seeds = ev.example_seeds
     n = max(1, len(seeds))
-    fig, axes = plt.subplots(1, n, figsize=(4.6 * n + 2.4, 5.0), squeeze=False)
+    fig, axes = plt.subplots(1, n, figsize=(4.9 * n + 1.6, 6.3), squeeze=False,
+                             layout="constrained")
     axes = axes[0]
     area = np.asarray((*ev.area_enu_m, ev.area_enu_m[0]), dtype=float)
     by = {(e.policy, e.seed): e for e in ev.episodes}
+    panels = []
     for ax, seed in zip(axes, seeds, strict=False):
-        ax.plot(area[:, 0], area[:, 1], color="black", lw=1.0)
+        eps = [by[(p, seed)] for p in ev.policies if (p, seed) in by]
+        pts = [v[:2] for e in eps for v in (*e.truth_enu_m.values(), *e.estimates_enu_m.values())]
+        extent = search_extent(ev.area_enu_m, pts)
+        set_extent(ax, extent)
+        panels.append((ax, ground_grid(terrain, extent)))
+    grids = [g for _, g in panels if g is not None]
+    if grids:
+        norm = ground_norm(grids)
+        mappable = None
+        for ax, g in panels:
+            if g is not None:
+                mappable = draw_ground(ax, g, norm)
+        ground_colorbar(fig, mappable, list(axes), shrink=0.7)
+    for ax, seed in zip(axes, seeds, strict=False):
+        ax.plot(area[:, 0], area[:, 1], color="black", lw=1.0, zorder=3)
         truth: dict = {}
+        handles = []
         for k_pol, p in enumerate(ev.policies):
             e = by.get((p, seed))
             if e is None or e.track_enu_m is None:
                 continue
             st = _style(ev, p)
+            mk = policy_marker(ev.policies, p)
             row = {r["bssid"]: r for r in e.rows}
             first = next(iter(row.values()), {})
             end = f"{first.get('ended', '?')} {first.get('flight_time_s', math.nan) / 60:.1f} min"
-            for k, trk in enumerate(e.track_enu_m):
+            for trk in e.track_enu_m:
                 if len(trk):
-                    ax.plot(trk[:, 0], trk[:, 1], lw=max(0.8, 2.2 - 0.5 * k_pol), alpha=0.85,
-                            label=f"{p} ({end})" if k == 0 else None, **st)
-            for est in e.estimates_enu_m.values():
-                ax.plot(est[0], est[1], marker="+", ms=11, mew=2, ls="none",
-                        color=st["color"], zorder=7)
+                    ax.plot(trk[:, 0], trk[:, 1], lw=max(0.9, 2.2 - 0.5 * k_pol), alpha=0.9,
+                            marker=mk, ms=4.5, markevery=0.25, mfc="white",
+                            zorder=4 + 0.1 * k_pol, **st)
+            handles.append(Line2D([], [], lw=1.6, marker=mk, ms=6, mfc="white",
+                                  label=f"{p} ({end})", **st))
+            for b, est in e.estimates_enu_m.items():
+                r = row.get(b, {})
+                r95 = r95_radius_m(r.get("r95_h_m"), r.get("sigma_h_m"))
+                # later policies smaller and on top: estimates at one place all show
+                ax.plot(est[0], est[1], marker=mk, ms=max(4.0, 11.0 - 2.5 * k_pol), mec="white",
+                        mew=0.7, ls="none", color=st["color"], zorder=8 + 0.1 * k_pol,
+                        gid=f"estimate:{p}")
+                if r95 is not None:
+                    ax.add_patch(plt.Circle(est[:2], r95, fill=False, color=st["color"],
+                                            lw=1.1, zorder=7))
             truth.update(e.truth_enu_m)
             if e.track_enu_m and len(e.track_enu_m[0]):
-                ax.plot(*e.track_enu_m[0][0], marker="^", color="black", ms=7, ls="none")
+                ax.plot(*e.track_enu_m[0][0], marker="^", color="black", ms=7, ls="none",
+                        zorder=9)
         for tr in truth.values():
-            ax.plot(tr[0], tr[1], marker="*", ms=15, mfc="gold", mec="black", ls="none",
-                    zorder=5)
-        ax.set_aspect("equal", adjustable="datalim")
+            ax.plot(tr[0], tr[1], marker="*", ms=15, mfc="none", mec="black", mew=1.3,
+                    ls="none", zorder=6)
         ax.set_title(f"seed {seed}", fontsize=9)
         ax.set_xlabel("east (m)")
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.14), fontsize=7, frameon=False)
+        ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.11),
+                  fontsize=7.5, frameon=False)
     if not seeds:
         axes[0].text(0.5, 0.5, "no example seeds", transform=axes[0].transAxes,
                      ha="center", va="center")
     axes[0].set_ylabel("north (m)")
-    fig.suptitle(f"{ev.scenario}: example worlds, every policy on the same world "
-                 "(star: responder, +: final estimate, triangle: take-off)", fontsize=9)
-    fig.tight_layout()
+    common = [Line2D([], [], color="black", lw=1.0, label="search area"),
+              Line2D([], [], ls="none", marker="^", color="black", ms=7, label="take-off"),
+              Line2D([], [], ls="none", marker="*", ms=12, mfc="none", mec="black",
+                     label="responder (truth)"),
+              Line2D([], [], ls="none", marker="o", ms=12, mfc="none", mec="0.3",
+                     label="final estimate (the policy's marker), 95 % circle")]
+    fig.legend(handles=common, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle(f"{ev.scenario}: example worlds, every policy on the same world", fontsize=10)
     return fig
 
 
-def plot_evaluation(ev: Evaluation, out_dir: str | Path) -> list[Path]:
-    """Write :data:`FIGURES` into ``out_dir`` (created if needed)."""
+def plot_evaluation(ev: Evaluation, out_dir: str | Path, *,
+                    terrain: TerrainModel | None = None) -> list[Path]:
+    """Write :data:`FIGURES` into ``out_dir`` (created if needed); ``terrain`` (the
+    scenario world's) is drawn under the example worlds."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     return [
-        _save(time_to_localise_figure(ev), out / FIGURES[0]),
-        _save(error_vs_time_figure(ev), out / FIGURES[1]),
-        _save(trajectories_figure(ev), out / FIGURES[2]),
+        save_figure(time_to_localise_figure(ev), out / FIGURES[0]),
+        save_figure(error_vs_time_figure(ev), out / FIGURES[1]),
+        save_figure(trajectories_figure(ev, terrain=terrain), out / FIGURES[2]),
     ]

@@ -1,37 +1,47 @@
-"""The closed loop in simulated time: simulator -> estimator -> policy -> vehicle.
+"""The closed loop: vehicle -> phone records -> estimator -> policy -> vehicle.
 
-:class:`ClosedLoop` joins the three step-by-step pieces: a realised world and its
-stepper (:mod:`sim.stepper`), the online estimator (:mod:`estimator.online`) fed with
-every record the phones log, in the order a replay of their logs gives, and the
-phones' logs written as they fly. It offers ``observe()`` (what a policy may see:
-the autopilots' estimates and the estimator's output, never the truth), ``apply(
-decision)`` (new segments to fly) and ``advance(dt)``; :func:`run_search` drives it
-with a :class:`planner.observation.Policy` until the policy says it is done or the budget
-is spent, and returns a :class:`SearchResult` (the ``osa search`` JSON report, plus
-time series for figures). The Gymnasium environments use the same object.
+:class:`ClosedLoop` is the one loop of ``osa search``, the evaluation harness and the
+Gymnasium/PettingZoo environments, whatever flies: it runs over a
+:class:`envs.vehicles.Vehicle`, the stepped simulator in process
+(:class:`envs.vehicles.SimVehicle`, the default) or a MAVLink autopilot
+(:class:`envs.mavlink_vehicle.MavlinkVehicle`). It owns
+
+- the online estimator (:mod:`estimator.online`), fed with every record the phones
+  deliver, in the order a replay of their logs reads them;
+- where each range was heard: the estimator's own association of that range with the
+  phone's GNSS (:class:`estimator.online.RangeObserver`), the same for every vehicle;
+- what a policy may see (``observe()``: the autopilots' estimates and the estimator's
+  output, never the truth), and what it may fly (``apply(decision)``: a segment that
+  would leave the area is refused and the vehicle holds, :meth:`ClosedLoop.plan_inside`);
+- progress: a vehicle that makes no progress on a pending segment for longer than
+  ``LoopConfig.stall_s`` (beyond the stops the plan itself makes) is a *stall*: counted,
+  noted, and its segment reported done so that the policy plans anew;
+- the evaluation (errors against the truth, for the report and the figures only).
+
+:func:`run_search` drives a :class:`planner.observation.Policy` until it is done or the
+budget is spent and returns a :class:`SearchResult` (the ``osa search`` report).
 
 Frames: the mission (area, plans, observations) is in the world's ENU frame (exact
 WGS84 ENU at ``[world.origin]``, what an operator's map gives); the estimator keeps its
-own frame (eq. 1 at its first anchor) and reports WGS84, which the loop converts.
-
-Evaluation: errors against the truth are computed by the loop for the report and the
-figures only (the ``evaluation`` fields); they never reach the policy. The errors are
-measured in the estimator's frame, as ``osa replay`` measures them, so a replay of the
-written log reports the same numbers.
+own frame (eq. 1 at its first anchor) and reports WGS84, which the loop converts. The
+errors are measured in the estimator's frame, as ``osa replay`` measures them.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from envs.phone import PhoneBatch
+from envs.vehicles import SimVehicle, Vehicle
+from estimator.association import GeoRange
 from estimator.evaluation import errors_m
 from estimator.online import EstimatorOptions, OnlineEstimator
-from estimator.records import Estimate, RangeSample, Trajectory
+from estimator.records import Estimate, Trajectory
 from estimator.replay import parse_modes
 from planner.area import SearchArea
 from planner.observation import (
@@ -42,29 +52,38 @@ from planner.observation import (
     ResponderView,
     SearchMission,
 )
+from planner.patterns import KeepOut, KeepOutPolygon
 from sim.ftm import FtmLink
 from sim.realisation import Realisation, realise
 from sim.scenario import Scenario
-from sim.stepper import REPLAY_ORDER, Emitted, LogSink, Stepper
 
 DEFAULT_MODE = "best"  # the recommended estimator mode (its real name: refined)
 
 
 @dataclass(frozen=True, kw_only=True)
 class LoopConfig:
-    """How the loop runs (our choices, documented in the README)."""
+    """How the loop runs (our choices, documented in docs/search.md)."""
 
     decision_period_s: float = 5.0  # the policy is asked every this many seconds
     mode: str = DEFAULT_MODE  # estimator mode (a name parse_modes accepts: "best" too)
     area_margin_m: float = 10.0  # patterns keep this far inside the area's edges
     heard_kept: int = 60  # drone positions kept per responder heard (most recent)
+    stall_s: float = 30.0  # no progress this long on a pending segment: a stall
+    stall_radius_m: float = 3.0  # "no progress": the autopilot's position within this
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.decision_period_s) and self.decision_period_s > 0):
             raise ValueError("decision_period_s must be > 0")
+        if not (math.isfinite(self.stall_s) and self.stall_s > 0 and self.stall_radius_m > 0):
+            raise ValueError("stall_s and stall_radius_m must be > 0")
         modes = parse_modes(self.mode)
         if len(modes) != 1:
             raise ValueError(f"the loop runs one estimator mode, not {self.mode!r}")
+
+    @property
+    def estimator_mode(self) -> str:
+        """The one estimator mode, resolved (``best`` -> its real name)."""
+        return parse_modes(self.mode)[0]
 
 
 def mission_of(scenario: Scenario, realisation: Realisation | None = None,
@@ -75,8 +94,16 @@ def mission_of(scenario: Scenario, realisation: Realisation | None = None,
         raise ValueError(f"scenario {scenario.name} has no [search] table")
     o = scenario.world.origin
     world = realisation.world if realisation is not None else scenario.world
+    # the keep-outs: those whose top is well below the search height are flown over (the
+    # policies then never fly below it); every other one is a hole in the area
+    keep_outs = tuple(
+        KeepOut(east_m=k.center_enu_m[0], north_m=k.center_enu_m[1], radius_m=k.radius_m,
+                top_m=k.top_m) if k.center_enu_m is not None
+        else KeepOutPolygon(vertices_m=k.polygon_enu_m, top_m=k.top_m)
+        for k in scenario.keepouts)
     return SearchMission(
-        area=SearchArea(tuple(tuple(v) for v in s.area_enu_m), margin_m),
+        area=SearchArea(tuple(tuple(v) for v in s.area_enu_m), margin_m, keep_outs=keep_outs,
+                        floor_m=s.height_m if keep_outs else None),
         start_enu_m=(s.start_e_m, s.start_n_m),
         budget_s=s.budget_s,
         height_m=s.height_m,
@@ -97,6 +124,44 @@ class _Heard:
     rng: list[float] = field(default_factory=list)
 
 
+class HeardRanges:
+    """Where each range was heard, as the estimator associated it: told of every
+    associated range (an :class:`estimator.online.RangeObserver`), it keeps per
+    responder the first time, the count and the most recent ``kept`` drone positions
+    (the phone's GNSS anchor, mission ENU) with their corrected ranges."""
+
+    def __init__(self, kept: int) -> None:
+        self.kept = kept
+        self.by_bssid: dict[str, _Heard] = {}
+        self._pending: list[tuple[int, GeoRange]] = []
+
+    def associated(self, agent: int, g: GeoRange) -> None:
+        self._pending.append((agent, g))
+
+    def settle(self, frame, clock_offset_s: Sequence[float | None], now_s: float) -> None:
+        """Put the ranges associated since the last call in the mission frame; a range's
+        flight time is its phone time minus the phone's clock offset."""
+        if not self._pending:
+            return
+        pend, self._pending = self._pending, []
+        lat = np.array([g.lat_deg for _, g in pend])
+        lon = np.array([g.lon_deg for _, g in pend])
+        alt = np.array([g.alt_m for _, g in pend])
+        e, n, u = frame.to_enu(lat, lon, alt)
+        pos = np.column_stack([e, n, u]).tolist()
+        for (agent, g), p in zip(pend, pos, strict=True):
+            off = clock_offset_s[agent]
+            t = g.t_ns * 1e-9 - off if off is not None else now_s
+            h = self.by_bssid.get(g.bssid)
+            if h is None:
+                h = self.by_bssid[g.bssid] = _Heard(first_t_s=t)
+            h.n += 1
+            h.pos.append((p[0], p[1], p[2]))
+            h.rng.append(float(g.range_m))
+            if len(h.pos) > self.kept:
+                del h.pos[0], h.rng[0]
+
+
 @dataclass
 class SeriesPoint:
     """One evaluation sample of one responder (truth used: figures and reports only)."""
@@ -108,20 +173,50 @@ class SeriesPoint:
     err_h_m: float | None
 
 
-class SearchLoopBase:
-    """What every closed loop shares (in process here, over MAVLink in
-    :mod:`envs.mavlink_loop`): the estimator fed with the phones' records, the
-    responders heard and where, the observations of them a policy gets (no truth), the
-    evaluation series and the report's entries (the truth, for evaluation only).
+@dataclass
+class _Progress:
+    """One agent's progress on its pending segment (stall detection)."""
 
-    A subclass flies the vehicle: it calls :meth:`_init_search`, feeds records to
-    ``self.estimator`` and heard ranges to :meth:`_hear`, and provides ``observe``,
-    ``apply``, ``advance``, ``finish``, ``t_s``, ``path_length_m``, ``log_paths``,
-    ``nav_track`` and :meth:`true_tracks`.
+    since_s: float = 0.0
+    anchor: tuple[float, float, float] | None = None
+    planned_still_s: float = 0.0  # the longest stop the plan itself makes
+    stalled: bool = False
+    longest_still_s: float = 0.0  # evaluation: the longest still time while pending
+
+
+def planned_still_s(traj: Trajectory, radius_m: float) -> float:
+    """The longest time the plan itself keeps the vehicle within ``radius_m`` of one
+    point (its hovers and slow climbs): not a stall."""
+    p = np.asarray(traj.enu_m, dtype=float)
+    t = np.asarray(traj.t_s, dtype=float)
+    best, i = 0.0, 0
+    for j in range(1, len(p)):
+        while float(np.linalg.norm(p[j] - p[i])) > radius_m:
+            i += 1
+        best = max(best, float(t[j] - t[i]))
+    return best
+
+
+class ClosedLoop:
+    """One search in closed loop over a vehicle (see the module docstring).
+
+    Without ``vehicle`` the scenario's world (``realisation``, else realised from
+    ``seed``) is flown in process by a :class:`SimVehicle` whose phones write
+    ``log_paths``. With a vehicle (e.g. over MAVLink), ``realisation`` is still the
+    world of the scenario and seed: the truth of the evaluation.
     """
 
-    def _init_search(self, scenario: Scenario, seed, realisation: Realisation | None,
-                     config: LoopConfig, headers: Sequence) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        seed=0,
+        *,
+        config: LoopConfig = LoopConfig(),
+        vehicle: Vehicle | None = None,
+        log_paths: Sequence[str | Path] | None = None,
+        flush_lines: bool = False,
+        realisation: Realisation | None = None,
+    ) -> None:
         if scenario.search is None:
             raise ValueError(f"scenario {scenario.name} has no [search] table")
         self.scenario = scenario
@@ -130,33 +225,65 @@ class SearchLoopBase:
         self.realisation = realisation if realisation is not None else realise(scenario, seed)
         self.world = self.realisation.world
         self.mission = mission_of(scenario, self.realisation, config.area_margin_m)
-        self.mode = parse_modes(config.mode)[0]
-        self.estimator = OnlineEstimator(EstimatorOptions(modes=(self.mode,)))
-        for h in headers:
-            self.estimator.add_agent(h.agent, header=h)
+        self.mode = config.estimator_mode
+        if vehicle is None:
+            vehicle = SimVehicle(self.realisation, header_agl_m=scenario.search.height_m,
+                                 log_paths=log_paths, flush_lines=flush_lines)
+            self.log_paths = [Path(p) for p in log_paths] if log_paths is not None else []
+        else:
+            self.log_paths = list(getattr(vehicle, "log_paths", []))
+        self.vehicle = vehicle
+        n = vehicle.n_agents
         self.truth = {t.bssid: t for t in self.realisation.truth_records()}
-        self._heard: dict[str, _Heard] = {}
+        self.heard = HeardRanges(config.heard_kept)
+        self.estimator: OnlineEstimator | None = None
         self.replans = 0
         self.refused_plans = 0
+        self.stalls: list[tuple[float, int, tuple[float, float, float], float]] = []
         self.localised_at: dict[str, float] = {}
         self.series: dict[str, list[SeriesPoint]] = {b: [] for b in self.truth}
         self.notes: list[tuple[float, str]] = []
+        self.nav_track: list[list[tuple[float, float, float, float]]] = [[] for _ in range(n)]
+        self.started = False
         self.finished = False
+        self._refused: set[int] = set()
+        self._progress = [_Progress() for _ in range(n)]
+        self._clock_offset_s: list[float | None] = [None] * n
+        self._estimates: dict[str, Estimate] = {}  # until the estimator is fed again
+        if isinstance(vehicle, SimVehicle):
+            self.start()
+
+    # ------------------------------------------------------------------ start
+    def start(self) -> None:
+        """Start the vehicle (connect, check, arm) and the estimator; idempotent."""
+        if self.started:
+            return
+        self.vehicle.start()
+        height = self.scenario.search.height_m  # the configured H_AGL of a search
+        self.estimator = OnlineEstimator(EstimatorOptions(modes=(self.mode,)),
+                                         range_observers=(self.heard,))
+        for i in range(self.vehicle.n_agents):
+            h = replace(self.vehicle.header(i), agl_m=round(float(height), 3))
+            self.estimator.add_agent(h.agent, header=h)
+        self.started = True
+
+    @property
+    def t_s(self) -> float:
+        """Flight time (the vehicle's clock, from the start of the search)."""
+        return self.vehicle.t_s
+
+    @property
+    def stepper(self):
+        """The in-process simulator (a :class:`SimVehicle`'s; evaluation and tests)."""
+        return self.vehicle.stepper  # type: ignore[attr-defined]
 
     # ------------------------------------------------------------------ knowledge
-    def _hear(self, bssid: str, t_s: float, position_enu_m: Sequence[float],
-              range_m: float) -> None:
-        """An ``ok`` range to ``bssid`` heard at flight time ``t_s`` from the position the
-        autopilot reported (mission ENU)."""
-        h = self._heard.get(bssid)
-        if h is None:
-            h = self._heard[bssid] = _Heard(first_t_s=t_s)
-        h.n += 1
-        h.pos.append((float(position_enu_m[0]), float(position_enu_m[1]),
-                      float(position_enu_m[2])))
-        h.rng.append(float(range_m))
-        if len(h.pos) > self.config.heard_kept:
-            del h.pos[0], h.rng[0]
+    def estimate(self, bssid: str) -> Estimate:
+        """The estimator's estimate of ``bssid`` (kept until the next records reach it)."""
+        e = self._estimates.get(bssid)
+        if e is None:
+            e = self._estimates[bssid] = self.estimator.estimate(bssid, self.mode)
+        return e
 
     def _world_enu(self, e: Estimate) -> tuple[float, float, float] | None:
         if e.lat_deg is None:
@@ -169,13 +296,10 @@ class SearchLoopBase:
         x, y, z = self.world.frame.to_enu(lat, lon, alt)
         return float(x), float(y), float(z)
 
-    def estimate(self, bssid: str) -> Estimate:
-        return self.estimator.estimate(bssid, self.mode)
-
     def responder_views(self) -> tuple[ResponderView, ...]:
         """What the estimator says of every responder heard so far (no truth)."""
         views = []
-        for b, h in self._heard.items():
+        for b, h in self.heard.by_bssid.items():
             e = self.estimate(b)
             kw: dict = {}
             mean = self._world_enu(e)
@@ -191,14 +315,136 @@ class SearchLoopBase:
             ))
         return tuple(views)
 
-    def _note(self, decision: Decision) -> None:
-        """Bookkeeping of a decision: localised set, solves, what the policy does."""
+    def segment_done(self, agent: int) -> bool:
+        """The agent's last segment is flown (or refused: it holds; or it stalled)."""
+        return (agent in self._refused or self._progress[agent].stalled
+                or self.vehicle.segment_done(agent))
+
+    def refused(self, agent: int) -> bool:
+        """The agent's last segment was refused (it left the area): the vehicle holds."""
+        return agent in self._refused
+
+    # ------------------------------------------------------------------ observe
+    def observe(self) -> Observation:
+        """What a policy may see now (no truth)."""
+        self.start()
+        agents = []
+        for i in range(self.vehicle.n_agents):
+            s = self.vehicle.state(i)
+            agents.append(AgentView(position_enu_m=s.position_enu_m,
+                                    velocity_enu_mps=s.velocity_enu_mps,
+                                    segment_done=self.segment_done(i)))
+        return Observation(t_s=self.t_s, budget_s=self.mission.budget_s, agents=tuple(agents),
+                           responders=self.responder_views())
+
+    # ------------------------------------------------------------------ act
+    def apply(self, decision: Decision) -> None:
+        """Fly the decision's new segments (a segment leaving the area is refused: the
+        vehicle holds instead) and note what it judged localised."""
+        self.start()
         for b in decision.localised:
             self.localised_at.setdefault(b, self.t_s)
         self.replans += decision.replans
         if decision.note:
             self.notes.append((self.t_s, decision.note))
+        for i, traj in decision.plans.items():
+            pr = self._progress[i]
+            pr.stalled, pr.anchor, pr.since_s = False, None, self.t_s
+            if not self.plan_inside(traj, i):
+                self.refused_plans += 1
+                self._refused.add(i)
+                self.vehicle.hold(i)
+                continue
+            self._refused.discard(i)
+            pr.planned_still_s = planned_still_s(traj, self.config.stall_radius_m)
+            self.vehicle.fly(i, traj)
 
+    def plan_inside(self, traj: Trajectory, agent: int = 0) -> bool:
+        """Does a segment, and the leg to it from where the autopilot is, stay inside?
+        (From outside, e.g. after a turn swung wide, the segment from its first point
+        inside on: what comes before brings the vehicle back in.)"""
+        if tuple(traj.origin) != tuple(self.mission.origin):
+            return False
+        area = self.mission.area
+        here = np.asarray(self.vehicle.state(agent).position_enu_m[:2])[None, :]
+        pts = np.concatenate((here, traj.enu_m[:, :2]))
+        inside = area.contains(pts, 0.0)  # point by point: one call for all
+        if not inside[0]:  # outside: the segment from its first point inside on (the rest
+            if not inside.any():  # comes back)
+                return False
+            first = int(np.argmax(inside))
+            pts, inside = pts[first:], inside[first:]
+        if area.convex and not area.blocking:  # straight legs between inside points stay
+            return bool(inside.all())  # inside a convex area without holes
+        return area.path_inside(pts, 0.0)
+
+    # ------------------------------------------------------------------ advance
+    def advance(self, dt_s: float) -> None:
+        """Fly ``dt_s`` more (never past the budget); feed the estimator."""
+        self.start()
+        t_next = min(self.t_s + dt_s, self.mission.budget_s)
+        self._ingest(self.vehicle.advance_to(t_next))
+        for i in range(self.vehicle.n_agents):
+            p = self.vehicle.state(i).position_enu_m
+            self.nav_track[i].append((self.t_s, *p))
+            self._check_progress(i, p)
+        self._sample_series()
+
+    def _ingest(self, batches: Sequence[PhoneBatch]) -> None:
+        est = self.estimator
+        self._estimates.clear()
+        for i, b in enumerate(batches):
+            if b.clock_offset_s is not None:
+                self._clock_offset_s[i] = b.clock_offset_s
+            if b.records:
+                est.push_many(b.records, i)
+            if b.through_ns is not None:
+                est.mark_time(i, b.through_ns)
+        self.heard.settle(self.world.frame, self._clock_offset_s, self.t_s)
+
+    def _check_progress(self, i: int, p: tuple[float, float, float]) -> None:
+        """A pending segment on which the vehicle stays within ``stall_radius_m`` for
+        longer than ``stall_s`` plus the plan's own stops is a stall (see the module
+        docstring)."""
+        pr, cfg, t = self._progress[i], self.config, self.t_s
+        if pr.stalled or i in self._refused or self.vehicle.segment_done(i):
+            pr.anchor = None
+            return
+        if pr.anchor is None or math.dist(p, pr.anchor) > cfg.stall_radius_m:
+            pr.anchor, pr.since_s = p, t
+            return
+        still = t - pr.since_s
+        pr.longest_still_s = max(pr.longest_still_s, still)
+        if still > cfg.stall_s + pr.planned_still_s:
+            pr.stalled = True
+            self.stalls.append((t, i, p, still))
+            self.notes.append((t, f"stall: agent {i} made no progress for {still:.0f} s at "
+                                  f"({p[0]:.1f}, {p[1]:.1f}): its segment is done"))
+
+    def longest_still_s(self, agent: int = 0) -> float:
+        """Evaluation: the longest time the agent stayed within ``stall_radius_m`` while
+        a segment was pending (its plan's own stops included)."""
+        return self._progress[agent].longest_still_s
+
+    def finish(self) -> None:
+        """End of the flight: deliver what is still on its way, close the logs."""
+        if self.finished:
+            return
+        self.finished = True
+        if not self.started:
+            self.vehicle.close()
+            return
+        self._ingest(self.vehicle.finish())
+        self.estimator.finish()
+        self._estimates.clear()
+        self._sample_series()
+
+    def close(self) -> None:
+        """Release the vehicle without finishing (after a failure)."""
+        self.finished = True
+        self.vehicle.close()
+
+    # ------------------------------------------------------------------ evaluation
     def _sample_series(self) -> None:
         """Evaluation (truth): error and uncertainty of every responder now."""
         frame = self.estimator.frame
@@ -209,9 +455,8 @@ class SearchLoopBase:
                 err = errors_m(e.mean_enu_m, frame.to_enu(tr.lat_deg, tr.lon_deg, tr.alt_m))[0]
             self.series[b].append(SeriesPoint(self.t_s, e.status, e.sigma_h_m, e.r95_h_m, err))
 
-    # ------------------------------------------------------------------ outcome
     def detected_at(self, bssid: str) -> float | None:
-        h = self._heard.get(bssid)
+        h = self.heard.by_bssid.get(bssid)
         return h.first_t_s if h is not None else None
 
     def responder_outcome(self, bssid: str) -> dict:
@@ -246,156 +491,12 @@ class SearchLoopBase:
             out["concealment"] = tr.concealment
         return out
 
-
-class ClosedLoop(SearchLoopBase):
-    """One search in closed loop (see the module docstring)."""
-
-    def __init__(
-        self,
-        scenario: Scenario,
-        seed=0,
-        *,
-        config: LoopConfig = LoopConfig(),
-        log_paths: Sequence[str | Path] | None = None,
-        flush_lines: bool = False,
-        realisation: Realisation | None = None,
-    ) -> None:
-        if scenario.search is None:
-            raise ValueError(f"scenario {scenario.name} has no [search] table")
-        real = realisation if realisation is not None else realise(scenario, seed)
-        self.stepper = Stepper(real, header_agl_m=scenario.search.height_m)
-        self._init_search(scenario, seed, real, config, [a.header for a in self.stepper.agents])
-        self._convex = self.mission.area.convex
-        truth = self.realisation.truth_records()
-        self.sinks: list[LogSink] = []
-        if log_paths is not None:
-            if len(log_paths) != len(self.stepper.agents):
-                raise ValueError("one log path per agent")
-            for a, p in zip(self.stepper.agents, log_paths, strict=True):
-                self.sinks.append(LogSink(p, a.header, truth, flush_lines=flush_lines))
-        self.log_paths = [Path(p) for p in log_paths] if log_paths is not None else []
-        self.t_s = 0.0
-        self._segment: dict[int, object] = {}
-        self._refused: set[int] = set()
-        self._path_m = [0.0] * len(self.stepper.agents)
-        self._last_pos = [self.stepper.state(i).position_m for i in range(len(self.stepper.agents))]
-        self.nav_track: list[list[tuple[float, float, float, float]]] = [
-            [] for _ in self.stepper.agents
-        ]
-        self._estimates: dict[str, Estimate] = {}  # until the estimator is fed again
-
-    def estimate(self, bssid: str) -> Estimate:
-        """The estimator's estimate of ``bssid`` (kept until the next records reach it)."""
-        e = self._estimates.get(bssid)
-        if e is None:
-            e = self._estimates[bssid] = super().estimate(bssid)
-        return e
-
-    # ------------------------------------------------------------------ observe
-    def observe(self) -> Observation:
-        """What a policy may see now (no truth)."""
-        agents = []
-        for i, a in enumerate(self.stepper.agents):
-            nav = self.stepper.navigation_position_m(i)
-            v = a.vehicle.state.velocity_mps
-            g = self._segment.get(i)
-            done = g is None or i in self._refused or bool(getattr(g, "done", False))
-            agents.append(AgentView(position_enu_m=nav, velocity_enu_mps=tuple(v),
-                                    segment_done=done))
-        return Observation(t_s=self.t_s, budget_s=self.mission.budget_s, agents=tuple(agents),
-                           responders=self.responder_views())
-
-    # ------------------------------------------------------------------ act
-    def apply(self, decision: Decision) -> None:
-        """Fly the decision's new segments (a segment leaving the area is refused: the
-        vehicle holds instead) and note what it judged localised."""
-        self._note(decision)
-        for i, traj in decision.plans.items():
-            if not self.plan_inside(traj, i):
-                self.refused_plans += 1
-                self._refused.add(i)
-                self._segment[i] = self.stepper.hold(i)
-                continue
-            self._refused.discard(i)
-            self._segment[i] = self.stepper.follow(i, traj)
-
-    def plan_inside(self, traj: Trajectory, agent: int = 0) -> bool:
-        """Does a segment, and the leg to it from where the autopilot is, stay inside?
-        (From outside, e.g. after a turn swung wide, the segment from its first point
-        inside on: what comes before brings the vehicle back in.)"""
-        if tuple(traj.origin) != tuple(self.mission.origin):
-            return False
-        here = np.asarray(self.stepper.navigation_position_m(agent)[:2])[None, :]
-        pts = np.concatenate((here, traj.enu_m[:, :2]))
-        inside = self.mission.area.contains(pts, 0.0)  # point by point: one call for all
-        if not inside[0]:  # outside: the segment from its first point inside on (the rest
-            if not inside.any():  # comes back)
-                return False
-            first = int(np.argmax(inside))
-            pts, inside = pts[first:], inside[first:]
-        if self._convex:  # straight legs between inside points stay inside a convex area
-            return bool(inside.all())
-        return self.mission.area.path_inside(pts, 0.0)
-
-    # ------------------------------------------------------------------ advance
-    def advance(self, dt_s: float) -> list[list[Emitted]]:
-        """Fly ``dt_s`` more (never past the budget); feed the estimator and the logs."""
-        t_next = min(self.t_s + dt_s, self.mission.budget_s)
-        out = self.stepper.step_to(t_next)
-        self.t_s = self.stepper.t_s
-        self._ingest(out)
-        for i, a in enumerate(self.stepper.agents):
-            p = tuple(a.vehicle._p)  # the true position (evaluation: path flown)
-            self._path_m[i] += math.dist(p, self._last_pos[i])
-            self._last_pos[i] = p
-            self.nav_track[i].append((self.t_s, *self.stepper.navigation_position_m(i)))
-        self._sample_series()
-        return out
-
-    def _ingest(self, out: list[list[Emitted]]) -> None:
-        est = self.estimator
-        self._estimates.clear()
-        for i, (a, emitted) in enumerate(zip(self.stepper.agents, out, strict=True)):
-            ordered = sorted(emitted, key=REPLAY_ORDER)
-            est.push_many([e.record for e in ordered], i)
-            # what the policy hears (the estimator does not read it): each ok range with
-            # where the autopilot believed it was then
-            ok = [e.record for e in ordered if isinstance(e.record, RangeSample) and e.record.ok]
-            if ok:
-                v = a.vehicle
-                t = a.clock.to_s(np.array([r.t_ns for r in ok]))
-                pos = v.position_at(t)
-                if v.nav_error is not None:
-                    pos = pos + v.nav_error(t)
-                for r, t_s, p in zip(ok, t.tolist(), pos.tolist(), strict=True):
-                    self._hear(r.bssid, t_s, p, r.range_m)
-            if emitted:
-                est.mark_time(i, emitted[-1].t_ns)
-            if self.sinks:
-                self.sinks[i].add(emitted, a.t_s)
-
-    def finish(self) -> None:
-        """End of the flight: deliver what is still on its way, close the logs."""
-        if self.finished:
-            return
-        out = self.stepper.finish()
-        self._ingest(out)
-        self.estimator.finish()
-        self._estimates.clear()
-        for s in self.sinks:
-            s.close()
-        self._sample_series()
-        self.finished = True
-
-    # ------------------------------------------------------------------ outcome
     @property
     def path_length_m(self) -> float:
-        return float(sum(self._path_m))
+        return self.vehicle.path_length_m
 
     def true_tracks(self) -> list[np.ndarray]:
-        """The vehicles' true paths (evaluation: figures), every half second."""
-        return [self.stepper.vehicle_track(i).enu_m[::10]
-                for i in range(len(self.stepper.agents))]
+        return self.vehicle.true_tracks()
 
 
 @dataclass
@@ -405,7 +506,7 @@ class SearchResult:
     policy: str
     mode: str
     seed: object
-    ended: str  # "localised" | "budget"
+    ended: str  # "localised" | "budget" | "interrupted"
     flight_time_s: float
     path_length_m: float
     replans: int
@@ -423,6 +524,8 @@ class SearchResult:
     area_enu_m: tuple = ()
     notes: list[tuple[float, str]] = field(repr=False, default_factory=list)
     scenario: str = ""
+    stalls: list[dict] = field(default_factory=list)
+    phone: dict | None = None  # over a network: the record path's counts
 
     def to_json(self) -> dict:
         seed = self.seed if isinstance(self.seed, int | np.integer) else str(self.seed)
@@ -441,31 +544,57 @@ class SearchResult:
             d["logs"] = self.logs
         d["scenario"] = self.scenario
         d["refused_plans"] = self.refused_plans
+        d["stalls"] = len(self.stalls)
+        if self.stalls:
+            d["stall_events"] = self.stalls
+        if self.phone is not None:
+            d["phone"] = self.phone
         return d
 
 
-def drive(loop, policy: Policy, config: LoopConfig,
+def drive(loop: ClosedLoop, policy: Policy,
           progress: Callable[[float, str], None] | None = None,
-          policy_rng: np.random.Generator | None = None) -> str:
-    """Run ``policy`` on a started loop until it is done or the budget is spent; returns
-    how it ended (``localised`` or ``budget``). The loop is not finished here."""
+          policy_rng: np.random.Generator | None = None,
+          should_stop: Callable[[], bool] | None = None) -> str:
+    """Run ``policy`` on a loop until it is done, the budget is spent or
+    ``should_stop()`` says so (checked before each decision); returns how it ended
+    (``localised``, ``budget`` or ``interrupted``). The loop is not finished here."""
+    loop.start()
     rng = policy_rng if policy_rng is not None else np.random.default_rng(
         np.random.SeedSequence(loop.realisation.seed.entropy, spawn_key=(9,))
     )
     policy.reset(loop.mission, rng)
     budget = loop.mission.budget_s
     while loop.t_s < budget - 1e-9:
+        if should_stop is not None and should_stop():
+            return "interrupted"
         d = policy.decide(loop.observe())
         loop.apply(d)
         if d.done:
             return "localised"
-        loop.advance(config.decision_period_s)
+        loop.advance(loop.config.decision_period_s)
         if progress is not None:
             progress(loop.t_s, loop.notes[-1][1] if loop.notes else "")
     d = policy.decide(loop.observe())  # the policy's last judgement at the budget
     for b in d.localised:
         loop.localised_at.setdefault(b, loop.t_s)
     return "budget"
+
+
+def fly(loop: ClosedLoop, policy: Policy, *,
+        progress: Callable[[float, str], None] | None = None,
+        policy_rng: np.random.Generator | None = None,
+        should_stop: Callable[[], bool] | None = None) -> SearchResult:
+    """Drive ``policy`` on ``loop`` (:func:`drive`), finish the loop (what is still on
+    its way is delivered, the logs are closed) and report. A failure (an exception,
+    Ctrl-C) releases the vehicle and propagates."""
+    try:
+        ended = drive(loop, policy, progress, policy_rng, should_stop)
+        loop.finish()
+    except BaseException:
+        loop.close()
+        raise
+    return result_of(loop, policy.name, ended)
 
 
 def run_search(
@@ -478,15 +607,14 @@ def run_search(
     progress: Callable[[float, str], None] | None = None,
     policy_rng: np.random.Generator | None = None,
 ) -> SearchResult:
-    """Fly ``scenario`` with ``policy`` until it is done or the budget is spent."""
+    """Fly ``scenario`` in process with ``policy`` until it is done or the budget is
+    spent."""
     loop = ClosedLoop(scenario, seed, config=config, log_paths=log_paths)
-    ended = drive(loop, policy, config, progress, policy_rng)
-    loop.finish()
-    return result_of(loop, policy.name, ended)
+    return fly(loop, policy, progress=progress, policy_rng=policy_rng)
 
 
-def result_of(loop: SearchLoopBase, policy_name: str, ended: str) -> SearchResult:
-    """The report of a finished search (the loop gives its own true tracks)."""
+def result_of(loop: ClosedLoop, policy_name: str, ended: str) -> SearchResult:
+    """The report of a finished search."""
     frame = loop.world.frame
     bssids = list(loop.truth)
     truth_enu = {b: tuple(float(v) for v in frame.to_enu(t.lat_deg, t.lon_deg, t.alt_m))
@@ -497,6 +625,7 @@ def result_of(loop: SearchLoopBase, policy_name: str, ended: str) -> SearchResul
         if e.lat_deg is not None:
             est_enu[b] = tuple(float(v) for v in frame.to_enu(e.lat_deg, e.lon_deg, e.alt_m))
     logs = [str(p) for p in loop.log_paths]
+    stats = getattr(loop.vehicle, "phone_stats", None)
     return SearchResult(
         policy=policy_name,
         mode=loop.mode,
@@ -517,4 +646,7 @@ def result_of(loop: SearchLoopBase, policy_name: str, ended: str) -> SearchResul
         area_enu_m=tuple(tuple(v) for v in loop.scenario.search.area_enu_m),
         notes=loop.notes,
         scenario=loop.scenario.name,
+        stalls=[{"t_s": round(t, 3), "agent": i, "e_m": round(p[0], 2), "n_m": round(p[1], 2),
+                 "still_s": round(s, 1)} for t, i, p, s in loop.stalls],
+        phone=stats() if callable(stats) else None,
     )

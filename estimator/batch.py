@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estimator.measurement import jacobian_rows, range_of_difference
 from estimator.noise import EmpiricalRConfig
 
 RTK_FIXES = ("rtk_fixed",)
@@ -334,15 +335,14 @@ class _Problem:
         B = theta[3 + lay.n_agents:].reshape(-1, 3)
         beta = B[lay.j0] if lay.single_knot else (
             B[lay.j0] * lay.w0[:, None] + B[lay.j1] * lay.w1[:, None])
-        diff = theta[:3] - d.u + beta
-        r = np.sqrt((diff * diff).sum(axis=1))
-        np.maximum(r, 1e-6, out=r)
+        diff = theta[:3] - d.u + beta  # p - (u - beta_a(t)): the anchor corrected
+        r = range_of_difference(diff)
         e = (r + theta[self.bcol] - d.d) * self.inv_sig
         return e, diff, r
 
     def jacobian(self, diff: np.ndarray, r: np.ndarray) -> np.ndarray:
         lay = self.lay
-        Hs = diff * (self.inv_sig / r)[:, None]
+        Hs = jacobian_rows(diff, r, scale=self.inv_sig)  # eq. (14)'s rows, whitened
         J = np.zeros((self.data.n, lay.dim))
         J[:, :3] = Hs
         J[self.rows, self.bcol] = self.inv_sig

@@ -13,6 +13,9 @@ Added, as the paper recommends (sec. Discussion): a geometry check refusing kapp
 offline fix for AP_AB): damped trust-region least squares with a Cauchy loss and the
 ground-height prior as a residual, started from stage 1 and from the drone centroid,
 accepted on its residuals and geometry, never on the solver's success flag.
+
+A mode holds a component, :class:`GaussNewton` or :class:`Robust`, that builds its
+bootstrap from the pipeline's configuration.
 """
 
 from __future__ import annotations
@@ -20,11 +23,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
 from estimator.geometry import KAPPA_LIMIT, bbox_diagonal_m, horizontal_condition_number
+from estimator.measurement import geometric_range_m, range_jacobian
+
+if TYPE_CHECKING:
+    from estimator.pipeline import PipelineConfig
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -110,10 +117,7 @@ def gauss_newton_3d(
     p = np.array(p0, dtype=float)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - iteration count is returned
-        diff = p - u
-        r = np.linalg.norm(diff, axis=1)
-        r = np.maximum(r, 1e-9)
-        J = diff / r[:, None]
+        r, J = range_jacobian(p, u)  # J_ij = (p_j - u_ij) / |p - u_i|
         e = r - d
         JtWJ = J.T @ (w[:, None] * J)
         JtWe = J.T @ (w * e)
@@ -179,7 +183,7 @@ class GaussNewtonBootstrap:
         n: int,
     ) -> BootstrapResult:
         centroid = u.mean(axis=0)
-        rms = float(np.sqrt(np.mean((np.linalg.norm(p - u, axis=1) - d) ** 2)))
+        rms = float(np.sqrt(np.mean((geometric_range_m(p, u) - d) ** 2)))
         far = float(np.linalg.norm(p - centroid)) > self.cfg.divergence_factor * float(d.max())
         if far or not np.all(np.isfinite(p)):
             return BootstrapResult(
@@ -227,7 +231,7 @@ class RobustBootstrap(GaussNewtonBootstrap):
         sw = np.sqrt(w)
 
         def resid(p: np.ndarray) -> np.ndarray:
-            r = np.linalg.norm(p - u, axis=1) - d
+            r = geometric_range_m(p, u) - d
             return np.concatenate((sw * r, [(p[2] - z_ground) / cfg.ground_sigma_m]))
 
         starts = [np.array([*u[:, :2].mean(axis=0), z_ground])]
@@ -253,7 +257,7 @@ class RobustBootstrap(GaussNewtonBootstrap):
         if best is None:
             return BootstrapResult("diverged", kappa=kappa, spread_m=spread, n_samples=n)
         p = best.x
-        res = np.linalg.norm(p - u, axis=1) - d
+        res = geometric_range_m(p, u) - d
         inl = np.abs(res) < cfg.inlier_m
         rms = float(np.sqrt(np.mean(res[inl] ** 2))) if inl.any() else math.inf
         out = self._check(p, u, d, kappa, spread, int(best.nfev), n)
@@ -262,3 +266,36 @@ class RobustBootstrap(GaussNewtonBootstrap):
                 "diverged", kappa=kappa, spread_m=spread, n_samples=n, rms_m=rms
             )
         return out
+
+
+# --------------------------------------------------------------------------- components
+
+
+class Bootstrapper(Protocol):
+    """What a filter run needs of a bootstrap (GaussNewtonBootstrap, RobustBootstrap)."""
+
+    def ready(self, samples: Sequence[BootstrapSample]) -> tuple[bool, float]: ...
+
+    def solve(self, samples: Sequence[BootstrapSample]) -> BootstrapResult: ...
+
+
+class BootstrapComponent(Protocol):
+    """A mode's bootstrap: builds one from the pipeline's config."""
+
+    def make(self, cfg: PipelineConfig) -> Bootstrapper: ...
+
+
+@dataclass(frozen=True)
+class GaussNewton:
+    """The paper's bootstrap (``cfg.bootstrap``): :class:`GaussNewtonBootstrap`."""
+
+    def make(self, cfg: PipelineConfig) -> GaussNewtonBootstrap:
+        return GaussNewtonBootstrap(cfg.bootstrap)
+
+
+@dataclass(frozen=True)
+class Robust:
+    """Our damped robust bootstrap (``cfg.robust_bootstrap``): :class:`RobustBootstrap`."""
+
+    def make(self, cfg: PipelineConfig) -> RobustBootstrap:
+        return RobustBootstrap(cfg.robust_bootstrap)

@@ -1,13 +1,19 @@
 """Sequential filters (sec. Sequential Bayesian Filtering): IEKF3D and UKF3D.
 
-Both share one small interface: ``predict()``, ``innovation(anchor, d) -> (nu, hph)``,
-``update(anchor, d, R) -> UpdateResult``, ``update_height(z, R_z)``, and the state
-``x`` / covariance ``P``. The maths is written with plain Python floats: for a 3- or
-4-state filter with scalar measurements this is several times faster than NumPy's
-small-matrix calls (benchmarks/bench_estimator.py measures it), and the arithmetic is
-the same as the textbook matrix form (tests check it against NumPy at 1e-9). Every
-covariance update of the IEKF and of the ground prior goes through the Joseph form
-:func:`joseph_cov4` / :func:`joseph_cov3` (eq. 17).
+Both share one small interface (:class:`SequentialFilter`): ``predict()``,
+``innovation(anchor, d) -> (nu, hph)``, ``update(anchor, d, R) -> UpdateResult``,
+``update_height(z, R_z)``, and the state ``x`` / covariance ``P``. A mode names its
+filter by a component object, :class:`Iekf` or :class:`Ukf`, which builds one from the
+pipeline's configuration.
+
+The maths is written with plain Python floats, unrolled: for a 3- or 4-state filter with
+scalar measurements this is several times faster than NumPy's small-matrix calls
+(benchmarks/bench_estimator.py measures it). The range and its Jacobian come from the
+one measurement model (:mod:`estimator.measurement`, scalar form). The textbook matrix
+forms the paper writes (iterated update, Joseph form, sigma points by Cholesky, the
+unscented transform) are :mod:`estimator.reference`; tests hold these unrolled forms
+equal to them. Every covariance update of the IEKF and of the ground prior goes through
+the Joseph form :func:`joseph_cov4` / :func:`joseph_cov3` (eq. 17).
 """
 
 from __future__ import annotations
@@ -15,7 +21,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
+
+from estimator.measurement import range_and_unit, range_of
+
+if TYPE_CHECKING:
+    from estimator.pipeline import PipelineConfig
 
 Vec = list[float]
 Mat = list[list[float]]
@@ -142,16 +153,6 @@ class IEKF3D:
         self.P: Mat = _diag(cfg.p0_diag)
         self._q = cfg.q_diag
 
-    @staticmethod
-    def _h_and_jac(x: Vec, u: Sequence[float]) -> tuple[float, Vec]:
-        dx = x[0] - u[0]
-        dy = x[1] - u[1]
-        dz = x[2] - u[2]
-        r = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if r < 1e-9:
-            r = 1e-9
-        return r + x[3], [dx / r, dy / r, dz / r, 1.0]
-
     def predict(self) -> None:
         """Eq. (12): static AP, P^- = P + Q."""
         P = self.P
@@ -161,14 +162,16 @@ class IEKF3D:
 
     def innovation(self, anchor: Sequence[float], range_m: float) -> tuple[float, float]:
         """Prior innovation nu = d - h(x^-) and H P^- H^T (eq. 15)."""
-        h, H = self._h_and_jac(self.x, anchor)
+        x = self.x
+        r, *g = range_and_unit(x[0] - anchor[0], x[1] - anchor[1], x[2] - anchor[2])
+        H = (*g, 1.0)
         P = self.P
         hph = 0.0
         for i in range(4):
             Hi = H[i]
             row = P[i]
             hph += Hi * (row[0] * H[0] + row[1] * H[1] + row[2] * H[2] + row[3] * H[3])
-        return range_m - h, hph
+        return range_m - (r + x[3]), hph
 
     def update(self, anchor: Sequence[float], range_m: float, r_m2: RSpec) -> UpdateResult:
         """NIS-gated iterated update with M relinearisations and the Joseph form.
@@ -178,38 +181,35 @@ class IEKF3D:
         (eqs. 15-16); iteration i relinearises at x_i:
         x_{i+1} = x^- + K_i (d - h(x_i) - H_i (x^- - x_i)).
         """
-        x0 = self.x
+        cfg = self.cfg
         P = self.P
         ux, uy, uz = anchor[0], anchor[1], anchor[2]
-        X, Y, Z, B = x0
-        P0, P1, P2, P3 = P
-        dx, dy, dz = X - ux, Y - uy, Z - uz
-        r = math.sqrt(dx * dx + dy * dy + dz * dz) or 1e-9
-        h0, h1, h2 = dx / r, dy / r, dz / r
-        q0 = P0[0] * h0 + P0[1] * h1 + P0[2] * h2 + P0[3]
-        q1 = P1[0] * h0 + P1[1] * h1 + P1[2] * h2 + P1[3]
-        q2 = P2[0] * h0 + P2[1] * h1 + P2[2] * h2 + P2[3]
-        q3 = P3[0] * h0 + P3[1] * h1 + P3[2] * h2 + P3[3]
+        X, Y, Z, B = self.x
+        (p00, p01, p02, p03), (p10, p11, p12, p13), (p20, p21, p22, p23), (
+            p30, p31, p32, p33) = P
+        r, h0, h1, h2 = range_and_unit(X - ux, Y - uy, Z - uz)  # eqs. (13)-(14)
+        q0 = p00 * h0 + p01 * h1 + p02 * h2 + p03  # q = P^- H^T
+        q1 = p10 * h0 + p11 * h1 + p12 * h2 + p13
+        q2 = p20 * h0 + p21 * h1 + p22 * h2 + p23
+        q3 = p30 * h0 + p31 * h1 + p32 * h2 + p33
         hph = h0 * q0 + h1 * q1 + h2 * q2 + q3
         nu = range_m - (r + B)
         if callable(r_m2):
             r_m2 = r_m2(nu, hph)
-        S = hph + r_m2
+        S = hph + r_m2  # eq. (15)
         nis = nu * nu / S
-        if not nis <= self.cfg.nis_gate:
+        if not nis <= cfg.nis_gate:  # eq. (16)
             return UpdateResult(False, nu, S, nis, r_m2)
         Si = S
         innov = nu
         xi0, xi1, xi2, xi3 = X, Y, Z, B
-        for it in range(self.cfg.iterations):
+        for it in range(cfg.iterations):
             if it > 0:
-                dx, dy, dz = xi0 - ux, xi1 - uy, xi2 - uz
-                r = math.sqrt(dx * dx + dy * dy + dz * dz) or 1e-9
-                h0, h1, h2 = dx / r, dy / r, dz / r
-                q0 = P0[0] * h0 + P0[1] * h1 + P0[2] * h2 + P0[3]
-                q1 = P1[0] * h0 + P1[1] * h1 + P1[2] * h2 + P1[3]
-                q2 = P2[0] * h0 + P2[1] * h1 + P2[2] * h2 + P2[3]
-                q3 = P3[0] * h0 + P3[1] * h1 + P3[2] * h2 + P3[3]
+                r, h0, h1, h2 = range_and_unit(xi0 - ux, xi1 - uy, xi2 - uz)
+                q0 = p00 * h0 + p01 * h1 + p02 * h2 + p03
+                q1 = p10 * h0 + p11 * h1 + p12 * h2 + p13
+                q2 = p20 * h0 + p21 * h1 + p22 * h2 + p23
+                q3 = p30 * h0 + p31 * h1 + p32 * h2 + p33
                 Si = h0 * q0 + h1 * q1 + h2 * q2 + q3 + r_m2
                 innov = range_m - (r + xi3) - (
                     h0 * (X - xi0) + h1 * (Y - xi1) + h2 * (Z - xi2) + (B - xi3)
@@ -293,47 +293,6 @@ class MerweWeights:
         return [self.wc0] + [self.wi] * (2 * self.n)
 
 
-def cholesky(A: Mat) -> Mat:
-    """Lower Cholesky factor of a small SPD matrix; raises FilterError if not SPD."""
-    n = len(A)
-    L = [[0.0] * n for _ in range(n)]
-    for i in range(n):
-        for j in range(i + 1):
-            s = A[i][j]
-            for k in range(j):
-                s -= L[i][k] * L[j][k]
-            if i == j:
-                if not s > 0.0:
-                    raise FilterError("covariance is not positive definite")
-                L[i][i] = math.sqrt(s)
-            else:
-                L[i][j] = s / L[j][j]
-    return L
-
-
-def sigma_points(x: Vec, P: Mat, w: MerweWeights) -> list[Vec]:
-    """2n+1 Merwe sigma points: x, x +/- columns of chol((n + lambda) P)."""
-    n = len(x)
-    c = n + w.lam
-    L = cholesky([[c * P[i][j] for j in range(n)] for i in range(n)])
-    pts = [list(x)]
-    for k in range(n):
-        pts.append([x[i] + L[i][k] for i in range(n)])
-    for k in range(n):
-        pts.append([x[i] - L[i][k] for i in range(n)])
-    return pts
-
-
-def unscented_transform_scalar(
-    ys: Sequence[float], w: MerweWeights
-) -> tuple[float, float]:
-    """Mean and variance of scalar sigma-point images."""
-    ym = w.wm0 * ys[0] + w.wi * sum(ys[1:])
-    d0 = ys[0] - ym
-    var = w.wc0 * d0 * d0 + w.wi * sum((y - ym) * (y - ym) for y in ys[1:])
-    return ym, var
-
-
 class UKF3D:
     """UKF on [x, y, z] (no bias) with h(x) = |p - u| (sec. UKF3D)."""
 
@@ -357,9 +316,10 @@ class UKF3D:
     def _propagate(self, anchor: Sequence[float]) -> tuple:
         """Sigma points x, x +/- L e_k (L = chol((n + lambda) P)) through h; unrolled.
 
-        Returns (L columns, images Y0, Y+, Y-, mean, variance). The mean is written as
+        Returns (L, images Y+, Y-, mean, variance). The mean is written as
         Y0 + Wi sum(Y_k - Y0), equal to sum(Wm Y) because the weights sum to one, but
         free of the cancellation between Wm0 ~ -1e6 and Wi ~ 1.7e5 at alpha = 1e-3.
+        (:func:`estimator.reference.ukf_update` is the same in matrix form.)
         """
         key = (anchor[0], anchor[1], anchor[2])
         if self._cache is not None and self._cache[0] == key:
@@ -387,21 +347,25 @@ class UKF3D:
         if not t > 0.0:
             raise FilterError("covariance is not positive definite")
         l22 = math.sqrt(t)
-        cols = ((l00, l10, l20), (0.0, l11, l21), (0.0, 0.0, l22))
+        L = (l00, l10, l20, l11, l21, l22)  # lower triangle, column by column
         x0, x1, x2 = self.x
         ax, ay, az = key
         dx, dy, dz = x0 - ax, x1 - ay, x2 - az
-        y0 = math.sqrt(dx * dx + dy * dy + dz * dz)
-        yp = []
-        ym_ = []
-        for c0, c1, c2 in cols:
-            yp.append(math.sqrt((dx + c0) ** 2 + (dy + c1) ** 2 + (dz + c2) ** 2))
-            ym_.append(math.sqrt((dx - c0) ** 2 + (dy - c1) ** 2 + (dz - c2) ** 2))
+        y0 = range_of(dx, dy, dz)  # h at the sigma points (eq. 13, no bias)
+        p0 = range_of(dx + l00, dy + l10, dz + l20)
+        p1 = range_of(dx, dy + l11, dz + l21)
+        p2 = range_of(dx, dy, dz + l22)
+        m0 = range_of(dx - l00, dy - l10, dz - l20)
+        m1 = range_of(dx, dy - l11, dz - l21)
+        m2 = range_of(dx, dy, dz - l22)
         wi = w.wi
-        mean = y0 + wi * (yp[0] + yp[1] + yp[2] + ym_[0] + ym_[1] + ym_[2] - 6.0 * y0)
+        mean = y0 + wi * (p0 + p1 + p2 + m0 + m1 + m2 - 6.0 * y0)
         d0 = y0 - mean
-        var = w.wc0 * d0 * d0 + wi * sum((v - mean) ** 2 for v in (*yp, *ym_))
-        out = (cols, yp, ym_, mean, var)
+        var = w.wc0 * d0 * d0 + wi * (
+            (p0 - mean) ** 2 + (p1 - mean) ** 2 + (p2 - mean) ** 2
+            + (m0 - mean) ** 2 + (m1 - mean) ** 2 + (m2 - mean) ** 2
+        )
+        out = (L, (p0, p1, p2), (m0, m1, m2), mean, var)
         self._cache = (key, out)
         return out
 
@@ -415,7 +379,7 @@ class UKF3D:
         P_xy = sum Wc (chi - x)(Y - y_mean) = Wi sum_k (Y_k+ - Y_k-) L e_k (the centre
         point contributes nothing); K = P_xy / S; P = P - K S K^T.
         """
-        cols, yp, ymn, ym, pyy = self._propagate(anchor)
+        L, yp, ymn, ym, pyy = self._propagate(anchor)
         nu = range_m - ym
         if callable(r_m2):
             r_m2 = r_m2(nu, pyy)
@@ -425,12 +389,13 @@ class UKF3D:
             self._cache = None
             return UpdateResult(False, nu, S, nis, r_m2)
         wi = self.w.wi
-        p0 = p1 = p2 = 0.0
-        for (c0, c1, c2), a, b in zip(cols, yp, ymn, strict=True):
-            d = wi * (a - b)
-            p0 += c0 * d
-            p1 += c1 * d
-            p2 += c2 * d
+        l00, l10, l20, l11, l21, l22 = L
+        e0 = wi * (yp[0] - ymn[0])
+        e1 = wi * (yp[1] - ymn[1])
+        e2 = wi * (yp[2] - ymn[2])
+        p0 = l00 * e0
+        p1 = l10 * e0 + l11 * e1
+        p2 = l20 * e0 + l21 * e1 + l22 * e2
         k0, k1, k2 = p0 / S, p1 / S, p2 / S
         x = self.x
         xn = [x[0] + k0 * nu, x[1] + k1 * nu, x[2] + k2 * nu]
@@ -457,3 +422,61 @@ class UKF3D:
     @property
     def bias_m(self) -> float:
         return 0.0
+
+
+# ----------------------------------------------------------------------------- components
+
+
+class SequentialFilter(Protocol):
+    """What the pipeline needs of a filter (IEKF3D and UKF3D both)."""
+
+    n: int
+    has_bias: bool
+    x: Vec
+    P: Mat
+
+    def predict(self) -> None: ...
+
+    def innovation(self, anchor: Sequence[float], range_m: float) -> tuple[float, float]: ...
+
+    def update(self, anchor: Sequence[float], range_m: float, r_m2: RSpec) -> UpdateResult: ...
+
+    def update_height(self, z_m: float, r_m2: float) -> None: ...
+
+    @property
+    def position_enu_m(self) -> tuple[float, float, float]: ...
+
+    @property
+    def bias_m(self) -> float: ...
+
+
+class FilterComponent(Protocol):
+    """A mode's filter: builds one at a bootstrap position from the pipeline's config."""
+
+    has_bias: bool
+
+    def make(self, position_enu_m: Sequence[float], cfg: PipelineConfig) -> SequentialFilter: ...
+
+
+@dataclass(frozen=True)
+class Iekf:
+    """A mode's filter: :class:`IEKF3D` with the pipeline's ``iekf`` configuration
+    (or ``config`` when given)."""
+
+    config: IekfConfig | None = None
+    has_bias = True
+
+    def make(self, position_enu_m: Sequence[float], cfg: PipelineConfig) -> IEKF3D:
+        return IEKF3D(position_enu_m, self.config if self.config is not None else cfg.iekf)
+
+
+@dataclass(frozen=True)
+class Ukf:
+    """A mode's filter: :class:`UKF3D` with the pipeline's ``ukf`` configuration (or
+    ``config`` when given)."""
+
+    config: UkfConfig | None = None
+    has_bias = False
+
+    def make(self, position_enu_m: Sequence[float], cfg: PipelineConfig) -> UKF3D:
+        return UKF3D(position_enu_m, self.config if self.config is not None else cfg.ukf)

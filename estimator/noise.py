@@ -2,8 +2,11 @@
 
 A noise model gives the range variance of one gated measurement. Filters call
 ``variance(m, nu_m, hph_m2)`` with the prior innovation nu and its predicted part
-H P^- H^T, so innovation-based models (Adaptive-R, eq. 24) share the interface. Models
-hold per-track state, so a :class:`NoiseSpec` builds a fresh one for each track.
+H P^- H^T, so innovation-based models (Adaptive-R, eq. 24; ``innovation_based``) share
+the interface. Models hold per-track state, so a mode holds a component (:class:`Constant`,
+:class:`Nlos`, :class:`Empirical`, :class:`Adaptive`, :class:`EmpiricalNlos`,
+:class:`GnssInflated`) that builds a fresh model for each track and restart from the
+pipeline's configuration.
 
 The paper's models are reproduced exactly; :class:`GnssInflatedR` is our extension
 (sec. Filter Overconfidence: "propagating calibrated GNSS covariance") and never part
@@ -15,9 +18,12 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 from estimator.records import AssociatedRange
+
+if TYPE_CHECKING:
+    from estimator.pipeline import PipelineConfig
 
 
 class GatedRange(NamedTuple):
@@ -28,7 +34,18 @@ class GatedRange(NamedTuple):
 
 
 class NoiseModel(Protocol):
+    """R of one gated range; ``innovation_based`` models need nu and H P^- H^T (the
+    filter then calls them at its prior, before the NIS gate)."""
+
+    innovation_based: bool
+
     def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float: ...
+
+
+class NoiseComponent(Protocol):
+    """A mode's noise model: builds a fresh (stateful) model from the pipeline's config."""
+
+    def make(self, cfg: PipelineConfig) -> NoiseModel: ...
 
 
 # --------------------------------------------------------------------------- configs
@@ -73,6 +90,8 @@ class AdaptiveRConfig:
 class ConstantR:
     """Baseline and UKF modes: R = sigma_gate^2 (constant from the MAD gate)."""
 
+    innovation_based = False
+
     def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
         return m.sigma_gate_m * m.sigma_gate_m
 
@@ -112,6 +131,8 @@ class NlosR:
     I_NLoS = [skew of the last <= 20 ranges > 1.0  or  |RSSI - RSSI_exp(d)| > 15 dB].
     A measurement without RSSI is judged by skewness alone.
     """
+
+    innovation_based = False
 
     def __init__(self, cfg: NlosConfig = NlosConfig()) -> None:
         self.cfg = cfg
@@ -164,6 +185,8 @@ class CalibratedR:
     scale ``scales[agent]`` as the batch refinement calibrates it (1 until then).
     """
 
+    innovation_based = False
+
     def __init__(self, cfg: EmpiricalRConfig, scales: dict[str, float]) -> None:
         self.cfg = cfg
         self.scales = scales
@@ -176,6 +199,8 @@ class CalibratedR:
 
 class EmpiricalR:
     """Empirical-R mode, eq. (23): distance- and RSSI-dependent variance."""
+
+    innovation_based = False
 
     def __init__(self, cfg: EmpiricalRConfig = EmpiricalRConfig()) -> None:
         self.cfg = cfg
@@ -201,6 +226,8 @@ class AdaptiveR:
     R_0 is the first measurement's sigma_gate^2 (the paper leaves it open). Called once
     per measurement that reaches the filter, before its NIS gate.
     """
+
+    innovation_based = True
 
     def __init__(self, cfg: AdaptiveRConfig = AdaptiveRConfig()) -> None:
         self.cfg = cfg
@@ -245,6 +272,10 @@ class GnssInflatedR:
         self.cfg = cfg
         self.default_agl_m = default_agl_m
 
+    @property
+    def innovation_based(self) -> bool:
+        return self.inner.innovation_based
+
     def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
         r = self.inner.variance(m, nu_m, hph_m2)
         cfg = self.cfg
@@ -258,3 +289,75 @@ class GnssInflatedR:
         agl = a.agl_m if a.agl_m is not None else self.default_agl_m
         c = min(1.0, agl / max(a.range_m, 1e-3))
         return r + sh * sh * (1.0 - c * c) + sv * sv * c * c
+
+
+class EmpiricalNlosR:
+    """Empirical-R (eq. 23) times kappa_NLoS^2 when eq. (22) flags the range NLoS (ours:
+    mode ``robust``)."""
+
+    innovation_based = False
+
+    def __init__(self, empirical: EmpiricalRConfig = EmpiricalRConfig(),
+                 nlos: NlosConfig = NlosConfig()) -> None:
+        self.emp = EmpiricalR(empirical)
+        self.det = NlosR(nlos)
+
+    def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
+        r = self.emp.variance(m, nu_m, hph_m2)
+        return r * self.det.cfg.kappa_nlos**2 if self.det.is_nlos(m) else r
+
+
+# --------------------------------------------------------------------------- components
+# What a mode holds: each builds a fresh model (models keep per-track state) from the
+# pipeline's configuration (estimator.pipeline.PipelineConfig).
+
+
+@dataclass(frozen=True)
+class Constant:
+    """R = sigma_gate^2 (modes baseline, ukf, ema): :class:`ConstantR`."""
+
+    def make(self, cfg: PipelineConfig) -> ConstantR:
+        return ConstantR()
+
+
+@dataclass(frozen=True)
+class Nlos:
+    """R inflated on NLoS, eq. (22) (mode nlos): :class:`NlosR` with ``cfg.nlos``."""
+
+    def make(self, cfg: PipelineConfig) -> NlosR:
+        return NlosR(cfg.nlos)
+
+
+@dataclass(frozen=True)
+class Empirical:
+    """Empirical-R, eq. (23) (mode empirical-r): :class:`EmpiricalR` with ``cfg.empirical``."""
+
+    def make(self, cfg: PipelineConfig) -> EmpiricalR:
+        return EmpiricalR(cfg.empirical)
+
+
+@dataclass(frozen=True)
+class Adaptive:
+    """Adaptive-R, eq. (24) (mode adaptive-r): :class:`AdaptiveR` with ``cfg.adaptive``."""
+
+    def make(self, cfg: PipelineConfig) -> AdaptiveR:
+        return AdaptiveR(cfg.adaptive)
+
+
+@dataclass(frozen=True)
+class EmpiricalNlos:
+    """Empirical-R inflated on NLoS (ours): :class:`EmpiricalNlosR`."""
+
+    def make(self, cfg: PipelineConfig) -> EmpiricalNlosR:
+        return EmpiricalNlosR(cfg.empirical, cfg.nlos)
+
+
+@dataclass(frozen=True)
+class GnssInflated:
+    """``inner`` plus the GNSS anchor variance on the line of sight (ours):
+    :class:`GnssInflatedR` with ``cfg.gnss_cov`` and ``cfg.agl_m``."""
+
+    inner: NoiseComponent
+
+    def make(self, cfg: PipelineConfig) -> GnssInflatedR:
+        return GnssInflatedR(self.inner.make(cfg), cfg.gnss_cov, cfg.agl_m)

@@ -29,19 +29,21 @@ import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
+from typing import Protocol
 
 from estimator.association import AssociationConfig, AssociationStats, Associator, GeoRange
 from estimator.geodesy import EnuFrame, make_frame
 from estimator.logio import LogWarning
+from estimator.modes import resolve_mode, resolve_modes
 from estimator.pipeline import (
     DEFAULT_AGL_M,
-    MODES,
+    ModeSpec,
     PipelineConfig,
     Published,
     SharedFront,
     Track,
     TrackObserver,
-    resolve_modes,
+    make_track,
 )
 from estimator.records import (
     AssociatedRange,
@@ -51,7 +53,15 @@ from estimator.records import (
     LogHeader,
     RangeSample,
 )
-from estimator.refined import make_track
+
+
+class RangeObserver(Protocol):
+    """Told of every associated range as it is released to the tracks (in the order the
+    tracks see them): the range, corrected, with its GNSS anchor (WGS84), the time it was
+    taken on its agent's phone clock (``g.t_ns``) and the agent's index. A closed loop
+    learns from it where each range was heard, from the phone's own GNSS."""
+
+    def associated(self, agent: int, g: GeoRange) -> None: ...
 
 
 def utc_epoch_s(text: str | None) -> float | None:
@@ -93,9 +103,14 @@ class Agent:
 
 @dataclass(frozen=True, kw_only=True)
 class EstimatorOptions:
-    """What the online estimator runs: modes, pipeline, association and frame."""
+    """What the online estimator runs: modes, pipeline, association and frame.
 
-    modes: tuple[str, ...] = ("baseline",)
+    ``modes`` are :class:`estimator.pipeline.ModeSpec` objects, or names (and aliases)
+    resolved once, here, through the registry :data:`estimator.modes.MODES`; after
+    construction they are specs.
+    """
+
+    modes: tuple[ModeSpec | str, ...] = ("baseline",)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
     projection: str = "tangent"  # "tangent" (eq. 1) or "wgs84" (exact, pymap3d)
@@ -103,9 +118,6 @@ class EstimatorOptions:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
-        unknown = [m for m in self.modes if m not in MODES]
-        if unknown:
-            raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)}")
         if not self.modes:
             raise ValueError("at least one mode is needed")
 
@@ -124,9 +136,11 @@ class OnlineEstimator:
         options: EstimatorOptions = EstimatorOptions(),
         *,
         observers: Sequence[TrackObserver] = (),
+        range_observers: Sequence[RangeObserver] = (),
     ) -> None:
         self.options = options
         self.observers = tuple(observers)
+        self.range_observers = tuple(range_observers)
         self.agents: list[Agent] = []
         self._by_name: dict[str, Agent] = {}
         self.frame: EnuFrame | None = None
@@ -332,6 +346,8 @@ class OnlineEstimator:
 
     def _process(self, t_s: float, g: GeoRange, a: Agent) -> list[Published]:
         opts = self.options
+        for ob in self.range_observers:
+            ob.associated(a.index, g)
         if self.frame is None:
             self.frame = make_frame(opts.projection, g.lat_deg, g.lon_deg, g.alt_m)
         e, n, u = self.frame.to_enu(g.lat_deg, g.lon_deg, g.alt_m)
@@ -351,7 +367,7 @@ class OnlineEstimator:
             self.bssids.append(g.bssid)
             front = SharedFront(opts.pipeline)
             for mode in opts.modes:
-                self.tracks[(g.bssid, mode)] = make_track(
+                self.tracks[(g.bssid, mode.name)] = make_track(
                     g.bssid,
                     mode,
                     opts.pipeline,
@@ -361,7 +377,7 @@ class OnlineEstimator:
                 )
         out = []
         for mode in opts.modes:
-            pub = self.tracks[(g.bssid, mode)].process(m)
+            pub = self.tracks[(g.bssid, mode.name)].process(m)
             if pub is not None:
                 out.append(pub)
         return out
@@ -384,19 +400,22 @@ class OnlineEstimator:
         seen += sorted(b for b in rtt if b not in self.bssids)
         return seen
 
-    def track(self, bssid: str, mode: str | None = None) -> Track | None:
-        mode = resolve_modes((mode,))[0] if mode else self.options.modes[0]
-        return self.tracks.get((bssid, mode))
+    def _mode_name(self, mode: ModeSpec | str | None) -> str:
+        return resolve_mode(mode).name if mode else self.options.modes[0].name
 
-    def estimate(self, bssid: str, mode: str | None = None) -> Estimate:
+    def track(self, bssid: str, mode: ModeSpec | str | None = None) -> Track | None:
+        """The track of ``bssid`` in ``mode`` (a spec or a name; default: the first mode)."""
+        return self.tracks.get((bssid, self._mode_name(mode)))
+
+    def estimate(self, bssid: str, mode: ModeSpec | str | None = None) -> Estimate:
         """The reported estimate of ``bssid`` in ``mode`` (default: the first mode)."""
-        mode = resolve_modes((mode,))[0] if mode else self.options.modes[0]
-        tr = self.tracks.get((bssid, mode))
+        name = self._mode_name(mode)
+        tr = self.tracks.get((bssid, name))
         if tr is None:
-            return Estimate(t_s=self.now_s(), bssid=bssid, mode=mode, status="no_data")
+            return Estimate(t_s=self.now_s(), bssid=bssid, mode=name, status="no_data")
         return track_estimate(tr, self.frame, self.now_s())
 
-    def estimates(self, mode: str | None = None) -> list[Estimate]:
+    def estimates(self, mode: ModeSpec | str | None = None) -> list[Estimate]:
         """The reported estimate of every responder seen, in one mode (default the first)."""
         return [self.estimate(b, mode) for b in self.seen_bssids()]
 

@@ -1,8 +1,12 @@
 """One responder track: gate -> bootstrap -> filter -> ground prior -> smoother -> rules.
 
-The paper's six modes (sec. Measurement-Noise Configurations) are compositions of a
-filter, a noise model and a smoother (:data:`MODES`), not six pipelines. Further modes
-(ours) are compositions too and carry their own names; the paper's six never change.
+The paper's six modes (sec. Measurement-Noise Configurations) are compositions, not six
+pipelines: a :class:`ModeSpec` holds its filter, noise model, smoother and bootstrap as
+component objects (``filters.Iekf()``, ``noise.Nlos()``, ``smoothing.Ema()``,
+``bootstrap.GaussNewton()``...), each building its part from the :class:`PipelineConfig`.
+Names are resolved to specs in one place, the registry :data:`estimator.modes.MODES`
+(``resolve_mode``), at the command line's and the options' edge. Further modes (ours)
+are compositions too and carry their own names; the paper's six never change.
 
 Counting (Table "Filter comparison on AP_1F"): ``n_meas`` associated measurements enter
 the track; those up to and including the successful bootstrap are ``n_bootstrap``;
@@ -16,6 +20,7 @@ restart at zero (``n_restarts`` counts restarts), so the identity holds and ``n_
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -24,32 +29,42 @@ from typing import NamedTuple, Protocol
 
 from estimator.batch import BatchConfig
 from estimator.bootstrap import (
+    BootstrapComponent,
     BootstrapConfig,
     BootstrapResult,
     BootstrapSample,
-    GaussNewtonBootstrap,
-    RobustBootstrap,
+    GaussNewton,
     RobustBootstrapConfig,
 )
 from estimator.convergence import ConvergenceConfig, ConvergenceMonitor
-from estimator.filters import IEKF3D, UKF3D, FilterError, IekfConfig, UkfConfig
+from estimator.filters import (
+    FilterComponent,
+    FilterError,
+    Iekf,
+    IekfConfig,
+    SequentialFilter,
+    UkfConfig,
+)
 from estimator.gate import MadGate, MadGateConfig, median
 from estimator.geometry import KAPPA_LIMIT
 from estimator.noise import (
-    AdaptiveR,
     AdaptiveRConfig,
-    ConstantR,
-    EmpiricalR,
+    Constant,
     EmpiricalRConfig,
     GatedRange,
     GnssCovarianceConfig,
-    GnssInflatedR,
     NlosConfig,
-    NlosR,
+    NoiseComponent,
     NoiseModel,
 )
 from estimator.records import AssociatedRange
-from estimator.smoothing import EmaSmoother, EmaSmootherConfig, MedianSmoother, MedianSmootherConfig
+from estimator.smoothing import (
+    EmaSmootherConfig,
+    Median,
+    MedianSmootherConfig,
+    Smoother,
+    SmootherComponent,
+)
 
 DEFAULT_AGL_M = 45.0  # docs/cli.md: header config.agl_m, else 45 m
 
@@ -61,67 +76,6 @@ class GroundPriorConfig:
     enabled: bool = True
     window: int = 25  # W_z of the ground prior: last 25 drone altitudes
     r_z_m2: float = 25.0  # R_z = (5 m)^2
-
-
-@dataclass(frozen=True)
-class ModeSpec:
-    """A mode: filter x noise model x smoother (x bootstrap, x GNSS covariance)."""
-
-    name: str
-    filter: str = "iekf"  # iekf | ukf
-    noise: str = "constant"  # constant | nlos | empirical | adaptive | empirical+nlos
-    smoother: str = "median"  # median | ema
-    bootstrap: str = "gauss-newton"  # gauss-newton | robust
-    gnss_covariance: bool = False
-    paper: bool = True
-    refine: bool = False  # sequential front + robust batch refinement (estimator.refined)
-
-
-MODES: dict[str, ModeSpec] = {
-    "baseline": ModeSpec("baseline"),
-    "nlos": ModeSpec("nlos", noise="nlos"),
-    "empirical-r": ModeSpec("empirical-r", noise="empirical"),
-    "ukf": ModeSpec("ukf", filter="ukf"),
-    "ema": ModeSpec("ema", smoother="ema"),
-    "adaptive-r": ModeSpec("adaptive-r", noise="adaptive"),
-    # ours (sec. Conclusions' recommendations): damped robust bootstrap, honest
-    # covariance with GNSS anchor uncertainty, NLoS-aware Empirical-R weighting
-    "robust": ModeSpec(
-        "robust",
-        noise="empirical+nlos",
-        bootstrap="robust",
-        gnss_covariance=True,
-        paper=False,
-    ),
-    # ours (issue 8): a static IEKF front with calibrated R and no per-update ground
-    # prior, refined periodically and at the end by a robust batch over every gated
-    # range with per-agent range and GNSS biases (estimator.batch, estimator.refined)
-    "refined": ModeSpec(
-        "refined",
-        noise="calibrated",
-        smoother="none",
-        paper=False,
-        refine=True,
-    ),
-}
-PAPER_MODES: tuple[str, ...] = tuple(k for k, v in MODES.items() if v.paper)
-# names that stand for a mode; estimates always carry the real name
-MODE_ALIASES: dict[str, str] = {"best": "refined"}
-
-
-def resolve_mode(name: str) -> str:
-    """The real name of a mode or alias (``best`` -> ``refined``); unknown names unchanged."""
-    return MODE_ALIASES.get(name, name)
-
-
-def resolve_modes(names) -> tuple[str, ...]:
-    """Aliases resolved, duplicates dropped (first occurrence kept, order preserved)."""
-    out: list[str] = []
-    for n in names:
-        r = resolve_mode(n)
-        if r not in out:
-            out.append(r)
-    return tuple(out)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -174,35 +128,6 @@ class PipelineConfig:
     ema: EmaSmootherConfig = field(default_factory=EmaSmootherConfig)
     convergence: ConvergenceConfig = field(default_factory=ConvergenceConfig)
     refined: RefinedConfig = field(default_factory=RefinedConfig)
-
-
-class _EmpiricalNlos:
-    """Empirical-R inflated by the NLoS decision of eq. (22) (mode ``robust``)."""
-
-    def __init__(self, cfg: PipelineConfig) -> None:
-        self.emp = EmpiricalR(cfg.empirical)
-        self.det = NlosR(cfg.nlos)
-
-    def variance(self, m: GatedRange, nu_m: float, hph_m2: float) -> float:
-        r = self.emp.variance(m, nu_m, hph_m2)
-        return r * self.det.cfg.kappa_nlos**2 if self.det.is_nlos(m) else r
-
-
-def make_noise(spec: ModeSpec, cfg: PipelineConfig) -> NoiseModel:
-    kinds = {
-        "constant": lambda: ConstantR(),
-        "nlos": lambda: NlosR(cfg.nlos),
-        "empirical": lambda: EmpiricalR(cfg.empirical),
-        "adaptive": lambda: AdaptiveR(cfg.adaptive),
-        "empirical+nlos": lambda: _EmpiricalNlos(cfg),
-    }
-    try:
-        model: NoiseModel = kinds[spec.noise]()
-    except KeyError as exc:
-        raise ValueError(f"unknown noise model {spec.noise!r}") from exc
-    if spec.gnss_covariance:
-        model = GnssInflatedR(model, cfg.gnss_cov, cfg.agl_m)
-    return model
 
 
 class Published(NamedTuple):
@@ -298,7 +223,7 @@ class SharedFront:
             self._ground_med = median(self.ground)
         return self._ground_med
 
-    def bootstrap(self, kind: str, solver, samples) -> BootstrapResult:
+    def bootstrap(self, kind: BootstrapComponent, solver, samples) -> BootstrapResult:
         """One bootstrap attempt per kind and measurement: runs that have not restarted
         hold the same samples, so they share the result."""
         hit = self._boot_cache.get(kind)
@@ -309,7 +234,9 @@ class SharedFront:
         return res
 
     def filter_run(self, spec: ModeSpec) -> FilterRun:
-        key = (spec.filter, spec.noise, spec.bootstrap, spec.gnss_covariance)
+        """The run of ``spec``'s filter, noise model, bootstrap and ground prior (one per
+        distinct combination: components compare by value)."""
+        key = (spec.filter, spec.noise, spec.bootstrap, spec.ground_prior)
         run = self._runs.get(key)
         if run is None:
             run = self._runs[key] = FilterRun(spec, self.cfg, self)
@@ -323,11 +250,11 @@ BOOT, MAD, NIS, ACC, RESTART = range(5)
 class FilterRun:
     """Bootstrap, filter and noise model of one responder (shared by modes that agree).
 
-    The keywords serve modes beyond the paper's (their defaults are the paper's
-    pipeline): ``noise_factory`` builds the noise model (at start and at every
-    restart), ``iekf`` replaces the IEKF configuration, ``ground_prior`` switches the
-    per-update ground pseudo-measurement, ``shared_bootstrap`` lets the first bootstrap
-    attempt at a measurement be shared with the other runs of the front.
+    The filter, noise model, bootstrap and the per-update ground pseudo-measurement are
+    the spec's components. The keywords serve modes beyond the paper's (their defaults
+    are the paper's pipeline): ``noise_factory`` builds the noise model (at start and at
+    every restart) instead of ``spec.noise``, ``shared_bootstrap`` lets the first
+    bootstrap attempt at a measurement be shared with the other runs of the front.
     """
 
     def __init__(
@@ -337,30 +264,24 @@ class FilterRun:
         front: SharedFront,
         *,
         noise_factory: Callable[[], NoiseModel] | None = None,
-        iekf: IekfConfig | None = None,
-        ground_prior: bool = True,
         shared_bootstrap: bool = True,
     ) -> None:
         self.spec = spec
         self.cfg = cfg
         self.front = front
-        self._noise_factory = noise_factory or (lambda: make_noise(spec, cfg))
-        self.iekf_cfg = iekf if iekf is not None else cfg.iekf
-        self.ground_prior = ground_prior and cfg.ground.enabled
+        # a partial, not a lambda: a track (and every env holding one) must pickle
+        self._noise_factory = noise_factory or functools.partial(spec.noise.make, cfg)
+        self.ground_prior = spec.ground_prior and cfg.ground.enabled
         self.shared_bootstrap = shared_bootstrap
         self.counts = TrackCounts()
-        self.bootstrapper = (
-            RobustBootstrap(cfg.robust_bootstrap)
-            if spec.bootstrap == "robust"
-            else GaussNewtonBootstrap(cfg.bootstrap)
-        )
+        self.bootstrapper = spec.bootstrap.make(cfg)
         self._boot: deque[BootstrapSample] = deque(maxlen=cfg.bootstrap.max_samples)
         self.last_bootstrap: BootstrapResult | None = None
         self.bootstrap_result: BootstrapResult | None = None
         self.bootstrap_t_s: float | None = None
-        self.filter: IEKF3D | UKF3D | None = None
+        self.filter: SequentialFilter | None = None
         self.noise: NoiseModel = self._noise_factory()
-        self._innovation_noise = isinstance(self.noise, AdaptiveR) or spec.noise == "adaptive"
+        self._innovation_noise = self.noise.innovation_based
         self.generation = 0  # bumped at every restart
         self.diverged = False
         self._index = -2
@@ -425,16 +346,13 @@ class FilterRun:
         assert res.position_enu_m is not None
         self.bootstrap_result = res
         self.bootstrap_t_s = t_s
-        if self.spec.filter == "ukf":
-            self.filter = UKF3D(res.position_enu_m, self.cfg.ukf)
-        else:
-            self.filter = IEKF3D(res.position_enu_m, self.iekf_cfg)
+        self.filter = self.spec.filter.make(res.position_enu_m, self.cfg)
         self.diverged = False
 
     def seed(self, x: Sequence[float], P: Sequence[Sequence[float]], t_s: float) -> None:
         """Start the filter at a given state and covariance (a refinement's, in place
         of a bootstrap); later measurements count as post-bootstrap."""
-        f = IEKF3D(x[:3], self.iekf_cfg)
+        f = self.spec.filter.make(x[:3], self.cfg)
         f.x = [float(v) for v in x]
         f.P = [[float(v) for v in row] for row in P]
         self.filter = f
@@ -462,8 +380,9 @@ class Track:
     """The real-time pipeline for one BSSID in one mode (sec. System Architecture).
 
     A track is a :class:`FilterRun` (possibly shared with other modes) plus its own
-    smoother, convergence monitor and published history. Modes with ``refine`` are
-    :class:`estimator.refined.RefinedTrack` (see :func:`estimator.refined.make_track`).
+    smoother, convergence monitor and published history. A mode whose ``track`` is
+    another class (``refined``: :class:`estimator.refined.RefinedTrack`) is built by
+    :func:`make_track`.
     """
 
     candidates: tuple = ()  # (mean_enu_m, sigma_h_m, weight) of an ambiguous estimate
@@ -471,18 +390,21 @@ class Track:
     def __init__(
         self,
         bssid: str,
-        mode: str | ModeSpec = "baseline",
+        mode: ModeSpec,
         cfg: PipelineConfig = PipelineConfig(),
         *,
         keep_history: bool = True,
         front: SharedFront | None = None,
         observers: Sequence[TrackObserver] = (),
     ) -> None:
+        if not isinstance(mode, ModeSpec):
+            raise TypeError(f"a track takes a ModeSpec, not {mode!r} "
+                            "(names: estimator.modes.resolve_mode)")
+        if not isinstance(self, mode.track):
+            raise ValueError(f"mode {mode.name!r} is a {mode.track.__name__} (make_track)")
         self.bssid = bssid
         self.observers = tuple(observers)
-        self.spec = MODES[resolve_mode(mode)] if isinstance(mode, str) else mode
-        if self.spec.refine and type(self) is Track:
-            raise ValueError(f"mode {self.spec.name!r} is a RefinedTrack (estimator.refined)")
+        self.spec = mode
         self.cfg = cfg
         self.front = front if front is not None else SharedFront(cfg)
         self.run = self._make_run()
@@ -497,9 +419,8 @@ class Track:
     def _make_run(self) -> FilterRun:
         return self.front.filter_run(self.spec)
 
-    def _make_smoother(self) -> EmaSmoother | MedianSmoother:
-        cfg = self.cfg
-        return EmaSmoother(cfg.ema) if self.spec.smoother == "ema" else MedianSmoother(cfg.median)
+    def _make_smoother(self) -> Smoother:
+        return self.spec.smoother.make(self.cfg)
 
     # ------------------------------------------------------------------ processing
     def process(self, m: AssociatedRange) -> Published | None:
@@ -553,7 +474,7 @@ class Track:
         return self.run.filter is not None and self.run.filter.has_bias
 
     @property
-    def filter(self) -> IEKF3D | UKF3D | None:
+    def filter(self) -> SequentialFilter | None:
         return self.run.filter
 
     @property
@@ -603,3 +524,36 @@ class Track:
             0,
             position_cov(P),
         )
+
+
+@dataclass(frozen=True)
+class ModeSpec:
+    """A mode: a composition of component objects (sec. Measurement-Noise Configurations).
+
+    ``filter`` builds the sequential filter (:class:`estimator.filters.Iekf`, ``Ukf``),
+    ``noise`` the measurement-noise model (:mod:`estimator.noise`: ``Constant``,
+    ``Nlos``, ``Empirical``, ``Adaptive``...), ``smoother`` the output smoother
+    (:mod:`estimator.smoothing`: ``Median``, ``Ema``), ``bootstrap`` the initialisation
+    (:mod:`estimator.bootstrap`: ``GaussNewton``, ``Robust``), each from its section of
+    the :class:`PipelineConfig`. ``ground_prior``: the ground-height pseudo-measurement
+    after each accepted update (eq. 18). ``track`` is the track class that runs the mode
+    (:class:`Track`; mode ``refined`` has its own). ``paper``: one of the paper's six.
+    Components compare by value, so modes that agree on filter, noise, bootstrap and
+    ground prior (``baseline`` and ``ema``) share one filter run. Names map to specs in
+    :data:`estimator.modes.MODES` only.
+    """
+
+    name: str
+    filter: FilterComponent = field(default_factory=Iekf)
+    noise: NoiseComponent = field(default_factory=Constant)
+    smoother: SmootherComponent = field(default_factory=Median)
+    bootstrap: BootstrapComponent = field(default_factory=GaussNewton)
+    ground_prior: bool = True
+    paper: bool = True
+    track: type[Track] = Track
+
+
+def make_track(bssid: str, mode: ModeSpec, cfg: PipelineConfig = PipelineConfig(), **kw
+               ) -> Track:
+    """The track that runs ``mode`` (its ``track`` class) for one responder."""
+    return mode.track(bssid, mode, cfg, **kw)

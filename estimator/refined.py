@@ -25,8 +25,10 @@ mixture mean and covariance, and :attr:`RefinedTrack.candidates` lists them.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,12 +42,12 @@ from estimator.batch import (
     search_minima,
     solve,
 )
+from estimator.filters import IEKF3D
 from estimator.gate import MadGate
 from estimator.geometry import horizontal_condition_number
 from estimator.noise import CalibratedR, GatedRange, empirical_model_m2
 from estimator.pipeline import (
     ACC,
-    MODES,
     FilterRun,
     ModeSpec,
     PipelineConfig,
@@ -53,11 +55,31 @@ from estimator.pipeline import (
     SharedFront,
     Track,
     TrackObserver,
-    resolve_mode,
 )
 from estimator.records import AssociatedRange
+from estimator.smoothing import Unsmoothed
 
 CandidateEnu = tuple[tuple[float, float, float], float, float]  # mean ENU, sigma_h, weight
+
+
+@dataclass(frozen=True)
+class RefinedFront:
+    """Mode ``refined``'s filter: :class:`IEKF3D` with ``cfg.refined.front`` (Q = 0)."""
+
+    has_bias = True
+
+    def make(self, position_enu_m: Sequence[float], cfg: PipelineConfig) -> IEKF3D:
+        return IEKF3D(position_enu_m, cfg.refined.front)
+
+
+@dataclass(frozen=True)
+class CalibratedNoise:
+    """Mode ``refined``'s noise: :class:`CalibratedR` with the track's calibrated
+    per-agent scales (``scales``, which :class:`RefinedTrack` passes; 1 without)."""
+
+    def make(self, cfg: PipelineConfig, scales: dict[str, float] | None = None
+             ) -> CalibratedR:
+        return CalibratedR(cfg.empirical, {} if scales is None else scales)
 
 
 def _tuple3(M: np.ndarray) -> tuple[tuple[float, float, float], ...]:
@@ -94,7 +116,7 @@ class RefinedTrack(Track):
     def __init__(
         self,
         bssid: str,
-        mode: str | ModeSpec = "refined",
+        mode: ModeSpec | None = None,
         cfg: PipelineConfig = PipelineConfig(),
         *,
         keep_history: bool = True,
@@ -116,18 +138,19 @@ class RefinedTrack(Track):
         self._gnss_cov: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3
         self._refined_pub: Published | None = None
         self._agent_gates = _AgentGates(cfg)
-        super().__init__(bssid, mode, cfg, keep_history=keep_history, front=front,
-                         observers=observers)
+        super().__init__(bssid, REFINED if mode is None else mode, cfg,
+                         keep_history=keep_history, front=front, observers=observers)
 
     def _make_run(self) -> FilterRun:
         cfg = self.cfg
+        noise = self.spec.noise
         return FilterRun(
             self.spec,
             cfg,
             self._agent_gates,  # type: ignore[arg-type]  # index and gated() only
-            noise_factory=lambda: CalibratedR(cfg.empirical, self.scales),
-            iekf=self.rcfg.front,
-            ground_prior=False,
+            # a partial, not a lambda (a track must pickle); the scales dict is updated
+            # in place: the partial sees every calibration
+            noise_factory=functools.partial(noise.make, cfg, self.scales),
             shared_bootstrap=False,
         )
 
@@ -357,13 +380,15 @@ class RefinedTrack(Track):
         return pub
 
 
-def make_track(
-    bssid: str,
-    mode: str | ModeSpec = "baseline",
-    cfg: PipelineConfig = PipelineConfig(),
-    **kw,
-) -> Track:
-    """A :class:`Track`, or a :class:`RefinedTrack` for modes with ``refine``."""
-    spec = MODES[resolve_mode(mode)] if isinstance(mode, str) else mode
-    cls = RefinedTrack if spec.refine else Track
-    return cls(bssid, spec, cfg, **kw)
+REFINED = ModeSpec(
+    "refined",
+    filter=RefinedFront(),
+    noise=CalibratedNoise(),
+    smoother=Unsmoothed(),
+    ground_prior=False,
+    paper=False,
+    track=RefinedTrack,
+)
+"""Mode ``refined`` (issue 8): a static IEKF front with calibrated R and no per-update
+ground prior, refined periodically and at the end by a robust batch over every gated
+range with per-agent range and GNSS biases (:mod:`estimator.batch`)."""

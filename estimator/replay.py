@@ -35,23 +35,24 @@ from estimator.logio import (
     iter_log_sorted,
     not_a_log,
 )
-from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
-from estimator.pipeline import (
-    MODE_ALIASES,
-    MODES,
-    PAPER_MODES,
-    PipelineConfig,
-    Published,
+from estimator.modes import (  # parse_modes: the command line imports it from here
+    parse_modes,  # noqa: F401
     resolve_modes,
 )
+from estimator.online import EstimatorOptions, OnlineEstimator, track_estimate
+from estimator.pipeline import ModeSpec, PipelineConfig, Published
 from estimator.records import Estimate, TruthRecord
+from estimator.tables import Column, fit_columns, text_table
 
 
 @dataclass(frozen=True, kw_only=True)
 class ReplayOptions:
-    """What to replay and how; ``None`` overrides fall back to the log header, then defaults."""
+    """What to replay and how; ``None`` overrides fall back to the log header, then defaults.
 
-    modes: tuple[str, ...] = ("baseline",)
+    ``modes``: specs or names, resolved once here (as :class:`EstimatorOptions`).
+    """
+
+    modes: tuple[ModeSpec | str, ...] = ("baseline",)
     agl_m: float | None = None  # --agl
     range_offset_m: float | None = None  # --range-offset
     projection: str = "tangent"  # "tangent" (eq. 1) or "wgs84" (exact, pymap3d)
@@ -61,32 +62,10 @@ class ReplayOptions:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modes", resolve_modes(self.modes))  # best -> refined
-        unknown = [m for m in self.modes if m not in MODES]
-        if unknown:
-            raise ValueError(f"unknown mode(s) {unknown}; choose from {sorted(MODES)} or 'all'")
         for name in ("agl_m", "range_offset_m"):
             v = getattr(self, name)
             if v is not None and not math.isfinite(v):
                 raise ValueError(f"{name} must be finite")
-
-
-def parse_modes(text: str) -> tuple[str, ...]:
-    """``all`` (the paper's six), one name, or a list joined by ``,`` or ``+``
-    (``all+robust``: the six and ours); ``all`` expands in place, repeats are dropped.
-
-    Aliases resolve to the mode's real name (``best`` -> ``refined``, the recommended
-    mode), so the estimates carry it.
-    """
-    names = [m.strip() for m in text.replace("+", ",").split(",") if m.strip()]
-    expanded: list[str] = []
-    for m in names:
-        expanded.extend(PAPER_MODES if m == "all" else (m,))
-    modes = resolve_modes(expanded)
-    bad = [m for m in modes if m not in MODES]
-    if bad or not modes:
-        choices = ", ".join([*MODES, *MODE_ALIASES])
-        raise ValueError(f"unknown mode {text!r}; choose from {choices} or all")
-    return modes
 
 
 @dataclass
@@ -110,16 +89,12 @@ class TrackResult:
     history: list[Published] = field(default_factory=list, repr=False)
     bootstrap_t_s: float | None = None
     estimated: Estimate | None = field(default=None, repr=False)
+    has_bias: bool = True  # the mode's filter estimates a range bias (the UKF's has none)
     flags: tuple[str, ...] = ()  # suspicious data in the logs it was computed from
 
     @property
     def converged(self) -> bool:
         return self.status == "converged"
-
-    @property
-    def has_bias(self) -> bool:
-        """Whether the mode's filter estimates a range bias (the UKF's state has none)."""
-        return MODES[self.mode].filter != "ukf"
 
     def to_json(self) -> dict:
         d: dict = {"bssid": self.bssid, "mode": self.mode, "status": self.status,
@@ -322,7 +297,7 @@ def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> 
     report.tracks = [
         _result(b, mode, est, scorer, truth.get(b), report.flags)
         for b in est.seen_bssids()
-        for mode in opts.modes
+        for mode in est.options.modes
     ]
     return report
 
@@ -369,17 +344,19 @@ def _times(n: int) -> str:
 
 def _result(
     bssid: str,
-    mode: str,
+    spec: ModeSpec,
     est: OnlineEstimator,
     scorer: TruthScorer,
     truth: TruthRecord | None,
     flags: tuple[str, ...] = (),
 ) -> TrackResult:
     empty = {k: 0 for k in ("n_meas", "n_bootstrap", "n_acc", "n_gate", "n_mad", "n_nis")}
-    tr = est.track(bssid, mode)
+    mode, has_bias = spec.name, spec.filter.has_bias
+    tr = est.track(bssid, spec)
     conc = truth.concealment if truth is not None else None
     if tr is None:
-        return TrackResult(bssid, mode, "no_data", empty, None, concealment=conc, flags=flags)
+        return TrackResult(bssid, mode, "no_data", empty, None, concealment=conc,
+                           has_bias=has_bias, flags=flags)
     c = tr.counts
     counts = {
         "n_meas": c.n_meas,
@@ -392,7 +369,8 @@ def _result(
     e = track_estimate(tr, est.frame, est.now_s())
     res = TrackResult(
         bssid, mode, tr.status, counts, tr.reported(), kappa=e.kappa, history=tr.history,
-        bootstrap_t_s=tr.bootstrap_t_s, concealment=conc, estimated=e, flags=flags,
+        bootstrap_t_s=tr.bootstrap_t_s, concealment=conc, estimated=e, has_bias=has_bias,
+        flags=flags,
     )
     frame = est.frame
     if frame is not None and truth is not None:
@@ -406,6 +384,15 @@ def _result(
     return res
 
 
+# the replay table's columns (least widths: the paper-style layout of short names)
+REPLAY_COLUMNS = (
+    Column("Mode", "<", 12), Column("status", "<", 14), Column("n_gate", ">", 7),
+    Column("n_acc", ">", 7), Column("sigma_H", ">", 9), Column("sigma_Z", ">", 9),
+    Column("err_2D", ">", 8), Column("TWM", ">", 7), Column("err_3D", ">", 8),
+    Column("bias", ">", 7),
+)
+
+
 def format_table(report: ReplayReport) -> str:
     """A readable table, one block per responder, shaped like the paper's Table."""
     lines = []
@@ -416,23 +403,22 @@ def format_table(report: ReplayReport) -> str:
     def f(v: float | None, nd: int = 1) -> str:
         return "-" if v is None else f"{v:.{nd}f}"
 
+    cells = {
+        b: [(t.mode, t.status, str(t.counts["n_gate"]), str(t.counts["n_acc"]),
+             f(t.estimate.sigma_h_m if t.estimate else None),
+             f(t.estimate.sigma_z_m if t.estimate else None), f(t.err_h_m), f(t.twm_h_m),
+             f(t.err_3d_m), f(t.estimate.bias_m if t.estimate and t.has_bias else None, 2))
+            for t in rows]
+        for b, rows in by_bssid.items()
+    }
+    # one set of widths for every block: the blocks line up under each other
+    columns = fit_columns(REPLAY_COLUMNS, [r for rows in cells.values() for r in rows])
     for b, rows in by_bssid.items():
         conc = rows[0].concealment
         c0 = rows[0].counts
         head = f"{b}" + (f"  ({conc})" if conc else "")
         lines.append(f"{head}  n_meas={c0['n_meas']}  n_bootstrap={c0['n_bootstrap']}")
-        lines.append(
-            f"  {'Mode':<12}{'status':<14}{'n_gate':>7}{'n_acc':>7}{'sigma_H':>9}{'sigma_Z':>9}"
-            f"{'err_2D':>8}{'TWM':>7}{'err_3D':>8}{'bias':>7}"
-        )
-        for t in rows:
-            e = t.estimate
-            lines.append(
-                f"  {t.mode:<12}{t.status:<14}{t.counts['n_gate']:>7}{t.counts['n_acc']:>7}"
-                f"{f(e.sigma_h_m if e else None):>9}{f(e.sigma_z_m if e else None):>9}"
-                f"{f(t.err_h_m):>8}{f(t.twm_h_m):>7}{f(t.err_3d_m):>8}"
-                f"{f(e.bias_m if e and t.has_bias else None, 2):>7}"
-            )
+        lines.extend(text_table(columns, cells[b], indent="  "))
         lines.append("")
     rj = report.rejected.rejected
     if rj:

@@ -2,14 +2,19 @@
 
 All modes but EMA publish a sliding-window median of the filter output (W_xy = 7 for
 x and y, W_z = 9 for z); the EMA mode replaces it with s = a x + (1 - a) s_prev,
-a = 0.3. Smoothers see the filter output after every accepted update.
+a = 0.3. Smoothers see the filter output after every accepted update. A mode holds a
+component (:class:`Median`, :class:`Ema`, :class:`Unsmoothed`) that builds a fresh
+smoother from the pipeline's configuration.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
+
+if TYPE_CHECKING:
+    from estimator.pipeline import PipelineConfig
 
 
 class Smoother(Protocol):
@@ -59,3 +64,43 @@ class EmaSmoother:
             s = self._s
             self._s = (a * p[0] + b * s[0], a * p[1] + b * s[1], a * p[2] + b * s[2])
         return self._s
+
+
+class PassThrough:
+    """No smoothing: publishes the filter output as it is."""
+
+    def push(self, p: tuple[float, float, float]) -> tuple[float, float, float]:
+        return p[0], p[1], p[2]
+
+
+# --------------------------------------------------------------------------- components
+
+
+class SmootherComponent(Protocol):
+    """A mode's output smoother: builds a fresh one from the pipeline's config."""
+
+    def make(self, cfg: PipelineConfig) -> Smoother: ...
+
+
+@dataclass(frozen=True)
+class Median:
+    """The sliding-window median of every mode but EMA (``cfg.median``)."""
+
+    def make(self, cfg: PipelineConfig) -> MedianSmoother:
+        return MedianSmoother(cfg.median)
+
+
+@dataclass(frozen=True)
+class Ema:
+    """The EMA mode's exponential moving average (``cfg.ema``)."""
+
+    def make(self, cfg: PipelineConfig) -> EmaSmoother:
+        return EmaSmoother(cfg.ema)
+
+
+@dataclass(frozen=True)
+class Unsmoothed:
+    """No output smoothing (mode ``refined`` publishes its front and refinements)."""
+
+    def make(self, cfg: PipelineConfig) -> PassThrough:
+        return PassThrough()

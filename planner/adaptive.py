@@ -14,6 +14,7 @@ ranges before the estimator can.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from estimator.measurement import geometric_range_m
 from estimator.records import Trajectory
 from planner.coverage import Sweep, polyline_trajectory, search_spacing_m
 from planner.observation import (
@@ -33,6 +35,7 @@ from planner.observation import (
     ResponderView,
     SearchMission,
 )
+from planner.patterns import KeepOut, KeepOutPolygon
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -55,6 +58,8 @@ class AdaptiveConfig:
     close_turns: float = 2.0
     max_localise_s: float = 420.0  # give up on one responder after this long
     reserve_s: float = 20.0  # stop planning new work this close to the budget
+    responder_height_m: float = 0.5  # a responder's antenna above the ground (the link's)
+    view_radii: tuple[float, ...] = (1.0, 0.8, 0.6, 0.45)  # probe radii tried when hidden
 
 
 
@@ -76,13 +81,37 @@ class Manoeuvres:
         cx, cy = float(xy[0]), float(xy[1])
         if not area.contains(np.array([[cx, cy]]), area.margin_m)[0]:
             cx, cy = area.pull_inside(np.array([cx, cy]))
+        th = np.linspace(0.0, 2.0 * math.pi, 73)
+        r0 = radius
         for _ in range(40):
-            th = np.linspace(0.0, 2.0 * math.pi, 73)
             ring = np.column_stack([cx + radius * np.cos(th), cy + radius * np.sin(th)])
             if area.path_inside(ring, area.margin_m):
                 break
             radius *= 0.85
+        if area.blocking and not area.path_inside(
+                np.column_stack([cx + max(radius, 8.0) * np.cos(th),
+                                 cy + max(radius, 8.0) * np.sin(th)]), area.margin_m):
+            return self._clear_center((cx, cy), r0)
         return (cx, cy), max(radius, 8.0)
+
+    def _clear_center(self, xy: Sequence[float], radius: float) -> tuple[XY, float]:
+        """A circle near ``xy`` clear of the area's edges and blocking keep-outs: the
+        nearest centre (rings of candidates 10 m apart, out to 300 m) where the largest
+        radius of radius, 0.85 radius, ... down to 8 m fits."""
+        area = self.mission.area
+        th = np.linspace(0.0, 2.0 * math.pi, 73)
+        radii = [radius * 0.85**k for k in range(40) if radius * 0.85**k >= 8.0] or [8.0]
+        for dist in np.arange(0.0, 301.0, 10.0):
+            n = 1 if dist == 0 else max(8, math.ceil(2 * math.pi * dist / 10.0))
+            for a in 2 * math.pi * np.arange(n) / n:
+                c = (float(xy[0] + dist * math.cos(a)), float(xy[1] + dist * math.sin(a)))
+                if not area.contains(np.array([c]), area.margin_m)[0]:
+                    continue
+                for r in radii:
+                    ring = np.column_stack([c[0] + r * np.cos(th), c[1] + r * np.sin(th)])
+                    if area.path_inside(ring, area.margin_m):
+                        return c, r
+        return (float(xy[0]), float(xy[1])), 8.0  # nothing fits: the loop refuses it
 
     def helix(self, center: XY, radius: float, z0: float, z1: float, turns: float,
               a: AgentView, name: str) -> Trajectory:
@@ -131,9 +160,48 @@ class Manoeuvres:
                 return self.ring(r, a)
             center, spread = fit
             radius = float(np.clip(spread + 15.0, *c.probe_radius_m))
-        (cx, cy), radius = self.inside_center(center, radius)
+        (cx, cy), radius = self.in_view(center, radius)
         return self.helix((cx, cy), radius, m.height_m, m.height_m + c.probe_climb_m, 1.25, a,
                           "probe")
+
+    def orbit_view(self, center: Sequence[float], radius: float,
+                   height_m: float) -> tuple[float, bool]:
+        """The mean response probability of a level orbit ``height_m`` above the
+        terrain to a responder on the ground at ``center`` (the link model's, the
+        terrain's obstruction included), and whether the terrain hides it from any
+        point of the orbit."""
+        m, c = self.mission, self.cfg
+        th = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
+        e = float(center[0]) + radius * np.cos(th)
+        n = float(center[1]) + radius * np.sin(th)
+        pts = np.column_stack([e, n, np.asarray(m.terrain.height_m(e, n), dtype=float)
+                               + height_m])
+        ground = float(np.asarray(m.terrain.height_m(float(center[0]), float(center[1]))))
+        target = np.array([float(center[0]), float(center[1]), ground + c.responder_height_m])
+        p = np.asarray(m.link.response_probability_between(pts, target, m.terrain), dtype=float)
+        free = np.asarray(m.link.response_probability(np.linalg.norm(pts - target, axis=1)),
+                          dtype=float)
+        return float(p.mean()), bool(np.any(p < free * (1.0 - 1e-9)))
+
+    def in_view(self, center: Sequence[float], radius: float) -> tuple[XY, float]:
+        """:meth:`inside_center`, and when the terrain hides the centre (the likely
+        area) from part of that orbit (at the probe's mid height), the radius of
+        ``view_radii`` x radius (at least the smallest probe radius) whose orbit has the
+        highest mean response probability: closer orbits look down over a ridge."""
+        m, c = self.mission, self.cfg
+        (cx, cy), r0 = self.inside_center(center, radius)
+        mid = m.height_m + 0.5 * c.probe_climb_m
+        p0, hidden = self.orbit_view((cx, cy), r0, mid)
+        if not hidden:
+            return (cx, cy), r0
+        best = (p0, r0, (cx, cy))
+        for f in c.view_radii[1:]:
+            r = max(radius * f, c.probe_radius_m[0])
+            (x, y), r = self.inside_center(center, r)
+            p, _ = self.orbit_view((x, y), r, mid)
+            if p > best[0]:
+                best = (p, r, (x, y))
+        return best[2], best[1]
 
     def ring(self, r: ResponderView, a: AgentView) -> Trajectory:
         """Too few ranges to place it: the responder lies about the horizontal range
@@ -162,6 +230,8 @@ class Manoeuvres:
         assert r.mean_enu_m is not None
         (cx, cy), radius = self.inside_center(r.mean_enu_m[:2], c.close_radius_m)
         lo = max(10.0, m.height_m + c.close_climb_m[0])
+        if m.area.min_height_m is not None:  # a keep-out is flown over: never below it
+            lo = max(lo, m.area.min_height_m)
         return self.helix((cx, cy), radius, lo, m.height_m + c.close_climb_m[1],
                           c.close_turns, a, "close")
 
@@ -205,6 +275,8 @@ class AdaptivePolicy:
     estimate (see the module docstring)."""
 
     name = "adaptive"
+    MAX_PLANNER_CIRCLES = 6  # keep-out cylinders the CasADi problem holds at most
+    MAX_PLANNER_POLYGONS = 2  # keep-out polygons (convex hulls) it holds at most
     # one built OptimalPlanner per configuration per process, shared by the adaptive
     # policies (building takes ~1 s; re-solving a built one takes milliseconds)
     _planners: ClassVar[dict[tuple, object]] = {}
@@ -252,13 +324,25 @@ class AdaptivePolicy:
         m, c = self.mission, self.cfg
         lo = max(10.0, m.height_m + c.agl_band_m[0])
         hi = m.height_m + c.agl_band_m[1]
+        keep: dict = {}
+        if m.area.min_height_m is not None:  # a keep-out is flown over: never below it
+            lo = max(lo, m.area.min_height_m)
+        if m.area.blocking:  # room for the keep-outs near the responder, and their margin
+            n_poly = sum(isinstance(k, KeepOutPolygon) for k in m.area.blocking)
+            keep = dict(max_keep_outs=min(max(len(m.area.blocking) - n_poly, 1),
+                                          self.MAX_PLANNER_CIRCLES),
+                        max_keep_out_polygons=min(n_poly, self.MAX_PLANNER_POLYGONS),
+                        keep_out_margin_m=0.5 * m.area.margin_m)
         ocfg = OptimalConfig(
             n_waypoints=c.n_waypoints, horizon_s=c.horizon_s, n_prior_points=c.n_prior_points,
             max_iter=c.max_iter,
             max_fence_edges=8, max_keep_outs=1, max_speed_m_s=m.speed_mps,
             agl_min_m=lo, agl_max_m=hi, terrain=m.terrain,
-            scoring=ScoringConfig(link=m.link),
+            scoring=ScoringConfig(link=m.link, terrain=m.terrain,
+                                  responder_height_m=c.responder_height_m),
         )
+        if keep:
+            ocfg = dataclasses.replace(ocfg, **keep)
         # terrain and link hash by value (frozen dataclasses; a grid by identity)
         key = (m.terrain, m.link, repr(ocfg))
         if self._planner is None or self._planner_key != key:
@@ -312,12 +396,18 @@ class AdaptivePolicy:
             self.sweep.advance(here)
             return Decision(localised=loc)
         self._resume = False
-        if self._started and a.segment_done and self.sweep.at_end:
-            heard = {r.bssid for r in obs.responders}
-            if m.expected_responders is None and heard and heard <= set(loc):
-                self.sweep.passes += 1
-                return Decision(localised=loc, done=True, note="covered, all localised")
-            self.sweep.reverse()
+        if self._started:
+            # mark what was flown first: a segment flown to its end has passed its last
+            # waypoint, and resuming at a waypoint the vehicle stands on would be an
+            # empty segment, done at once, forever (a hover that nobody asked for)
+            self.sweep.advance(here)
+            if self.sweep.at_end:
+                heard = {r.bssid for r in obs.responders}
+                if a.segment_done and m.expected_responders is None and heard and \
+                        heard <= set(loc):
+                    self.sweep.passes += 1
+                    return Decision(localised=loc, done=True, note="covered, all localised")
+                self.sweep.reverse()
         self._started = True
         return Decision(plans={0: self.sweep.resume(here)}, localised=loc, note="search")
 
@@ -373,10 +463,17 @@ class AdaptivePolicy:
             fence = None
         agl0 = float(start[2] - float(np.asarray(m.terrain.height_m(start[0], start[1]))))
         band = (min(self.ocfg.agl_min_m, agl0), max(self.ocfg.agl_max_m, agl0))
+        kw: dict = {}
+        if m.area.blocking:  # the blocking keep-outs the horizon can reach
+            reach = self.ocfg.horizon_s * self.ocfg.max_speed_m_s + m.area.margin_m
+            near = [k for k in m.area.blocking
+                    if float(k.signed_distance_m(start[None, :2])[0]) <= reach]
+            kw = dict(keep_outs=[k for k in near if isinstance(k, KeepOut)],
+                      keep_out_polygons=[k for k in near if isinstance(k, KeepOutPolygon)])
         try:
             res = self._planner.plan(r.mean_enu_m, cov, start, vel, fence=fence,
-                                     agl_band_m=band, origin=m.origin)
-        except ValueError:
+                                     agl_band_m=band, origin=m.origin, **kw)
+        except ValueError:  # outside the fence, in a keep-out, more keep-outs than it holds
             return self._probe(r, a), 0
         self.solve_time_s += res.solve_time_s
         traj = res.trajectory
@@ -389,7 +486,8 @@ def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,
                noise_m: float = 3.0) -> tuple[XY, float] | None:
     """Where the heard ranges put a responder before the estimator can: the best points
     of a grid over the area (the map's terrain under each), scored by the robust sum of
-    (range - distance)^2 over the heard (position, range) pairs. Returns the centre of
+    (range - h)^2 over the heard (position, range) pairs, h the estimator's range model
+    without bias (:mod:`estimator.measurement`). Returns the centre of
     the near-best cells and their spread (two mirror minima of a straight track give a
     wide spread), or None with fewer than 3 ranges."""
     heard = np.asarray(r.heard_enu_m, dtype=float).reshape(-1, 3)
@@ -403,8 +501,7 @@ def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,
     gx, gy = np.meshgrid(xs, ys)
     g = np.column_stack([gx.ravel(), gy.ravel()])
     gz = np.asarray(mission.terrain.height_m(g[:, 0], g[:, 1]), dtype=float)
-    d = np.sqrt((g[:, None, 0] - heard[None, :, 0]) ** 2 + (g[:, None, 1] - heard[None, :, 1]) ** 2
-                + (gz[:, None] - heard[None, :, 2]) ** 2)
+    d = geometric_range_m(np.column_stack([g, gz])[:, None, :], heard[None, :, :])
     res = (rng[None, :] - d) / noise_m
     cost = np.minimum(res * res, 9.0).sum(axis=1)  # robust: a far outlier costs at most 9
     best = float(cost.min())

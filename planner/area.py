@@ -14,6 +14,18 @@
   itself when convex with few edges, else the largest square around a point that lies
   inside it.
 
+Keep-outs. An area may hold keep-outs (:class:`planner.patterns.KeepOut` cylinders and
+:class:`planner.patterns.KeepOutPolygon` polygons, each with an optional top above the
+ground): holes in the keep-in. ``floor_m`` is the lowest height above the ground the
+paths checked against the area fly at; a keep-out whose top is ``clearance_m`` or more
+below it is flown over and ignored by every test here, every other one (no top, or a
+top above that) *blocks*: :meth:`SearchArea.contains` keeps points ``margin_m`` out of
+it, :meth:`SearchArea.path_inside` checks legs against it, :meth:`SearchArea.route` goes
+around it (its corners, and a circle's circumscribed polygon, moved out by the margin
+join the visibility graph), :meth:`SearchArea.sweep` interrupts its tracks at it and
+:meth:`SearchArea.pull_inside` never pulls into it. Without blocking keep-outs every
+result is what it was without keep-outs.
+
 The track spacing of a search comes from detection while passing
 (:func:`pass_detection_range_m`): the horizontal offset at which a straight pass at
 the search height and speed still hears a responder with probability ``p`` (at least
@@ -24,6 +36,7 @@ reach of a single attempt.
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -37,7 +50,7 @@ from estimator.geometry import (
     signed_distance_to_polygon_m,
 )
 from planner.models import LinkModel
-from planner.patterns import Geofence
+from planner.patterns import AnyKeepOut, Geofence
 
 XY = tuple[float, float]
 
@@ -79,10 +92,14 @@ def pass_detection_range_m(
 
 @dataclass(frozen=True, eq=False)
 class SearchArea:
-    """A keep-in polygon (ENU metres) and the margin kept from its edges."""
+    """A keep-in polygon (ENU metres), the margin kept from its edges, and its keep-outs
+    (see the module docstring: those below ``floor_m`` - ``clearance_m`` are flown over)."""
 
     polygon_m: tuple[XY, ...]
     margin_m: float = 10.0
+    keep_outs: tuple[AnyKeepOut, ...] = ()
+    floor_m: float | None = None  # lowest height above ground flown (None: unknown)
+    clearance_m: float = 10.0  # vertical clearance over a keep-out's top
     _ccw: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -95,6 +112,12 @@ class SearchArea:
             p = p[::-1]
         object.__setattr__(self, "_ccw", p)
         object.__setattr__(self, "_inset_cache", {})
+        object.__setattr__(self, "_visible", {})
+        object.__setattr__(self, "keep_outs", tuple(self.keep_outs))
+        if self.floor_m is not None and not math.isfinite(self.floor_m):
+            raise ValueError("floor_m must be finite")
+        object.__setattr__(self, "_blocking", tuple(
+            k for k in self.keep_outs if k.blocks(self.floor_m, self.clearance_m)))
         convex = polygon_is_convex(p)
         object.__setattr__(self, "_convex", convex)
         if convex:  # inward unit normals and offsets: inside iff n . q - c >= 0 on each edge
@@ -103,6 +126,17 @@ class SearchArea:
             keep = length > 1e-9  # a repeated vertex has no edge
             nrm = np.column_stack([-e[keep, 1], e[keep, 0]]) / length[keep, None]
             object.__setattr__(self, "_halfplanes", (nrm, (nrm * p[keep]).sum(axis=1)))
+
+    @property
+    def blocking(self) -> tuple[AnyKeepOut, ...]:
+        """The keep-outs that obstruct the area's paths (not flown over)."""
+        return self._blocking
+
+    @property
+    def min_height_m(self) -> float | None:
+        """The height above ground paths must keep because a keep-out is flown over
+        (``floor_m``), or None when nothing is flown over."""
+        return self.floor_m if len(self._blocking) < len(self.keep_outs) else None
 
     @property
     def vertices(self) -> np.ndarray:
@@ -139,27 +173,37 @@ class SearchArea:
                 return -g
         return signed_distance_to_polygon_m(self._ccw, q)
 
-    def contains(self, xy: np.ndarray, margin_m: float | None = None) -> np.ndarray:
-        """Points at least ``margin_m`` (default: none) inside the polygon."""
+    def contains(self, xy: np.ndarray, margin_m: float | None = None, *,
+                 keep_outs: bool = True) -> np.ndarray:
+        """Points at least ``margin_m`` (default: none) inside the polygon and, unless
+        ``keep_outs`` is False, at least as far outside every blocking keep-out."""
         m = 0.0 if margin_m is None else margin_m
         if self._convex:  # inside a convex polygon the nearest edge is the nearest line
             nrm, c = self._halfplanes
             q = np.asarray(xy, dtype=float).reshape(-1, 2)
-            return (q @ nrm.T - c).min(axis=1) >= m - 1e-9
-        return self.signed_distance_m(xy) <= -m + 1e-9
+            ok = (q @ nrm.T - c).min(axis=1) >= m - 1e-9
+        else:
+            ok = self.signed_distance_m(xy) <= -m + 1e-9
+        if keep_outs and self._blocking:
+            q = np.asarray(xy, dtype=float).reshape(-1, 2)
+            for k in self._blocking:
+                ok &= k.signed_distance_m(q) >= m - 1e-9
+        return ok
 
-    def path_inside(self, points_m: np.ndarray, margin_m: float = 0.0, step_m: float = 1.0) -> bool:
-        """Does the polyline (straight between points) stay ``margin_m`` inside?"""
+    def path_inside(self, points_m: np.ndarray, margin_m: float = 0.0, step_m: float = 1.0,
+                    *, keep_outs: bool = True) -> bool:
+        """Does the polyline (straight between points) stay ``margin_m`` inside (and out
+        of the blocking keep-outs, unless ``keep_outs`` is False)?"""
         p = np.asarray(points_m, dtype=float)[:, :2]
         if len(p) == 1:
-            return bool(self.contains(p, margin_m)[0])
+            return bool(self.contains(p, margin_m, keep_outs=keep_outs)[0])
         seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
         pts = [p[:1]]
         for a, b, L in zip(p[:-1], p[1:], seg, strict=True):
             n = max(1, math.ceil(L / step_m))
             f = (np.arange(1, n + 1) / n)[:, None]
             pts.append(a + f * (b - a))
-        return bool(np.all(self.contains(np.vstack(pts), margin_m)))
+        return bool(np.all(self.contains(np.vstack(pts), margin_m, keep_outs=keep_outs)))
 
     # ------------------------------------------------------------------ paths inside
     def _corners(self, margin_m: float) -> list[XY]:
@@ -181,7 +225,18 @@ class SearchArea:
             q = b + bis * (1.5 * margin_m + 1.0) / cos_half
             if self.contains(q[None, :], margin_m)[0]:
                 out.append((float(q[0]), float(q[1])))
+        for k in self._blocking:  # around each blocking keep-out, outside its margin
+            ring = k.outline_m(1.5 * margin_m + 1.0)
+            for q in ring[self.contains(ring, margin_m)]:
+                out.append((float(q[0]), float(q[1])))
         return out
+
+    def _corner_cache(self, margin_m: float) -> list[XY]:
+        cache = self.__dict__.setdefault("_corner_nodes", {})
+        c = cache.get(margin_m)
+        if c is None:
+            c = cache[margin_m] = self._corners(margin_m)
+        return c
 
     def route(self, a: Sequence[float], b: Sequence[float], margin_m: float | None = None
               ) -> list[XY]:
@@ -193,8 +248,10 @@ class SearchArea:
         slack = 0.5 * m
         if self.path_inside(np.array([pa, pb]), slack):
             return [pa, pb]
-        nodes = [pa, pb, *self._corners(m)]
+        corners = self._corner_cache(m)
+        nodes = [pa, pb, *corners]
         k = len(nodes)
+        visible = self._visible.setdefault(m, {})  # between fixed nodes: once per area
         best = {0: 0.0}
         prev: dict[int, int] = {}
         heap = [(0.0, 0)]
@@ -209,7 +266,15 @@ class SearchArea:
             for j in range(k):
                 if j in seen or j == i:
                     continue
-                if not self.path_inside(np.array([nodes[i], nodes[j]]), slack, step_m=2.0):
+                if i >= 2 and j >= 2:
+                    key = (min(i, j), max(i, j))
+                    ok = visible.get(key)
+                    if ok is None:
+                        ok = visible[key] = self.path_inside(
+                            np.array([nodes[i], nodes[j]]), slack, step_m=2.0)
+                else:
+                    ok = self.path_inside(np.array([nodes[i], nodes[j]]), slack, step_m=2.0)
+                if not ok:
                     continue
                 nd = d + math.dist(nodes[i], nodes[j])
                 if nd < best.get(j, math.inf):
@@ -257,6 +322,8 @@ class SearchArea:
             ivs = _clip_line(v, along, across, float(off), a.min() - 1.0, a.max() + 1.0)
             ivs = [(lo + self.margin_m, hi - self.margin_m) for lo, hi in ivs
                    if hi - lo > 2 * self.margin_m]
+            if self._blocking:
+                ivs = self._clear_of_keep_outs(ivs, float(off), along, across)
             if ivs:
                 lines.append([(float(off), lo, hi) for lo, hi in ivs])  # type: ignore[misc]
         if not lines:
@@ -282,6 +349,26 @@ class SearchArea:
             s0 = (float(start[0]), float(start[1]))
             candidates.sort(key=lambda w: math.dist(s0, w[0]))
         return self.join(candidates[0])
+
+    def _clear_of_keep_outs(self, ivs: list[tuple[float, float]], off: float,
+                            along: np.ndarray, across: np.ndarray,
+                            step_m: float = 0.5) -> list[tuple[float, float]]:
+        """The parts of a sweep line's intervals at least the margin out of every
+        blocking keep-out (sampled every ``step_m``; parts shorter than it dropped)."""
+        out: list[tuple[float, float]] = []
+        for lo, hi in ivs:
+            n = max(1, math.ceil((hi - lo) / step_m))
+            s = lo + (hi - lo) * np.arange(n + 1) / n
+            pts = off * across[None, :] + s[:, None] * along[None, :]
+            ok = np.ones(len(s), dtype=bool)
+            for k in self._blocking:
+                ok &= k.signed_distance_m(pts) >= self.margin_m
+            # runs of clear samples
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(int), [0]])))
+            for r0, r1 in zip(edges[::2], edges[1::2], strict=True):
+                if s[r1 - 1] - s[r0] > step_m:
+                    out.append((float(s[r0]), float(s[r1 - 1])))
+        return out
 
     def expanding_square(self, datum: Sequence[float], spacing_m: float,
                          heading_deg: float = 0.0) -> list[XY]:
@@ -325,6 +412,13 @@ class SearchArea:
                 inward = np.array([-e[1], e[0]]) / max(L, 1e-12)
                 f = np.linspace(0.0, 1.0, max(2, int(L / 2.0)))[:, None]
                 parts.append(a + f * e + inward * (margin_m + 0.5))
+            for k in self._blocking:  # just outside each blocking keep-out's margin
+                ring = k.outline_m(margin_m + 0.5)
+                ring = np.vstack([ring, ring[:1]])
+                for a, b in itertools.pairwise(ring):
+                    L = float(np.linalg.norm(b - a))
+                    f = np.linspace(0.0, 1.0, max(2, int(L / 2.0)))[:, None]
+                    parts.append(a + f * (b - a))
             pts = np.vstack(parts)
             pts = pts[self.contains(pts, margin_m)]
             self._inset_cache[margin_m] = pts
@@ -363,7 +457,7 @@ class SearchArea:
         sq = np.array([(cx - h, cy - h), (cx + h, cy - h), (cx + h, cy + h), (cx - h, cy + h),
                        (cx - h, cy - h)])
         # inside when its boundary is, and no corner of the area pokes into it
-        return self.path_inside(sq, 0.0, step_m=max(1.0, h / 50.0)) and not bool(
+        return self.path_inside(sq, 0.0, step_m=max(1.0, h / 50.0), keep_outs=False) and not bool(
             np.any(point_in_polygon(sq[:4], self._ccw))
         )
 

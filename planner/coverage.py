@@ -1,12 +1,16 @@
 """Coverage search policies: fixed patterns flown over the search area.
 
-- :class:`PatternPolicy` ``lawnmower``: the boustrophedon over the area that an
-  operator flies today with a QGroundControl survey (our baseline), repeated until the
-  budget is spent or every expected responder is localised;
-- :class:`PatternPolicy` ``expanding-square``: the IAMSAR expanding square from the
-  area's centroid, clipped to the area;
-- :class:`Sweep`: the lawnmower's waypoints as a resumable search sweep (the adaptive
-  policy searches with it until a responder is heard).
+:class:`PatternPolicy` flies a coverage pattern object over the area, repeated until
+the budget is spent or every expected responder is localised:
+
+- :class:`Lawnmower` (policy ``lawnmower``): the boustrophedon over the area that an
+  operator flies today with a QGroundControl survey (our baseline);
+- :class:`ExpandingSquare` (policy ``expanding-square``): the IAMSAR expanding square
+  from the area's centroid, clipped to the area.
+
+:class:`Sweep` is the lawnmower's waypoints as a resumable search sweep (the adaptive
+policy searches with it until a responder is heard). The names map to patterns in
+:mod:`planner.policy` only.
 
 :func:`polyline_trajectory` and :func:`search_spacing_m` are the path helpers every
 policy shares.
@@ -16,6 +20,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -59,18 +65,49 @@ def search_spacing_m(mission: SearchMission, probability: float = 0.95) -> float
     return max(2.0 * r, 20.0)
 
 
-class PatternPolicy:
-    """Fly a fixed coverage pattern over the area (``lawnmower`` or ``expanding-square``),
-    start to end and again in reverse, until every expected responder is localised
-    (estimator judgement) or the budget is spent; with an unknown number of responders
-    it stops after a full coverage once every responder it heard is localised."""
+class CoveragePattern(Protocol):
+    """A coverage pattern: its waypoints over a mission's area (tracks ``spacing_m``
+    apart, first track at ``heading_deg`` clockwise from north)."""
 
-    def __init__(self, kind: str = "lawnmower", *, heading_deg: float = 0.0,
+    name: str
+
+    def waypoints(self, mission: SearchMission, spacing_m: float, heading_deg: float
+                  ) -> list[XY]: ...
+
+
+@dataclass(frozen=True)
+class Lawnmower:
+    """The boustrophedon over the area, starting at the end nearest the mission's start."""
+
+    name: ClassVar[str] = "lawnmower"
+
+    def waypoints(self, mission: SearchMission, spacing_m: float, heading_deg: float
+                  ) -> list[XY]:
+        return mission.area.sweep(spacing_m, heading_deg, start=mission.start_enu_m)
+
+
+@dataclass(frozen=True)
+class ExpandingSquare:
+    """The IAMSAR expanding square from the area's centroid, clipped to the area."""
+
+    name: ClassVar[str] = "expanding-square"
+
+    def waypoints(self, mission: SearchMission, spacing_m: float, heading_deg: float
+                  ) -> list[XY]:
+        return mission.area.expanding_square(mission.area.centroid_m, spacing_m, heading_deg)
+
+
+class PatternPolicy:
+    """Fly a coverage pattern (:class:`Lawnmower`, :class:`ExpandingSquare`) over the
+    area, start to end and again in reverse, until every expected responder is
+    localised (estimator judgement) or the budget is spent; with an unknown number of
+    responders it stops after a full coverage once every responder it heard is
+    localised. The policy is named after its pattern."""
+
+    def __init__(self, pattern: CoveragePattern, *, heading_deg: float = 0.0,
                  spacing_m: float | None = None, rule: LocalisedRule = LocalisedRule()) -> None:
-        if kind not in ("lawnmower", "expanding-square"):
-            raise ValueError(f"unknown pattern {kind!r}")
-        self.name = kind
-        self.kind = kind
+        self.pattern = pattern
+        self.name = pattern.name
         self.heading_deg = heading_deg
         self.spacing_m = spacing_m
         self.rule = rule
@@ -79,12 +116,7 @@ class PatternPolicy:
         self.mission = mission
         self.tracker = LocalisedTracker(self.rule)
         spacing = self.spacing_m or search_spacing_m(mission)
-        if self.kind == "lawnmower":
-            wps = mission.area.sweep(spacing, self.heading_deg, start=mission.start_enu_m)
-        else:
-            wps = mission.area.expanding_square(mission.area.centroid_m, spacing,
-                                                self.heading_deg)
-        self.waypoints = wps
+        self.waypoints = self.pattern.waypoints(mission, spacing, self.heading_deg)
         self.passes = 0
         self._started = False
 
@@ -122,7 +154,7 @@ class Sweep:
     def __init__(self, mission: SearchMission, spacing_m: float, heading_deg: float = 0.0
                  ) -> None:
         self.mission = mission
-        self.waypoints = mission.area.sweep(spacing_m, heading_deg, start=mission.start_enu_m)
+        self.waypoints = Lawnmower().waypoints(mission, spacing_m, heading_deg)
         self.next = 0  # next waypoint to fly to
         self.passes = 0  # sweeps flown to their end
 
@@ -148,10 +180,13 @@ class Sweep:
         self.next = 0
 
     def resume(self, here: Sequence[float]) -> Trajectory:
-        """The segment from ``here`` through the waypoints not flown yet."""
+        """The segment from ``here`` through the waypoints not flown yet (those within
+        :attr:`PASSED_M` of ``here`` count as flown; past the end, the pass reversed)."""
         m = self.mission
-        if self.next >= len(self.waypoints):
-            self.next = 0
+        self.advance(here)
+        if self.at_end:
+            self.reverse()
+            self.advance(here)
         pts = m.area.join([here, *self.waypoints[self.next:]])
         return polyline_trajectory(pts, m.height_m, m.speed_mps, m.origin, "search")
 

@@ -32,11 +32,13 @@ from pathlib import Path
 from typing import Any
 
 from planner.mission import (
+    MAV_CMD_DO_JUMP,
     MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL,
     MAV_FRAME_GLOBAL_INT,
     MAV_FRAME_GLOBAL_RELATIVE_ALT,
     MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    MAV_FRAME_GLOBAL_TERRAIN_ALT,
     MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
     FenceCircle,
     FencePolygon,
@@ -84,7 +86,7 @@ _FRAME_ALT_MODE = {
     MAV_FRAME_GLOBAL_INT: ALT_MODE_ABSOLUTE,
     MAV_FRAME_GLOBAL_RELATIVE_ALT: ALT_MODE_RELATIVE,
     MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: ALT_MODE_RELATIVE,
-    10: ALT_MODE_TERRAIN,  # MAV_FRAME_GLOBAL_TERRAIN_ALT
+    MAV_FRAME_GLOBAL_TERRAIN_ALT: ALT_MODE_TERRAIN,
     MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: ALT_MODE_TERRAIN,
 }
 
@@ -234,8 +236,6 @@ def _global_alt_mode(items: tuple[MissionItem, ...]) -> int:
     modes = {_FRAME_ALT_MODE.get(it.frame) for it in items} - {None}
     return modes.pop() if len(modes) == 1 else (ALT_MODE_RELATIVE if not modes else ALT_MODE_MIXED)
 
-
-MAV_CMD_DO_JUMP = 177
 
 
 def _jump_out(it: MissionItem) -> float:

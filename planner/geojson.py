@@ -49,7 +49,7 @@ def _ccw_ring(lonlat: Sequence[Sequence[float]]) -> list[list[float]]:
     return ring if area2 > 0 else ring[::-1]
 
 
-def _circle_ring(lat: float, lon: float, radius_m: float) -> list[list[float]]:
+def circle_ring(lat: float, lon: float, radius_m: float) -> list[list[float]]:
     """A circle as a polygon ring through the exact WGS84 ENU frame at its centre."""
     th = np.linspace(0.0, 2.0 * math.pi, _CIRCLE_VERTICES, endpoint=False)
     rlat, rlon, _ = ExactENU(lat, lon, 0.0).to_geodetic(
@@ -123,7 +123,7 @@ def plan_geojson(
                 _feature(
                     {
                         "type": "Polygon",
-                        "coordinates": [_circle_ring(c.lat_deg, c.lon_deg, c.radius_m)],
+                        "coordinates": [circle_ring(c.lat_deg, c.lon_deg, c.radius_m)],
                     },
                     kind="keep_out" if not c.inclusion else "geofence_circle",
                     index=k,

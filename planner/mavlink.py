@@ -47,6 +47,16 @@ from typing import Any, Protocol
 os.environ["MAVLINK20"] = "1"  # before pymavlink: else mission_type is dropped
 
 from pymavlink import mavutil
+from pymavlink.dialects.v20.common import (
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_GENERIC,
+    MAV_AUTOPILOT_INVALID,
+    MAV_AUTOPILOT_PX4,
+    MAV_COMP_ID_MISSIONPLANNER,
+    MAV_MISSION_ACCEPTED,
+    MAV_MISSION_OPERATION_CANCELLED,
+    MAV_TYPE_GCS,
+)
 
 from planner.mavlink_wire import (
     AUTOPILOT_CHOICES,
@@ -94,15 +104,8 @@ __all__ = [
     "upload_on_link",
 ]
 
-GCS_SYSTEM_ID = 255
-GCS_COMPONENT_ID = 190  # MAV_COMP_ID_MISSIONPLANNER
-MAV_TYPE_GCS = 6
-MAV_AUTOPILOT_GENERIC = 0
-MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-MAV_AUTOPILOT_INVALID = 8
-MAV_AUTOPILOT_PX4 = 12
-MAV_MISSION_ACCEPTED = mavutil.mavlink.MAV_MISSION_ACCEPTED  # 0
-MAV_MISSION_OPERATION_CANCELLED = mavutil.mavlink.MAV_MISSION_OPERATION_CANCELLED  # 15
+GCS_SYSTEM_ID = 255  # QGroundControl's system id
+GCS_COMPONENT_ID = MAV_COMP_ID_MISSIONPLANNER
 HEARTBEAT_PERIOD_S = 1.0
 
 

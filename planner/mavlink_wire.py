@@ -25,15 +25,28 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from pymavlink.dialects.v20.common import (
+    MAV_CMD_CONDITION_DELAY,
+    MAV_CMD_CONDITION_LAST,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_OVERRIDE_GOTO,
+)
+
 from planner.mission import (
+    MAV_CMD_DO_JUMP,
     MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION,
     MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION,
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
     MAV_CMD_NAV_RALLY_POINT,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_WAYPOINT,
     MAV_FRAME_GLOBAL,
+    MAV_FRAME_GLOBAL_INT,
+    MAV_FRAME_GLOBAL_RELATIVE_ALT,
     MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    MAV_FRAME_GLOBAL_TERRAIN_ALT,
+    MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
     MAV_MISSION_TYPE_FENCE,
     MAV_MISSION_TYPE_MISSION,
     MAV_MISSION_TYPE_RALLY,
@@ -50,7 +63,6 @@ MISSION_TYPE_NAMES = {
     MAV_MISSION_TYPE_FENCE: "fence",
     MAV_MISSION_TYPE_RALLY: "rally",
 }
-MAV_CMD_DO_JUMP = 177  # param1 = target seq: shifted with the items on ArduPilot
 # TransferConfig.autopilot: "auto" = from the vehicle's HEARTBEAT; the others force
 # the mission numbering ("px4": item k is seq k; "ardupilot": home in seq 0, item k
 # is seq k + 1)
@@ -290,9 +302,14 @@ def _sameto_float32(a: float, b: float) -> bool:
 
 # INT and float frames name the same reference (MAVLink common): a vehicle may answer a
 # MISSION_REQUEST_INT with the float frame number (ArduPilot's AP_Mission does)
-_SAME_FRAME = {5: 0, 6: 3, 11: 10}
+_SAME_FRAME = {MAV_FRAME_GLOBAL_INT: MAV_FRAME_GLOBAL,
+               MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: MAV_FRAME_GLOBAL_RELATIVE_ALT,
+               MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: MAV_FRAME_GLOBAL_TERRAIN_ALT}
 # commands that carry no position: a vehicle may store them with frame 0 and x = y = z = 0
-_POSITIONLESS = frozenset({20, *range(112, 160), *range(176, 253)})
+# (return to launch, the CONDITION_ commands, the DO_ commands up to OVERRIDE_GOTO)
+_POSITIONLESS = frozenset({MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                           *range(MAV_CMD_CONDITION_DELAY, MAV_CMD_CONDITION_LAST + 1),
+                           *range(MAV_CMD_DO_SET_MODE, MAV_CMD_OVERRIDE_GOTO + 1)})
 ARDUPILOT_ALT_TOLERANCE_M = 0.01  # ArduPilot stores altitudes in whole centimetres
 
 

@@ -1,7 +1,8 @@
 """What the planner needs of the world, as protocols: a terrain and a link model.
 
 The planner declares them; the simulator implements them (``sim.HillsTerrain``,
-``sim.GridTerrain``, ``sim.FtmLink``); ``envs`` (the CLI, the closed loop) wires the
+``sim.GridTerrain``, ``sim.FtmLink``, whose response probability between two points
+knows the terrain's obstruction of the link); ``envs`` (the CLI, the closed loop) wires the
 simulator's objects in, so the planner plans over the same hills and with the same
 response probability as the world it is flown in. Both protocols evaluate NumPy
 arrays and CasADi symbols alike (the optimal planner differentiates through them).
@@ -42,7 +43,8 @@ class TerrainModel(Protocol):
 
     # Optional: ``max_height_m(e_min, e_max, n_min, n_max) -> float``, an upper bound of
     # the height over a box, lets the simulated vehicle skip its below-the-terrain check
-    # where it flies clearly above (sim.vehicle.Multirotor.advance).
+    # where it flies clearly above (sim.vehicle.Multirotor.advance) and the FTM radio skip
+    # the terrain profile of links that clearly clear it (sim.occlusion.Occluder).
 
 
 @runtime_checkable
@@ -52,8 +54,23 @@ class LinkModel(Protocol):
     @property
     def ranging_rate_hz(self) -> float: ...
 
-    def response_probability(self, slant_m, concealment: str = "open"):
-        """Mean probability that one attempt at slant range d answers ``ok``."""
+    def response_probability(self, slant_m, concealment: str = "open", loss_db=None):
+        """Mean probability that one attempt at slant range d answers ``ok``, the mean
+        RSSI lowered by ``loss_db`` (an obstruction's, below) when given."""
+        ...
+
+    def obstruction_loss_db(self, p_drone_enu_m, p_resp_enu_m, terrain):
+        """The terrain's loss (dB) on the links from drone positions to responder
+        positions (``terrain`` a :class:`TerrainModel`; None: nothing obstructs).
+        NumPy: (M, 3) or (3,) positions broadcast against each other, (M,) out; CasADi:
+        3 x M columns (the responder 3 x 1 or 3 x M), 1 x M out (a smooth
+        approximation Ipopt can differentiate)."""
+        ...
+
+    def response_probability_between(self, p_drone_enu_m, p_resp_enu_m, terrain,
+                                     concealment: str = "open"):
+        """:meth:`response_probability` of those links at their slant range with the
+        terrain's loss on them; with nothing in the way, P at the slant range."""
         ...
 
     def mean_rssi_dbm(self, slant_m, concealment: str = "open"):
@@ -85,6 +102,7 @@ class LogisticLink:
 
     A generic stand-in (50 % at 57.5 m slant, 10-90 % over 16.8-98.3 m). Wherever a
     world is known, ``osa`` passes the simulator's calibrated link (``sim.FtmLink``).
+    It knows no terrain: :meth:`response_probability_between` is P at the slant range.
     """
 
     reach_m: float = 57.54
@@ -97,13 +115,44 @@ class LogisticLink:
     def ranging_rate_hz(self) -> float:
         return self.rate_hz
 
-    def response_probability(self, slant_m, concealment: str = "open"):
+    def response_probability(self, slant_m, concealment: str = "open", loss_db=None):
+        """P at slant range d; a loss of L dB acts as the slant range at which eq. (11)'s
+        mean RSSI is L dB lower, d 10^(L / (10 eta))."""
+        if loss_db is not None:
+            slant_m = slant_m * 10.0 ** (loss_db / (10.0 * self.path_loss_exponent))
         if is_symbolic(slant_m):
             import casadi as ca
 
             return 0.5 * (1.0 - ca.tanh(0.5 * (slant_m - self.reach_m) / self.width_m))
         z = (np.asarray(slant_m, dtype=float) - self.reach_m) / self.width_m
         return 0.5 * (1.0 - np.tanh(0.5 * z))  # = 1 / (1 + exp(z)), overflow-free
+
+    def obstruction_loss_db(self, p_drone_enu_m, p_resp_enu_m, terrain):
+        """Nothing obstructs this stand-in (zeros)."""
+        if is_symbolic(p_drone_enu_m) or is_symbolic(p_resp_enu_m):
+            import casadi as ca
+
+            b = p_drone_enu_m if is_symbolic(p_drone_enu_m) else ca.DM(p_drone_enu_m)
+            a = p_resp_enu_m if is_symbolic(p_resp_enu_m) else ca.DM(p_resp_enu_m)
+            return 0.0 * ca.repmat(b[0, 0] + a[0, 0], 1, max(a.shape[1], b.shape[1]))
+        a, b = np.broadcast_arrays(np.asarray(p_resp_enu_m, dtype=float).reshape(-1, 3),
+                                   np.asarray(p_drone_enu_m, dtype=float).reshape(-1, 3))
+        return np.zeros(len(a))
+
+    def response_probability_between(self, p_drone_enu_m, p_resp_enu_m, terrain,
+                                     concealment: str = "open"):
+        """P at the slant range (this stand-in knows no terrain)."""
+        if is_symbolic(p_drone_enu_m) or is_symbolic(p_resp_enu_m):
+            import casadi as ca
+
+            b = p_drone_enu_m if is_symbolic(p_drone_enu_m) else ca.DM(p_drone_enu_m)
+            a = p_resp_enu_m if is_symbolic(p_resp_enu_m) else ca.DM(p_resp_enu_m)
+            diff = b - (ca.repmat(a, 1, b.shape[1]) if a.shape[1] == 1 else a)
+            return self.response_probability(ca.sqrt(ca.sum1(diff * diff)), concealment)
+        a, b = np.broadcast_arrays(np.asarray(p_resp_enu_m, dtype=float).reshape(-1, 3),
+                                   np.asarray(p_drone_enu_m, dtype=float).reshape(-1, 3))
+        return self.response_probability(np.sqrt(np.add.reduce((b - a) ** 2, axis=1)),
+                                         concealment)
 
     def mean_rssi_dbm(self, slant_m, concealment: str = "open"):
         if is_symbolic(slant_m):

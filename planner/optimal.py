@@ -10,8 +10,11 @@ information with the FTM bias marginalised (:mod:`planner.scoring`), i.e.
     h_ik = ((s_k - p_i) / d_ik, 1),  d_ik = |s_k - p_i|,
     maximise (1/K) sum_k log det( J_k[pp] - J_k[pb] J_k[pb]^T / J_k[bb] ),
 
-with P(d) the logistic response probability and sigma^2(d) Empirical-R, eq. (13), at
-the eq. (11) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
+with P(d) the link's response probability (lowered, with a terrain in the scoring
+configuration, by the terrain's loss on each waypoint's link to the prior's centre:
+a second, warm-started solve when the first plan is partly hidden, see
+:meth:`OptimalPlanner._occluded_stage`) and sigma^2(d) Empirical-R, eq. (23), at
+the eq. (21) RSSI, where the kink of q = max(0, -RSSI - r_ref) is smoothed
 ((q + sqrt(q^2 + 1 dB^2)) / 2) so Ipopt sees a smooth problem. P0^-1 is the IEKF's initial
 information, P0 = diag(25, 25, 100, 4) (sec. IEKF3D): it keeps log det finite for any
 path, as the filter's own prior does. The K prior points are the deterministic
@@ -41,7 +44,14 @@ between waypoints):
   conservative; convexity keeps whole legs inside when their ends are);
 - keep-out cylinders: (x - c_x)^2 + (y - c_y)^2 >= R^2 with R^2 = (r + margin)^2 +
   (v_max dt / 2)^2 at the waypoints, which keeps every straight leg (length <= v_max
-  dt) out of r + margin; several cylinders are joined by a smooth min (conservative).
+  dt) out of r + margin; several cylinders are joined by a smooth min (conservative);
+- keep-out polygons (``max_keep_out_polygons``, a power line's corridor): each by its
+  convex hull (a superset), as half-planes a_j . (x, y) <= b_j with unit outward
+  normals; a point is out by at least max_j (a_j . q - b_j), which a log-mean-exp
+  tau log (1/E sum_j exp((a_j . q - b_j) / tau)) bounds from below (by at most
+  tau log E), so requiring it >= margin + v_max dt / (2 q) at the centres of q equal
+  pieces of every leg (``keep_out_leg_points``; every point of a leg lies within
+  v_max dt / 2q of one) keeps whole legs out of the hull by the margin.
 
 The problem is built once; the prior points, start pose, dt, limits, altitude band,
 fence and keep-outs are ``opti.parameter``s, so :meth:`OptimalPlanner.plan` only
@@ -67,9 +77,17 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from estimator.measurement import jacobian_rows, range_casadi, range_of_difference
 from estimator.records import Trajectory
 from planner.models import FlatTerrain, TerrainModel
-from planner.patterns import PAPER_SITE, Geofence, KeepOut, airspace_violations, densify
+from planner.patterns import (
+    PAPER_SITE,
+    Geofence,
+    KeepOut,
+    KeepOutPolygon,
+    airspace_violations,
+    densify,
+)
 from planner.scoring import ScoringConfig, prior_points
 
 _FAR_M = 1e5  # padding: an unused fence edge or keep-out this far away never binds
@@ -110,6 +128,10 @@ class OptimalConfig:
     fence_smoothing_m: float = 1.0  # log-sum-exp scale of the keep-in edges
     keep_out_smoothing: float = 0.05  # soft-min scale of (d / R)^2 - 1 over keep-outs
     keep_out_margin_m: float = 2.0
+    max_keep_out_polygons: int = 0  # keep-out polygons the problem holds (convex hulls)
+    max_keep_out_edges: int = 8  # hull edges per keep-out polygon
+    keep_out_leg_points: int = 4  # polygon clearance checked at this many points per leg
+    keep_out_polygon_smoothing_m: float = 1.0  # log-mean-exp scale of the hull's edges
     terrain: TerrainModel = field(default_factory=FlatTerrain)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
     prior_information: tuple[float, float, float, float] = (1 / 25, 1 / 25, 1 / 100, 1 / 4)
@@ -152,6 +174,7 @@ class PlanResult:
     violations: tuple[str, ...]
     feasible: bool
     fallback: str | None = None
+    occlusion: str = ""  # with a terrain in the scoring: "in view", "replanned in view", ...
 
 
 # --------------------------------------------------------------------------- model
@@ -174,26 +197,63 @@ def _smooth_max(rows, tau):
     return top + tau * ca.log(total)
 
 
-def _weights(d, cfg: OptimalConfig, dwell):
-    """Expected measurements per unit variance rate dt P(d) / sigma^2(d) (smooth)."""
+def _smooth_mean(rows, tau):
+    """Column-wise tau log (1/n sum_j exp(row_j / tau)): <= the max, by at most
+    tau log n (a lower bound of the max, for constraints that it be large)."""
+    top = rows[0, :]
+    for j in range(1, rows.shape[0]):
+        top = ca.fmax(top, rows[j, :])
+    total = 0
+    for j in range(rows.shape[0]):
+        total = total + ca.exp((rows[j, :] - top) / tau)
+    return top + tau * ca.log(total / rows.shape[0])
+
+
+def _weights(d, cfg: OptimalConfig, dwell, loss_db=None):
+    """Expected measurements per unit variance rate dt P(d) / sigma^2(d) (smooth), P
+    with the terrain's loss ``loss_db`` on each waypoint's link when given."""
     sc = cfg.scoring
     link = sc.link
     q = _smooth_relu(-link.mean_rssi_dbm(d, sc.concealment) - sc.noise.r_ref_db, cfg.smoothing_db)
     n = sc.noise
     var = n.sigma0_m**2 + n.alpha * d * d + n.beta_m2_per_db2 * q * q
-    prob = link.response_probability(d, sc.concealment)
+    if loss_db is None:
+        prob = link.response_probability(d, sc.concealment)
+    else:
+        prob = link.response_probability(d, sc.concealment, loss_db)
     return sc.ranging_rate_hz * dwell * prob / var
 
 
-def _info_entries(P, s, cfg: OptimalConfig, dwell):
+def link_loss_db(P, prior_points, cfg: OptimalConfig):
+    """The terrain's loss (dB) on the link of each waypoint to the likely area's centre
+    (the prior points' mean, lifted to ``responder_height_m`` above the ground as
+    :meth:`planner.scoring.ScoringConfig.link_point` does), shared by the prior points;
+    None without a terrain in ``cfg.scoring``. ``P`` and ``prior_points`` 3 x N and
+    3 x K CasADi (the link's smooth approximation) or N x 3 and K x 3 NumPy (its exact
+    profile)."""
+    sc = cfg.scoring
+    if sc.terrain is None:
+        return None
+    if _is_symbolic(P):
+        c = ca.sum2(prior_points) / prior_points.shape[1]
+        ground = sc.terrain.height_m(c[0], c[1])
+        a = ca.vertcat(c[0], c[1], ca.fmax(c[2], ground + sc.responder_height_m))
+        return sc.link.obstruction_loss_db(P, a, sc.terrain)
+    a = sc.link_point(np.mean(np.asarray(prior_points, dtype=float).reshape(-1, 3), axis=0))
+    return np.asarray(sc.link.obstruction_loss_db(P, a, sc.terrain), dtype=float)
+
+
+def _info_entries(P, s, cfg: OptimalConfig, dwell, loss_db=None):
     """(xx, yy, zz, xy, xz, yz, xb, yb, zb, bb) of sum_i w_i h_i h_i^T for one AP s.
 
-    ``P`` is 3 x N (CasADi) or N x 3 (NumPy)."""
+    ``P`` is 3 x N (CasADi) or N x 3 (NumPy); h_i = ((s - p_i) / d_i, 1) and d_i from
+    the estimator's measurement model (:mod:`estimator.measurement`, its near-zero rule
+    in both forms); ``loss_db`` the terrain's loss on each waypoint's link
+    (:func:`link_loss_db`)."""
     if _is_symbolic(P):
         D = ca.repmat(s, 1, P.shape[1]) - P
-        d2 = ca.sum1(D * D) + 1e-6
-        d = ca.sqrt(d2)
-        w = _weights(d, cfg, dwell)
+        d2, d = range_casadi(D)
+        w = _weights(d, cfg, dwell, loss_db)
         u = w / d2  # w g g^T = u D D^T, w g = v D
         v = w / d
         dx, dy, dz = D[0, :], D[1, :], D[2, :]
@@ -205,9 +265,9 @@ def _info_entries(P, s, cfg: OptimalConfig, dwell):
             tot(v * dx), tot(v * dy), tot(v * dz), tot(w),
         )  # fmt: skip
     D = np.asarray(s, dtype=float)[None, :] - P
-    d = np.sqrt((D * D).sum(axis=1) + 1e-6)
-    g = D / d[:, None]
-    w = _weights(d, cfg, dwell)
+    d = range_of_difference(D)
+    g = jacobian_rows(D, d)
+    w = _weights(d, cfg, dwell, loss_db)
     gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
     return np.array(
         [
@@ -244,7 +304,9 @@ def planning_objective(
     prior points of log det of the bias-marginalised position information, P0 included."""
     P = np.asarray(waypoints_enu_m, dtype=float).reshape(-1, 3)
     pts = np.asarray(prior_points_enu_m, dtype=float).reshape(-1, 3)
-    vals = [_log_det_marginal(_info_entries(P, s, cfg, dt_s), cfg.prior_information) for s in pts]
+    loss = link_loss_db(P, pts, cfg)
+    vals = [_log_det_marginal(_info_entries(P, s, cfg, dt_s, loss), cfg.prior_information)
+            for s in pts]
     return float(np.mean(vals))
 
 
@@ -334,6 +396,17 @@ class OptimalPlanner:
 
     # ---------------------------------------------------------------- build
     def _build(self) -> None:
+        """The problem without the terrain's loss (``_solve_cold``, ``_solve_warm``) and,
+        with a terrain in ``cfg.scoring``, the same problem with it (``_solve_occluded``,
+        a warm start: same variables and constraints, the weights lowered by the
+        loss)."""
+        self._solve_occluded = self._loss_fn = None
+        if self.cfg.scoring.terrain is not None:
+            self._build_problem(occlusion=True)
+            self._solve_occluded = self._solve_warm
+        self._build_problem(occlusion=False)
+
+    def _build_problem(self, occlusion: bool) -> None:
         cfg = self.cfg
         N, K, E, M = cfg.n_waypoints, cfg.n_prior_points, cfg.max_fence_edges, cfg.max_keep_outs
         S = cfg.position_scale_m
@@ -350,22 +423,27 @@ class OptimalPlanner:
         p_keep = opti.parameter(M, 3)  # c_x, c_y (m), effective radius^2 (m^2)
         P = S * X
 
-        objective = 0
-        for k in range(K):
-            entries = _info_entries(P, p_prior[:, k], cfg, p_dt)
-            opti.subject_to(cfg.information_scale * Fv[:, k] == entries)
-            objective += _log_det_marginal(cfg.information_scale * Fv[:, k], cfg.prior_information)
-        acc = X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]
-        amax_dt2 = p_lim[1] * p_dt * p_dt / S
-        smooth = ca.sum2(ca.sum1(acc * acc)) / ((N - 2) * amax_dt2 * amax_dt2)
-        opti.minimize(-objective / K + cfg.smoothness_weight * smooth)
-
         blocks: list[tuple[int, int]] = []  # (first row, rows) of per-leg constraint rows
 
         def per_leg(constraint) -> None:
             first_row = opti.ng
             opti.subject_to(constraint)
             blocks.append((first_row, opti.ng - first_row))
+
+        # the terrain's loss on each waypoint's link to the likely area
+        loss = link_loss_db(P, p_prior, cfg) if occlusion else None
+        if loss is not None:
+            self._loss_fn = ca.Function("link_loss", [X, p_prior], [loss])
+
+        objective = 0
+        for k in range(K):
+            entries = _info_entries(P, p_prior[:, k], cfg, p_dt, loss)
+            opti.subject_to(cfg.information_scale * Fv[:, k] == entries)
+            objective += _log_det_marginal(cfg.information_scale * Fv[:, k], cfg.prior_information)
+        acc = X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]
+        amax_dt2 = p_lim[1] * p_dt * p_dt / S
+        smooth = ca.sum2(ca.sum1(acc * acc)) / ((N - 2) * amax_dt2 * amax_dt2)
+        opti.minimize(-objective / K + cfg.smoothness_weight * smooth)
 
         opti.subject_to(X[:, 0] == p_start / S)
         step = X[:, 1:] - X[:, :-1]
@@ -408,6 +486,21 @@ class OptimalPlanner:
             ]
         )
         per_leg(_smooth_max(-clear, cfg.keep_out_smoothing) <= 0)
+        # keep-out polygons: their hulls' half-planes, a log-mean-exp (<= the max, so
+        # conservative) at q points per leg, each clear by the margin + half a piece
+        Pn, Q, q = cfg.max_keep_out_polygons, cfg.max_keep_out_edges, cfg.keep_out_leg_points
+        p_poly = opti.parameter(Pn * Q, 3) if Pn else None  # a_x, a_y, b (m)
+        if p_poly is not None:
+            tau = cfg.keep_out_polygon_smoothing_m / S
+            need = (cfg.keep_out_margin_m + p_lim[0] * p_dt / (2 * q)) / S
+            for k in range(q):
+                f = (k + 0.5) / q
+                pts = X[:2, :-1] + f * (X[:2, 1:] - X[:2, :-1])
+                for j in range(Pn):
+                    rows = ca.vertcat(*[
+                        p_poly[j * Q + r, 0] * pts[0, :] + p_poly[j * Q + r, 1] * pts[1, :]
+                        - p_poly[j * Q + r, 2] / S for r in range(Q)])
+                    per_leg(_smooth_mean(rows, tau) >= need)
         self._leg_blocks = tuple(blocks)
 
         common = {
@@ -430,7 +523,8 @@ class OptimalPlanner:
             "warm_start_mult_bound_push": 1e-6,
             "warm_start_slack_bound_push": 1e-6,
         }
-        args = [p_prior, p_start, p_vel, p_dt, p_lim, p_band, p_fence, p_keep, X, Fv, opti.lam_g]
+        args = [p_prior, p_start, p_vel, p_dt, p_lim, p_band, p_fence, p_keep,
+                *([p_poly] if p_poly is not None else []), X, Fv, opti.lam_g]
         outs = [X, Fv, opti.lam_g, opti.f]
         plugin = {"expand": True, "print_time": False, "show_eval_warnings": False}
         # the same problem, two Ipopt set-ups: a cold start from the default barrier and
@@ -464,6 +558,20 @@ class OptimalPlanner:
             rows[j] = (ko.east_m, ko.north_m, r * r + 0.25 * leg_m * leg_m)
         return rows
 
+    def _poly_rows(self, polygons: Sequence[KeepOutPolygon]) -> np.ndarray:
+        Pn, Q = self.cfg.max_keep_out_polygons, self.cfg.max_keep_out_edges
+        if len(polygons) > Pn:
+            raise ValueError(f"{len(polygons)} keep-out polygons; the planner holds {Pn}")
+        rows = np.tile([0.0, 0.0, -_FAR_M], (Pn * Q, 1))
+        for j, poly in enumerate(polygons):
+            hp = poly.hull_half_planes()
+            if len(hp) > Q:
+                raise ValueError(f"a keep-out polygon's hull has {len(hp)} edges; the planner "
+                                 f"holds {Q}")
+            rows[j * Q:(j + 1) * Q] = hp[0]  # unused edges repeat one (the max is unchanged)
+            rows[j * Q:j * Q + len(hp)] = hp
+        return rows
+
     # ---------------------------------------------------------------- check
     def check(
         self,
@@ -476,6 +584,7 @@ class OptimalPlanner:
         keep_outs: Sequence[KeepOut] = (),
         agl_band_m: tuple[float, float] | None = None,
         limits: tuple[float, float, float] | None = None,
+        keep_out_polygons: Sequence[KeepOutPolygon] = (),
     ) -> list[str]:
         """Every constraint of the problem, checked numerically; empty when all hold.
 
@@ -515,7 +624,7 @@ class OptimalPlanner:
                     f"{name}height above terrain {agl.min():.2f}..{agl.max():.2f} m"
                     f" outside {b_lo:g}..{b_hi:g}"
                 )
-        out += airspace_violations(W, fence, keep_outs, tolerance_m=tol)
+        out += airspace_violations(W, fence, [*keep_outs, *keep_out_polygons], tolerance_m=tol)
         return out
 
     def first_leg_band(
@@ -548,6 +657,7 @@ class OptimalPlanner:
         origin: tuple[float, float, float] = PAPER_SITE,
         prior_points_enu_m: np.ndarray | None = None,
         warm_start: bool = True,
+        keep_out_polygons: Sequence[KeepOutPolygon] = (),
     ) -> PlanResult:
         """Plan the next horizon from the current pose against the prior N(mean, cov).
 
@@ -584,8 +694,13 @@ class OptimalPlanner:
         for ko in keep_outs:
             if math.hypot(start[0] - ko.east_m, start[1] - ko.north_m) < ko.radius_m:
                 raise ValueError("the start pose is inside a keep-out cylinder")
+        for poly in keep_out_polygons:
+            if poly.signed_distance_m(start[None, :2])[0] < 0:
+                raise ValueError("the start pose is inside a keep-out polygon")
         fence_rows = self._fence_rows(fence)
         keep_rows = self._keep_rows(keep_outs, lim[0] * dt)
+        poly = self._poly_rows(keep_out_polygons)  # refuses more than the problem holds
+        poly_rows = [poly] if cfg.max_keep_out_polygons else []
 
         agl0 = float(start[2] - np.asarray(cfg.terrain.height_m(start[0], start[1]), dtype=float))
         band4 = (*band, min(band[0], agl0), max(band[1], agl0))
@@ -598,17 +713,18 @@ class OptimalPlanner:
         else:
             solve = self._solve_cold
             r0, W0 = self._initial_guess(start, vel, mean, pts, dt, lim, band)
+            if keep_out_polygons:
+                W0 = self._stop_before(W0, keep_out_polygons, lim[0] * dt)
             x0 = W0.T / S
             lam0 = np.zeros(self._n_g)
             guess = f"orbit r={r0:g} m"
         f0 = np.column_stack([_info_entries(x0.T * S, s, cfg, dt) for s in pts])
         f0 /= cfg.information_scale
+        params = (pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, *poly_rows)
         t0 = time.perf_counter()
         error = None
         try:
-            x, _fv, lam, _ = solve(
-                pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, x0, f0, lam0
-            )
+            x, _fv, lam, _ = solve(*params, x0, f0, lam0)
             stats = solve.stats()
         except RuntimeError as exc:  # CasADi evaluation errors: no optimiser path
             error = f"error: {exc}".splitlines()[0]
@@ -617,8 +733,18 @@ class OptimalPlanner:
         status = str(stats.get("return_status", "unknown"))
         W = np.asarray(x).T * S
         violations = self.check(
-            W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim
+            W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim,
+            keep_out_polygons=keep_out_polygons,
         )
+        occlusion = ""
+        if self._solve_occluded is not None and error is None and not violations:
+            occlusion = "in view"
+            if np.any(link_loss_db(W, pts, cfg) > 0.0):  # the terrain hides part of it
+                occlusion, x, lam, W, stats, dt_solve = self._occluded_stage(
+                    params, x, lam, W, stats, pts, dt, start, vel, band, lim, fence,
+                    [*keep_outs, *keep_out_polygons])
+                solve_time += dt_solve
+                status = str(stats.get("return_status", "unknown"))
         # only an optimiser path that passed the check warm-starts the next solve
         self._warm = None if violations or error else (np.asarray(x), np.asarray(lam).ravel())
         fallback = None
@@ -629,7 +755,8 @@ class OptimalPlanner:
             if feasible:
                 fallback = f"initial guess: {guess}"
         if not feasible:
-            ok, r, W = self._fallback(start, vel, mean, pts, dt, lim, band, fence, keep_outs)
+            ok, r, W = self._fallback(start, vel, mean, pts, dt, lim, band, fence,
+                                      [*keep_outs, *keep_out_polygons])
             fallback = f"orbit r={r:g} m"
             feasible = ok
         return PlanResult(
@@ -644,7 +771,40 @@ class OptimalPlanner:
             violations=tuple(violations),
             feasible=feasible,
             fallback=fallback,
+            occlusion=occlusion,
         )
+
+    def _occluded_stage(self, params, x, lam, W, stats, pts, dt, start, vel, band, lim, fence,
+                        keep_outs):
+        """The second solve, when the terrain hides part of the first plan from the likely
+        area: the problem with the terrain's loss, warm-started from the first plan; its
+        path is kept when it passes the check and scores higher on the objective with
+        the loss (:func:`planning_objective`). Without the loss every objective is at
+        least as high, so a first plan in full view needs no second solve."""
+        cfg, S = self.cfg, self.cfg.position_scale_m
+        loss0 = np.asarray(self._loss_fn(x, pts.T), dtype=float).reshape(-1)
+        f0 = np.column_stack([_info_entries(W, s, cfg, dt, loss0) for s in pts])
+        f0 /= cfg.information_scale
+        t0 = time.perf_counter()
+        try:
+            x2, _fv, lam2, _ = self._solve_occluded(*params, x, f0, lam)
+            stats2 = self._solve_occluded.stats()
+        except RuntimeError:
+            return "hidden in part, the second solve failed", x, lam, W, stats, (
+                time.perf_counter() - t0)
+        elapsed = time.perf_counter() - t0
+        stats2 = {**stats2, "iter_count": int(stats.get("iter_count", 0))
+                  + int(stats2.get("iter_count", 0))}
+        W2 = np.asarray(x2).T * S
+        ok = not self.check(
+            W2, start, vel, dt, fence=fence, agl_band_m=band, limits=lim,
+            keep_outs=[k for k in keep_outs if isinstance(k, KeepOut)],
+            keep_out_polygons=[k for k in keep_outs if isinstance(k, KeepOutPolygon)],
+        )
+        if ok and planning_objective(W2, pts, dt, cfg) > planning_objective(W, pts, dt, cfg):
+            return "replanned in view", np.asarray(x2), np.asarray(lam2), W2, stats2, elapsed
+        return "hidden in part, kept", x, lam, W, {**stats, "iter_count":
+                                                    stats2["iter_count"]}, elapsed
 
     def _orbits(self, start, vel, mean, pts, dt, lim, band):
         """Guidance orbits about the prior mean at the start's height above terrain."""
@@ -656,6 +816,21 @@ class OptimalPlanner:
             W = guidance_orbit(start, vel, mean, r, alt, cfg.n_waypoints, dt, *lim)
             yield r, W, planning_objective(W, pts, dt, cfg)
 
+    def _stop_before(self, W: np.ndarray, polygons: Sequence[KeepOutPolygon],
+                     leg_m: float) -> np.ndarray:
+        """The guess waits at its last waypoint whose leg stays clear of the polygons'
+        hulls (the NLP cannot carry a path across a keep-out: it would be infeasible on
+        both sides; Ipopt moves the waiting points along the clear side)."""
+        need = self.cfg.keep_out_margin_m + leg_m / (2 * self.cfg.keep_out_leg_points)
+        hps = [poly.hull_half_planes() for poly in polygons]
+        W = W.copy()
+        for i in range(1, len(W)):
+            seg = densify(W[i - 1:i + 1], 1.0)[:, :2]
+            if any(((seg @ hp[:, :2].T - hp[:, 2]).max(axis=1) < need).any() for hp in hps):
+                W[i:] = W[i - 1]
+                break
+        return W
+
     def _initial_guess(self, start, vel, mean, pts, dt, lim, band):
         """Cold start: the guidance orbit with the best objective."""
         r, W, _ = max(self._orbits(start, vel, mean, pts, dt, lim, band), key=lambda c: c[2])
@@ -666,7 +841,9 @@ class OptimalPlanner:
         best = None
         for r, W, obj in self._orbits(start, vel, mean, pts, dt, lim, band):
             ok = not self.check(
-                W, start, vel, dt, fence=fence, keep_outs=keep_outs, agl_band_m=band, limits=lim
+                W, start, vel, dt, fence=fence, agl_band_m=band, limits=lim,
+                keep_outs=[k for k in keep_outs if isinstance(k, KeepOut)],
+                keep_out_polygons=[k for k in keep_outs if isinstance(k, KeepOutPolygon)],
             )
             if best is None or (ok, obj) > (best[0], best[3]):
                 best = (ok, r, W, obj)

@@ -18,21 +18,23 @@ track spacing comes from the detection range: spacing = 2 R_det (1 - overlap), w
 R_det the horizontal distance at which the response probability falls to ``p_detect``
 at the flight height (:func:`detection_range_m`).
 
-Airspace types (a convex keep-in fence, keep-out cylinders) and their check live here
-too, shared by the patterns, the optimal planner and the mission export.
+Airspace types (a convex keep-in fence, keep-out cylinders and polygons, each with an
+optional top above the ground) and their check live here too, shared by the patterns,
+the search area, the optimal planner and the mission export.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from estimator.geodesy import ExactENU
+from estimator.geometry import polygon_area_m2, signed_distance_to_polygon_m
 from estimator.records import Trajectory
 from planner.models import LinkModel, LogisticLink, slant_at
 
@@ -579,16 +581,123 @@ def to_geodetic(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True, kw_only=True)
 class KeepOut:
-    """A keep-out cylinder (a tower, a power line pylon): centre (east, north), radius."""
+    """A keep-out cylinder (a tower, a power line pylon): centre (east, north), radius,
+    and the obstacle's height above the ground (``top_m``; None: never fly over it)."""
 
     east_m: float
     north_m: float
     radius_m: float
+    top_m: float | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.east_m) and math.isfinite(self.north_m)):
             raise ValueError("keep-out centre must be finite")
         _positive("radius_m", self.radius_m)
+        _check_top(self.top_m)
+
+    def signed_distance_m(self, xy: np.ndarray) -> np.ndarray:
+        """Distance to the circle, negative inside (m)."""
+        p = np.asarray(xy, dtype=float).reshape(-1, 2)
+        return np.hypot(p[:, 0] - self.east_m, p[:, 1] - self.north_m) - self.radius_m
+
+    def outline_m(self, grow_m: float = 0.0, sides: int = 12) -> np.ndarray:
+        """A counter-clockwise polygon (sides, 2) around the circle grown by ``grow_m``:
+        circumscribed, so its edges are ``radius + grow_m`` from the centre."""
+        r = (self.radius_m + grow_m) / math.cos(math.pi / sides)
+        th = (np.arange(sides) + 0.5) * 2.0 * math.pi / sides
+        return np.column_stack([self.east_m + r * np.cos(th), self.north_m + r * np.sin(th)])
+
+    def blocks(self, floor_m: float | None, clearance_m: float) -> bool:
+        """Does it obstruct paths flown at least ``floor_m`` above the ground (None: any
+        height)? Only when it has a top and the paths clear it by ``clearance_m`` not."""
+        return self.top_m is None or floor_m is None or self.top_m + clearance_m > floor_m
+
+
+@dataclass(frozen=True, kw_only=True)
+class KeepOutPolygon:
+    """A keep-out polygon (a power line's corridor, a building) in ENU metres, convex or
+    not, and its height above the ground (``top_m``; None: never fly over it)."""
+
+    vertices_m: tuple[tuple[float, float], ...]
+    top_m: float | None = None
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.vertices_m, dtype=float)
+        if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3 or not np.all(np.isfinite(v)):
+            raise ValueError("a keep-out polygon needs >= 3 finite (east, north) vertices")
+        if abs(polygon_area_m2(v)) < 1.0:
+            raise ValueError("the keep-out polygon encloses no area")
+        _check_top(self.top_m)
+
+    def signed_distance_m(self, xy: np.ndarray) -> np.ndarray:
+        """Distance to the polygon's boundary, negative inside (m)."""
+        return signed_distance_to_polygon_m(self.vertices_m, xy)
+
+    def outline_m(self, grow_m: float = 0.0) -> np.ndarray:
+        """Counter-clockwise vertices (N, 2), each moved ``grow_m`` outwards along its
+        bisector (a convex corner by grow / cos(half its turn), so the edges move out by
+        ``grow_m``)."""
+        v = np.asarray(self.vertices_m, dtype=float)
+        if polygon_area_m2(v) < 0:
+            v = v[::-1]
+        if grow_m == 0.0:
+            return v.copy()
+        out = []
+        n = len(v)
+        for i in range(n):
+            a, b, c = v[i - 1], v[i], v[(i + 1) % n]
+            e1, e2 = b - a, c - b
+            n1 = np.array([e1[1], -e1[0]]) / max(float(np.linalg.norm(e1)), 1e-12)  # outward
+            n2 = np.array([e2[1], -e2[0]]) / max(float(np.linalg.norm(e2)), 1e-12)
+            bis = n1 + n2
+            nb = float(np.linalg.norm(bis))
+            bis = n1 if nb < 1e-9 else bis / nb
+            out.append(b + bis * grow_m / max(float(bis @ n1), 0.2))
+        return np.array(out)
+
+    def hull_half_planes(self) -> np.ndarray:
+        """The convex hull (a superset) as half-planes, rows (a_x, a_y, b) with unit outward
+        normals: a point q is outside the hull by max_j (a_j . q - b_j) or more."""
+        h = convex_hull(np.asarray(self.vertices_m, dtype=float))
+        e = np.roll(h, -1, axis=0) - h
+        L = np.linalg.norm(e, axis=1)
+        keep = L > 1e-9
+        nrm = np.column_stack([e[keep, 1], -e[keep, 0]]) / L[keep, None]
+        return np.column_stack([nrm, (nrm * h[keep]).sum(axis=1)])
+
+    def blocks(self, floor_m: float | None, clearance_m: float) -> bool:
+        """As :meth:`KeepOut.blocks`."""
+        return self.top_m is None or floor_m is None or self.top_m + clearance_m > floor_m
+
+
+AnyKeepOut = KeepOut | KeepOutPolygon
+
+
+def _check_top(top_m: float | None) -> None:
+    if top_m is not None and not (math.isfinite(top_m) and top_m >= 0.0):
+        raise ValueError(f"a keep-out's top_m must be finite and >= 0, got {top_m!r}")
+
+
+def convex_hull(points_m: np.ndarray) -> np.ndarray:
+    """Counter-clockwise convex hull of (N, 2) points (Andrew's monotone chain)."""
+    pts = sorted({(float(x), float(y)) for x, y in np.asarray(points_m, dtype=float)})
+    if len(pts) < 3:
+        return np.array(pts)
+
+    def cross(o, a, b) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower: list = []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 0:
+            lower.pop()
+        lower.append(p)
+    upper: list = []
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
+            upper.pop()
+        upper.append(p)
+    return np.array(lower[:-1] + upper[:-1])
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -649,22 +758,36 @@ def densify(points_enu_m: np.ndarray, max_step_m: float = 1.0) -> np.ndarray:
 def airspace_violations(
     points_enu_m: np.ndarray,
     fence: Geofence | None = None,
-    keep_outs: Sequence[KeepOut] = (),
+    keep_outs: Sequence[AnyKeepOut] = (),
     tolerance_m: float = 1e-6,
     max_step_m: float = 1.0,
+    agl_m: Callable[[np.ndarray], np.ndarray] | None = None,
+    clearance_m: float = 0.0,
 ) -> list[str]:
     """Where a polyline (flown straight between points) leaves the fence or enters a
-    keep-out cylinder, checked every ``max_step_m`` along it. Empty when clear."""
+    keep-out (a cylinder or a polygon), checked every ``max_step_m`` along it. Empty when
+    clear. With ``agl_m`` (the dense points' heights above the ground), a keep-out with a
+    ``top_m`` is entered only by points below its top + ``clearance_m``; without it,
+    every point inside one counts (its top unknown to the path)."""
     dense = densify(points_enu_m, max_step_m)
     out: list[str] = []
     if fence is not None:
         sd = fence.signed_distance_m(dense[:, :2])
         if sd.max() > tolerance_m:
             out.append(f"leaves the geofence by {sd.max():.2f} m")
+    agl = None
     for k, ko in enumerate(keep_outs):
-        d = np.hypot(dense[:, 0] - ko.east_m, dense[:, 1] - ko.north_m)
-        if d.min() < ko.radius_m - tolerance_m:
-            out.append(
-                f"enters keep-out {k} (r={ko.radius_m:g} m) to {d.min():.2f} m from its centre"
-            )
+        d = ko.signed_distance_m(dense[:, :2])
+        inside = d < -tolerance_m
+        if ko.top_m is not None and agl_m is not None and np.any(inside):
+            if agl is None:
+                agl = np.asarray(agl_m(dense), dtype=float)
+            inside &= agl < ko.top_m + clearance_m
+        if not np.any(inside):
+            continue
+        if isinstance(ko, KeepOut):
+            out.append(f"enters keep-out {k} (r={ko.radius_m:g} m) to "
+                       f"{ko.radius_m + d[inside].min():.2f} m from its centre")
+        else:
+            out.append(f"enters keep-out {k} (a polygon) {-d[inside].min():.2f} m deep")
     return out

@@ -8,12 +8,18 @@ b the residual FTM bias. Per sample of the path the scorer predicts:
 - the response probability P(d_i) and the mean RSSI from the link model
   (:class:`planner.models.LinkModel`: the simulator's ``sim.FtmLink`` when ``osa``
   plans for a known world, else the generic :class:`planner.models.LogisticLink`);
-- the range variance sigma_i^2 from Empirical-R, eq. (13), with that RSSI and the MAD
-  gate's floor sigma_floor as sigma_gate (the outer max of eq. 13 then never binds);
+  with a terrain in the configuration (``ScoringConfig.terrain``), P of the link from
+  u_i to p with the terrain's obstruction of it (``response_probability_between``: a
+  ridge between them lowers it), so a path in view of the AP's likely area scores
+  higher;
+- the range variance sigma_i^2 from Empirical-R, eq. (23), with that RSSI and the MAD
+  gate's floor sigma_floor as sigma_gate (the outer max of eq. 23 then never binds);
 - the expected number of measurements n_i = rate x dwell_i x P(d_i).
 
 The Fisher information of theta = (x, y, z, b) is J = sum_i n_i h_i h_i^T / sigma_i^2
-with h_i = ((p - u_i)/|p - u_i|, 1) (the Jacobian row of eq. 17). The IEKF estimates b
+with h_i = ((p - u_i)/|p - u_i|, 1) (the Jacobian row of eq. 14; both from the
+estimator's one measurement model, :mod:`estimator.measurement`, whose near-zero rule
+gives an anchor on the AP no direction information). The IEKF estimates b
 (sec. Sequential Bayesian Filtering), so the headline CRLB treats the bias as a
 *nuisance* parameter (the position block of J^-1); the known-bias CRLB (the inverse of
 the 3 x 3 position block of J) is reported beside it. An orbit at one altitude centred
@@ -28,9 +34,9 @@ below ``rcond`` and the bound is reported infinite. Flying several altitudes spr
 elevation angles, which is the paper's point on altitude variation (sec. Conclusions). No prior
 information enters the CRLB: it says what the flight itself delivers.
 
-The range noise sigma(d) is the estimator's Empirical-R, eq. (13), i.e. the R the filter
-uses. The simulator draws its true noise as 0.3 x eq. (13) (``noise_scale`` in
-sim/ftm.py, because eq. 13 is a deliberately inflated R) at its own link's RSSI, about
+The range noise sigma(d) is the estimator's Empirical-R, eq. (23), i.e. the R the filter
+uses. The simulator draws its true noise as 0.3 x eq. (23) (``noise_scale`` in
+sim/ftm.py, because eq. 23 is a deliberately inflated R) at its own link's RSSI, about
 0.27 x the sigma here (0.78 m against 2.87 m at 57.5 m), so against simulated truth the
 CRLBs are conservative by about that factor.
 
@@ -48,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.geometry import horizontal_condition_number
+from estimator.measurement import geometric_range_m, range_jacobian
 from estimator.noise import EmpiricalRConfig
 from estimator.records import Trajectory
 from planner.models import LinkModel, LogisticLink, TerrainModel
@@ -60,12 +67,17 @@ class ScoringConfig:
     ``link`` gives the response probability and the mean RSSI against slant range;
     ``osa`` passes the simulator's calibrated link (``sim.FtmLink``), the default is the
     generic :class:`planner.models.LogisticLink`. ``noise`` is the estimator's R
-    (Empirical-R, eq. 13), the variance the filter will assign.
+    (Empirical-R, eq. 23), the variance the filter will assign. ``terrain`` is what
+    obstructs the link (None: nothing); a candidate AP position less than
+    ``responder_height_m`` above it is lifted there for the link (the height is the
+    least known coordinate of an estimate, and a responder lies on the ground).
     """
 
     link: LinkModel = field(default_factory=LogisticLink)
     concealment: str = "open"  # the class the responder is assumed to be in
-    noise: EmpiricalRConfig = field(default_factory=EmpiricalRConfig)  # eq. (13)
+    terrain: TerrainModel | None = None  # obstructs the link; None: nothing does
+    responder_height_m: float = 0.5  # a responder's antenna is at least this high
+    noise: EmpiricalRConfig = field(default_factory=EmpiricalRConfig)  # eq. (23)
     sigma_gate_m: float = 0.12  # sigma_floor of eq. (4): the smallest MAD-gate scale
     rcond: float = 1e-10  # eigenvalues below rcond x the largest count as zero
 
@@ -75,6 +87,21 @@ class ScoringConfig:
 
     def response_probability(self, slant_m) -> np.ndarray:
         return self.link.response_probability(slant_m, self.concealment)
+
+    def link_point(self, ap_enu_m: Sequence[float] | np.ndarray) -> np.ndarray:
+        """The AP as the link sees it: its height floored at ``responder_height_m``
+        above the terrain."""
+        p = np.array(ap_enu_m, dtype=float).reshape(3)
+        if self.terrain is not None:
+            ground = float(np.asarray(self.terrain.height_m(p[0], p[1]), dtype=float))
+            p[2] = max(p[2], ground + self.responder_height_m)
+        return p
+
+    def response_probability_between(self, anchors_enu_m: np.ndarray,
+                                     ap_enu_m: Sequence[float] | np.ndarray) -> np.ndarray:
+        """P of each anchor's link to the AP, the terrain's obstruction included."""
+        return np.asarray(self.link.response_probability_between(
+            anchors_enu_m, self.link_point(ap_enu_m), self.terrain, self.concealment))
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -108,7 +135,7 @@ class GeometryScore:
 def range_variance_m2(
     slant_m: np.ndarray | float, cfg: ScoringConfig = ScoringConfig()
 ) -> np.ndarray:
-    """Eq. (13) with the eq. (11) RSSI at each slant range and sigma_gate = sigma_floor.
+    """Eq. (23) with the eq. (21) RSSI at each slant range and sigma_gate = sigma_floor.
 
     Vectorised twin of :func:`estimator.noise.empirical_r_m2` (a test keeps them equal).
     """
@@ -140,11 +167,10 @@ def fisher_information(
     """J (4 x 4 over x, y, z, b) and the expected measurement count of each anchor."""
     u = np.asarray(anchors_enu_m, dtype=float).reshape(-1, 3)
     p = np.asarray(ap_enu_m, dtype=float).reshape(3)
-    diff = p[None, :] - u
-    d = np.linalg.norm(diff, axis=1)
-    counts = cfg.ranging_rate_hz * np.asarray(dwell_s, dtype=float) * cfg.response_probability(d)
-    g = diff / np.maximum(d, 1e-9)[:, None]
-    h = np.hstack([g, np.ones((len(u), 1))])
+    d, h = range_jacobian(p, u, bias=True)  # slant ranges and rows (g_i, 1), eq. (14)
+    prob = (cfg.response_probability(d) if cfg.terrain is None
+            else cfg.response_probability_between(u, p))
+    counts = cfg.ranging_rate_hz * np.asarray(dwell_s, dtype=float) * prob
     w = counts / range_variance_m2(d, cfg)
     return (h * w[:, None]).T @ h, counts
 
@@ -175,9 +201,7 @@ def _dop(
     """GDOP and HDOP of one unit-sigma range with bias: sqrt(tr (G^T W G)^-1), sum W = 1."""
     if weights.sum() <= 0.0:
         return math.inf, math.inf
-    diff = ap[None, :] - anchors
-    g = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
-    G = np.hstack([g, np.ones((len(g), 1))])
+    _, G = range_jacobian(ap, anchors, bias=True)
     w = weights / weights.sum()
     diag = _bound_from_info((G * w[:, None]).T @ G, rcond)
     return float(math.sqrt(diag.sum())), float(math.sqrt(diag[0] + diag[1]))
@@ -207,7 +231,7 @@ def score_anchors(
         log_det = -math.inf
     gdop, hdop = _dop(u, p, counts, cfg.rcond)
     horizontal = np.linalg.norm(u[:, :2] - p[None, :2], axis=1)
-    slant = np.linalg.norm(u - p[None, :], axis=1)
+    slant = geometric_range_m(p, u)
     return GeometryScore(
         n_samples=len(u),
         duration_s=float(dwell.sum()),

@@ -13,6 +13,7 @@ See docs/simulator.md for the sensor models and the presets.
 """
 
 from sim.clock import ClockConfig, PhoneClock
+from sim.dem import DemError, DemTerrain
 from sim.flights import (
     Circle,
     ClosePass,
@@ -26,6 +27,7 @@ from sim.gnss import GNSS_PRESETS, GnssConfig, GnssTrack
 from sim.realisation import Realisation, realise
 from sim.scenario import (
     AgentSpec,
+    KeepOutZone,
     LogSettings,
     Scenario,
     ScenarioError,
@@ -58,6 +60,8 @@ __all__ = [
     "ClockConfig",
     "ClosePass",
     "ConcealmentModel",
+    "DemError",
+    "DemTerrain",
     "Emitted",
     "FlightError",
     "FtmConfig",
@@ -69,6 +73,7 @@ __all__ = [
     "Hill",
     "HillsTerrain",
     "HoldGuidance",
+    "KeepOutZone",
     "LogSettings",
     "LogSink",
     "Origin",

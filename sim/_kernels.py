@@ -185,8 +185,9 @@ def path_command(path: np.ndarray, dwell: np.ndarray, stop_after: np.ndarray,
                  dt: float) -> tuple[float, float, float]:
     """Velocity command of the path guidance at the navigation position for one tick:
     feed-forward along the path at the profile speed plus a proportional pull to the
-    reference point, which advances while the vehicle is within the lag limit, stops
-    at every hover for its dwell and never passes the next stop. Updates ``gs``."""
+    reference point, which advances while the vehicle is within the lag limit or ahead
+    of it, stops at every hover for its dwell and never passes the next stop. Updates
+    ``gs``."""
     s, xs, ys, zs, v = path[0], path[1], path[2], path[3], path[7]
     last = path.shape[1] - 1
     i = int(gs[G_I])
@@ -205,9 +206,13 @@ def path_command(path: np.ndarray, dwell: np.ndarray, stop_after: np.ndarray,
         vr = 0.0
         if lag < 0.5:
             gs[G_DWELL] -= dt
-    elif i < last and lag < gc[C_LAG]:
+    elif i < last and (lag < gc[C_LAG] or ex * path[4, i] + ey * path[5, i]
+                       + ez * path[6, i] < 0.0):
         # advance along the profile (at least at crawl speed: the profile is 0 at a
-        # stop), never past the next stop
+        # stop), never past the next stop; also beyond the lag limit when the vehicle
+        # is ahead of the reference (a new path started at speed: it overshot the
+        # start): waiting there would balance the feed-forward against the pull back
+        # and hold the vehicle still forever
         stop = int(gs[G_STOP])
         s_new = s_ref + max(vr, gc[C_CRAWL]) * dt
         if s_new >= s[stop]:

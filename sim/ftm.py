@@ -21,6 +21,11 @@ Per result, with d the true slant range from the drone's antenna to the responde
   the Empirical-R form, eq. (13), with the estimator's :class:`EmpiricalRConfig` and a
   scale s (``noise_scale``, 0.3: see its comment).
 - ``successful`` of ``attempted = 8`` frames and a ``range_std_m`` spread estimate.
+- terrain occlusion (:mod:`sim.occlusion`, ``occlusion``): the knife-edge loss J(nu) of
+  the terrain profile's dominant obstacle lowers the mean RSSI (reach and response);
+  a blocked link (nu > 0) reads longer by the path over the edge plus an NLoS-like
+  exponential excess of mean ``occlusion_excess_m_per_db`` x (J(nu) - J(0)), drawn with
+  the class's own exponential (occlusion draws nothing).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from estimator._jit import compiled
 from sim._config import check_finite, check_positive, check_probability
 from sim._random import RandomFourierField, as_seed_sequence, child_rng
 from sim.clock import ClockConfig, exponential_delays
+from sim.occlusion import J_GRAZING_DB, Obstruction, Occluder, link_obstruction
 from sim.vehicle import VehicleTrack
 from sim.world import World
 
@@ -138,6 +144,18 @@ class FtmConfig:
     open: ConcealmentModel = OPEN
     vegetation: ConcealmentModel = VEGETATION
     vegetation_debris: ConcealmentModel = VEGETATION_DEBRIS
+    # Terrain occlusion (sim.occlusion): the knife-edge loss over the profile's dominant
+    # obstacle lowers the mean RSSI, a blocked link reads long. 5180 MHz is channel 36,
+    # the first 5 GHz channel (U-NII-1): FTM responders range at 5 GHz, where 80 MHz
+    # channels give the time resolution (2.4 GHz offers 20/40 MHz only); 2.412e9 is
+    # 2.4 GHz channel 1 (its first Fresnel zone 1.47 x wider).
+    occlusion: bool = True
+    frequency_hz: float = 5.18e9
+    occlusion_step_m: float = 2.0  # largest horizontal spacing of the profile samples
+    # NLoS-like exponential excess of a blocked link: this much mean per dB of loss beyond
+    # grazing (J(nu) - J(0)), the ratio of the concealment classes' exponential excess to
+    # their attenuation (vegetation 1.2 m / 5 dB, vegetation_debris 3 m / 12 dB)
+    occlusion_excess_m_per_db: float = 0.25
 
     def __post_init__(self) -> None:
         for name in (
@@ -147,6 +165,8 @@ class FtmConfig:
             "response_slope_db",
             "path_loss_exponent",
             "outlier_median_m",
+            "frequency_hz",
+            "occlusion_step_m",
         ):
             check_positive(name, getattr(self, name))
         for name in (
@@ -158,8 +178,14 @@ class FtmConfig:
             "offset_max_m",
             "outlier_log_sigma",
             "frame_margin_db",
+            "occlusion_excess_m_per_db",
         ):
             check_positive(name, getattr(self, name), allow_zero=True)
+        if not 1e9 <= self.frequency_hz <= 1e11:
+            raise ValueError(f"frequency_hz {self.frequency_hz:g} is not a WiFi frequency "
+                             "(1-100 GHz; 2.412e9, 5.18e9, ...)")
+        if self.occlusion_step_m > 50.0:
+            raise ValueError("occlusion_step_m above 50 m would step over hills")
         for name in ("rssi_1m_dbm", "reach_rssi_dbm", "response_rssi50_dbm"):
             check_finite(name, getattr(self, name))
         check_probability("response_max", self.response_max)
@@ -189,6 +215,25 @@ class FtmConfig:
         """Probability that a ranging attempt at ``rssi_dbm`` returns ``ok``."""
         x = (np.asarray(rssi_dbm, dtype=float) - self.response_rssi50_dbm) / self.response_slope_db
         return self.response_max * np.asarray(response_scale) / (1.0 + np.exp(-x))
+
+    def obstruction(self, responder_enu_m: np.ndarray, drone_enu_m: np.ndarray,
+                    terrain) -> Obstruction:
+        """The terrain's obstruction of links responder[i] -> drone[i] ((L, 3) each):
+        :func:`sim.occlusion.link_obstruction` at ``frequency_hz``; clear when
+        ``occlusion`` is off or there is no terrain."""
+        a = np.asarray(responder_enu_m, dtype=float).reshape(-1, 3)
+        b = np.asarray(drone_enu_m, dtype=float).reshape(-1, 3)
+        a, b = np.broadcast_arrays(a, b)
+        if not self.occlusion or terrain is None:
+            return Obstruction.clear(len(a))
+        return link_obstruction(a, b, terrain, self.frequency_hz, self.occlusion_step_m)
+
+    def occlusion_excess_mean_m(self, loss_db: np.ndarray) -> np.ndarray:
+        """Mean of a blocked link's NLoS-like exponential range excess: the loss beyond
+        grazing, J(nu) - J(0), times ``occlusion_excess_m_per_db`` (0 while the direct
+        path is open, nu <= 0)."""
+        return self.occlusion_excess_m_per_db * np.maximum(
+            np.asarray(loss_db, dtype=float) - J_GRAZING_DB, 0.0)
 
     def range_sigma_m(self, range_m, rssi_dbm) -> np.ndarray:
         """Eq. (13) form: s sqrt(sigma0^2 + alpha d^2 + beta q^2), q = max(0, -RSSI - r_ref)."""
@@ -228,6 +273,8 @@ class FtmTrack:
     nlos_excess_m: np.ndarray
     outlier: np.ndarray
     outlier_excess_m: np.ndarray
+    occlusion_loss_db: np.ndarray  # the terrain's knife-edge loss (in rssi_mean_dbm)
+    occlusion_excess_m: np.ndarray  # the terrain's range excess (in range_m)
     offsets_m: np.ndarray  # (K,) hardware offset per responder
     request_t_s: np.ndarray  # (R,) request times
     request_peers: np.ndarray  # (R,) responders ranged per request
@@ -258,7 +305,8 @@ def _empty(k: int, attempted: int, offsets_m: np.ndarray | None = None) -> FtmTr
         rssi_dbm=zi, successful=zi, attempted=attempted, true_range_m=z,
         antenna_enu_m=np.zeros((0, 3)), rssi_mean_dbm=z, p_ok=z, sigma_m=z, noise_m=z,
         nlos_excess_m=z, outlier=np.zeros(0, dtype=bool), outlier_excess_m=z,
-        offsets_m=offsets, request_t_s=z, request_peers=zi,
+        occlusion_loss_db=z, occlusion_excess_m=z, offsets_m=offsets, request_t_s=z,
+        request_peers=zi,
     )  # fmt: skip
 
 
@@ -276,9 +324,16 @@ class FtmLink:
     the shadowing and fading (Gaussian in dB, sigma^2 = shadowing^2 + fading^2) with
     the probit approximation E[logistic(x + s z)] ~ logistic(x / sqrt(1 + pi s^2 / 8)).
     Evaluates NumPy arrays and CasADi symbols alike.
+
+    ``response_probability_between(p_drone, p_resp, terrain, concealment)`` is the same
+    with the mean RSSI lowered by the terrain's knife-edge loss on that link (when the
+    configuration's ``occlusion`` is on; ``obstruction_loss_db``): in NumPy the radio's
+    own profile (:meth:`FtmConfig.obstruction`), in CasADi the smooth approximation
+    :func:`sim.occlusion.smooth_loss_db` on ``occlusion_samples`` fixed profile points.
     """
 
     cfg: FtmConfig = field(default_factory=FtmConfig)
+    occlusion_samples: int = 6  # profile points of the CasADi approximation
 
     @property
     def ranging_rate_hz(self) -> float:
@@ -295,16 +350,56 @@ class FtmLink:
             return c.rssi_1m_dbm - 10.0 * c.path_loss_exponent * ca.log(d) / math.log(10.0) - att
         return c.mean_rssi_dbm(slant_m, att)
 
-    def response_probability(self, slant_m, concealment: str = "open"):
+    def response_probability(self, slant_m, concealment: str = "open", loss_db=None):
+        """The mean response probability at slant range d, the mean RSSI lowered by
+        ``loss_db`` (the terrain's, :meth:`obstruction_loss_db`) when given."""
+        return self._response(slant_m, concealment, loss_db)
+
+    def obstruction_loss_db(self, p_drone_enu_m, p_resp_enu_m, terrain):
+        """The terrain's knife-edge loss (dB) on the links from drone positions to
+        responder positions (0 with no terrain or ``occlusion`` off). NumPy: (M, 3) or
+        (3,) positions, broadcast against each other, (M,) out, the radio's own
+        profile; CasADi: 3 x M columns (the responder 3 x 1 or 3 x M), 1 x M out, the
+        smooth :func:`sim.occlusion.smooth_loss_db`."""
+        a, b, _ = _link_ends(p_resp_enu_m, p_drone_enu_m)
+        off = terrain is None or not self.cfg.occlusion
+        if _is_symbolic(a) or _is_symbolic(b):
+            from sim.occlusion import smooth_loss_db, wavelength_m
+
+            if off or self.occlusion_samples < 1:
+                return 0.0 * b[0, :]
+            return smooth_loss_db(a, b, terrain, wavelength_m(self.cfg.frequency_hz),
+                                  self.occlusion_samples)
+        if off:
+            return np.zeros(len(a))
+        return self.cfg.obstruction(a, b, terrain).loss_db
+
+    def response_probability_between(self, p_drone_enu_m, p_resp_enu_m, terrain,
+                                     concealment: str = "open"):
+        """:meth:`response_probability` of the links from drone positions to responder
+        positions (shapes as :meth:`obstruction_loss_db`), at their slant range with
+        the terrain's loss on them (None: nothing obstructs)."""
+        a, b, d = _link_ends(p_resp_enu_m, p_drone_enu_m)
+        if terrain is None or not self.cfg.occlusion:
+            return self._response(d, concealment, None)
+        return self._response(d, concealment, self.obstruction_loss_db(b, a, terrain))
+
+    def _response(self, slant_m, concealment: str, loss_db):
+        """The response probability at slant range d with the mean RSSI lowered by
+        ``loss_db`` (None: no loss term at all)."""
         c = self.cfg
         model = c.concealment(concealment)
         spread = math.hypot(model.shadowing_sigma_db, c.fading_sigma_db) / c.response_slope_db
-        symbolic = _is_symbolic(slant_m)
+        symbolic = _is_symbolic(slant_m) or _is_symbolic(loss_db)
         mean = self.mean_rssi_dbm(slant_m, concealment)
+        if loss_db is not None:
+            mean = mean - loss_db
         x = (mean - c.response_rssi50_dbm) / c.response_slope_db
         x = x / math.sqrt(1.0 + math.pi * spread * spread / 8.0)
         if symbolic:  # CasADi: a second copy of the subexpression, so the planner's graphs
             mean = self.mean_rssi_dbm(slant_m, concealment)  # (and solutions) stay as built
+            if loss_db is not None:
+                mean = mean - loss_db
         reach = (mean - c.reach_rssi_dbm) / max(model.shadowing_sigma_db, 1e-3) / math.sqrt(2.0)
         if symbolic:
             import casadi as ca
@@ -322,6 +417,27 @@ def _is_symbolic(x: object) -> bool:
     import casadi as ca
 
     return isinstance(x, ca.SX | ca.MX | ca.DM)
+
+
+def _link_ends(a, b):
+    """Responder and drone ends of links and their slant ranges: NumPy (L, 3) rows
+    (broadcast), or CasADi 3 x L columns (a 3 x 1 end repeated)."""
+    if _is_symbolic(a) or _is_symbolic(b):
+        import casadi as ca
+
+        a = a if _is_symbolic(a) else ca.DM(np.asarray(a, dtype=float).reshape(-1, 3).T)
+        b = b if _is_symbolic(b) else ca.DM(np.asarray(b, dtype=float).reshape(-1, 3).T)
+        if a.shape[0] != 3 or b.shape[0] != 3:
+            raise ValueError("CasADi positions are 3 x M columns")
+        m = max(a.shape[1], b.shape[1])
+        a = ca.repmat(a, 1, m) if a.shape[1] == 1 else a
+        b = ca.repmat(b, 1, m) if b.shape[1] == 1 else b
+        diff = b - a
+        return a, b, ca.sqrt(ca.sum1(diff * diff))
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=float).reshape(-1, 3),
+                               np.asarray(b, dtype=float).reshape(-1, 3))
+    diff = b - a
+    return a, b, np.sqrt(np.add.reduce(diff * diff, axis=1))
 
 
 # ----------------------------------------------------------------------------- the radio
@@ -357,8 +473,10 @@ class FtmRadio:
         offsets_m: np.ndarray,
         shadowing: tuple[RandomFourierField, ...],
         seq: np.random.SeedSequence,
+        occluder: Occluder | None = None,
     ) -> None:
         self.cfg = cfg
+        self.occluder = occluder
         self.clock = clock
         self.resp = np.asarray(responders_enu_m, dtype=float).reshape(-1, 3)
         self.k_n = len(self.resp)
@@ -413,6 +531,11 @@ class FtmRadio:
                                        self.shadow_lipschitz[k], self.NEAR_M)
             if len(todo):
                 rssi = base[k, todo] + f(p_enu[todo, 0], p_enu[todo, 1])
+                if self.occluder is not None:  # the terrain's loss where it is in reach
+                    seen = np.flatnonzero(rssi >= reach)
+                    if len(seen):
+                        rssi[seen] -= self.occluder.obstruction(
+                            np.full(len(seen), k), p_enu[todo[seen]]).loss_db
                 out[k, todo] = np.where(rssi >= reach, rssi, -np.inf)
         return out
 
@@ -513,6 +636,12 @@ class FtmRadio:
             if sel.any():
                 sh[sel] = self.shadowing[k](ant[sel, 0], ant[sel, 1])
         rssi_mean = cfg.mean_rssi_dbm(d_true, self.att[rj]) + sh
+        if self.occluder is not None:
+            ob = self.occluder.obstruction(rj, ant)
+            loss, occl = ob.loss_db, ob.excess_m
+            rssi_mean = rssi_mean - loss
+        else:
+            loss = occl = np.zeros(len(rj))
         rssi = np.clip(np.rint(rssi_mean + cfg.fading_sigma_db * fading), -127, -1).astype(
             np.int64
         )
@@ -525,9 +654,12 @@ class FtmRadio:
         sigma = cfg.range_sigma_m(d_true, rssi)
         noise = sigma * gauss
         nlos = self.nlos_min[rj] + self.nlos_mean[rj] * u_nlos
+        # a blocked link: the path over the edge, and an exponential NLoS excess drawn
+        # with the class's own exponential (no draw of its own)
+        occl = occl + cfg.occlusion_excess_mean_m(loss) * u_nlos
         is_outlier = u_outlier < self.p_outlier[rj]
         excess = np.where(is_outlier, outlier, 0.0)
-        rng_m = d_true + self.offsets_m[rj] + nlos + noise + excess
+        rng_m = d_true + self.offsets_m[rj] + nlos + occl + noise + excess
         x = (rssi - cfg.response_rssi50_dbm + cfg.frame_margin_db) / cfg.response_slope_db
         p_frame = 1.0 / (1.0 + np.exp(-x))
         extra = u_frames < p_frame[:, None]
@@ -557,6 +689,8 @@ class FtmRadio:
             nlos_excess_m=nlos,
             outlier=is_outlier,
             outlier_excess_m=excess,
+            occlusion_loss_db=loss,
+            occlusion_excess_m=occl,
             request_t_s=t_req,
             request_peers=n_peers.astype(np.int64),
         )
@@ -656,8 +790,8 @@ def _scan(w: np.ndarray, peers: np.ndarray, gaps: np.ndarray, r: int, tau: float
 _STEP_FIELDS = (
     "t_s", "t_delivery_s", "request", "responder", "status", "range_m", "range_std_m",
     "rssi_dbm", "successful", "true_range_m", "antenna_enu_m", "rssi_mean_dbm", "p_ok",
-    "sigma_m", "noise_m", "nlos_excess_m", "outlier", "outlier_excess_m", "request_t_s",
-    "request_peers",
+    "sigma_m", "noise_m", "nlos_excess_m", "outlier", "outlier_excess_m",
+    "occlusion_loss_db", "occlusion_excess_m", "request_t_s", "request_peers",
 )  # fmt: skip
 
 
@@ -667,6 +801,14 @@ def ftm_track(steps: list[FtmTrack], offsets_m: np.ndarray, attempted: int) -> F
         return _empty(len(offsets_m), attempted, offsets_m)
     cat = {name: np.concatenate([getattr(b, name) for b in steps]) for name in _STEP_FIELDS}
     return FtmTrack(attempted=attempted, offsets_m=np.asarray(offsets_m), **cat)
+
+
+def occluder_for(cfg: FtmConfig, terrain, responders_enu_m: np.ndarray) -> Occluder | None:
+    """The radio's :class:`sim.occlusion.Occluder` of ``terrain``, or None when
+    ``occlusion`` is off (or there is nothing to obstruct)."""
+    if not cfg.occlusion or terrain is None or len(responders_enu_m) == 0:
+        return None
+    return Occluder(terrain, responders_enu_m, cfg.frequency_hz, cfg.occlusion_step_m)
 
 
 def draw_offsets(world: World, cfg: FtmConfig, rng: np.random.Generator) -> np.ndarray:
@@ -699,8 +841,10 @@ def simulate_ftm(
     offsets = draw_offsets(world, cfg, child_rng(seq, 0))
     shadow = draw_shadowing(world, cfg, child_rng(seq, 1))
     models = tuple(cfg.concealment(r.concealment) for r in world.responders)
-    radio = FtmRadio(cfg, clock, world.responder_enu_m(), models, offsets, shadow,
-                     np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 2)))
+    resp = world.responder_enu_m()
+    radio = FtmRadio(cfg, clock, resp, models, offsets, shadow,
+                     np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 2)),
+                     occluder_for(cfg, world.terrain, resp))
     end = float(track.t_s[-1])
     batch = radio.range_until(end, track.position_at, track.antenna_at)
     return ftm_track([batch], offsets, cfg.attempted)

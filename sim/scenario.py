@@ -8,12 +8,14 @@ A scenario file has these tables (all but ``world.responders`` and ``flight`` op
     [log]      agent, start_utc, agl_m, range_offset_m       (the log header)
     [world.origin]   lat_deg, lon_deg, h_m
     [world.terrain]  kind = "hills" (HillsTerrain fields) | "grid" (file or heights_m,
-                     e0_m, n0_m, spacing_m)
+                     e0_m, n0_m, spacing_m) | "dem" (path, datum_offset_m: sim.dem)
     [[world.responders]]  name, bssid, e_m + n_m or lat_deg + lon_deg, concealment, ...
     [flight]   kind = "sweeps" | "pass" | "waypoints", then that flight's fields
     [search]   a search instead of a fixed flight (then [flight] may be absent):
-               area_enu_m, start_e_m, start_n_m, budget_s, height_m, speed_mps,
-               random_responders, random_concealment (docs/scenarios.md)
+               area_enu_m | area_geo | area_file, start_e_m, start_n_m, budget_s,
+               height_m, speed_mps, random_responders, random_concealment,
+               [[search.keepout]] (polygon_geo | polygon_enu_m | circle_geo |
+               circle_enu_m | file, top_m, name) (docs/scenarios.md)
     [[agents]] optional: several agents in one world: name, kind = "uav" | "ground",
                start_e_m, start_n_m, [agents.vehicle], [agents.gnss] (preset + fields)
     [vehicle]  VehicleConfig fields
@@ -23,10 +25,18 @@ A scenario file has these tables (all but ``world.responders`` and ``flight`` op
 
 Every key is checked (unknown keys, wrong types, NaN or out-of-range values raise
 :class:`ScenarioError` naming the file and key).
+
+A site is data converted once, here, to the world's ENU frame: areas and keep-outs in
+degrees or in files (:mod:`sim.sitefiles`: KML, GeoJSON, QGroundControl ``.plan``)
+become ENU polygons and circles (:class:`KeepOutZone`, ``Scenario.keepouts``); a DEM
+(:mod:`sim.dem`) is read over the window the scenario covers (its area, start,
+responders, agents and flight), and a scenario reaching beyond the file or onto nodata
+is refused with one line naming the file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import tomllib
@@ -36,13 +46,17 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from estimator.geometry import polygon_area_m2, signed_distance_to_polygon_m
 from estimator.records import Trajectory
 from sim._config import ConfigError, check_finite, from_table, merge_tables
 from sim.clock import ClockConfig
+from sim.dem import DemError, DemTerrain, box_of
 from sim.flights import FLIGHT_KINDS, Flight, TrajectoryFlight
 from sim.ftm import FtmConfig
 from sim.gnss import GNSS_PRESETS, GnssConfig
+from sim.sitefiles import GeoShape, SiteFileError, read_area, read_keepouts
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
 from sim.vehicle import WALKER, VehicleConfig
 from sim.world import MAX_EXTENT_M, Origin, Responder, World
@@ -74,6 +88,59 @@ class LogSettings:
 
 
 CONCEALMENTS = ("open", "vegetation", "vegetation_debris")
+MAX_KEEPOUT_TOP_M = 1000.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class KeepOutZone:
+    """A keep-out in the world's ENU frame: a polygon (``polygon_enu_m``) or a circle
+    (``center_enu_m``, ``radius_m``), and the obstacle's height above the ground
+    (``top_m``; None: never fly over it). A power-line tower is a circle with a top, the
+    line's corridor a polygon."""
+
+    name: str
+    polygon_enu_m: tuple[tuple[float, float], ...] = ()
+    center_enu_m: tuple[float, float] | None = None
+    radius_m: float | None = None
+    top_m: float | None = None
+
+    def __post_init__(self) -> None:
+        circle = self.center_enu_m is not None
+        if circle == bool(self.polygon_enu_m) or circle != (self.radius_m is not None):
+            raise ValueError(f"keep-out {self.name}: a polygon or a circle (centre, radius)")
+        pts = self.polygon_enu_m or (self.center_enu_m,)
+        for e, n in pts:  # type: ignore[misc]
+            check_finite(f"keep-out {self.name} coordinate", e)
+            check_finite(f"keep-out {self.name} coordinate", n)
+            if math.hypot(e, n) > MAX_EXTENT_M:
+                raise ValueError(f"keep-out {self.name} lies beyond {MAX_EXTENT_M:.0f} m of "
+                                 "the origin")
+        if circle:
+            check_finite(f"keep-out {self.name} radius_m", self.radius_m)  # type: ignore[arg-type]
+            if not 0.0 < self.radius_m <= 5000.0:  # type: ignore[operator]
+                raise ValueError(f"keep-out {self.name}: radius_m {self.radius_m:g} is not in "
+                                 "(0, 5000] m")
+        else:
+            if len(self.polygon_enu_m) < 3:
+                raise ValueError(f"keep-out {self.name}: a polygon needs at least 3 vertices")
+            if abs(polygon_area_m2(self.polygon_enu_m)) < 1.0:
+                raise ValueError(f"keep-out {self.name}: the polygon encloses no area")
+        if self.top_m is not None:
+            check_finite(f"keep-out {self.name} top_m", self.top_m)
+            if not 0.0 <= self.top_m <= MAX_KEEPOUT_TOP_M:
+                raise ValueError(f"keep-out {self.name}: top_m {self.top_m:g} is not in "
+                                 f"[0, {MAX_KEEPOUT_TOP_M:g}] m")
+
+    @property
+    def is_circle(self) -> bool:
+        return self.center_enu_m is not None
+
+    def contains(self, e_m: float, n_m: float) -> bool:
+        """Is (e, n) inside the keep-out's outline (on the boundary counts)?"""
+        if self.center_enu_m is not None:
+            c = self.center_enu_m
+            return math.hypot(e_m - c[0], n_m - c[1]) <= self.radius_m  # type: ignore[operator]
+        return bool(signed_distance_to_polygon_m(self.polygon_enu_m, [(e_m, n_m)])[0] <= 1e-9)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -90,6 +157,7 @@ class SearchSpec:
     random_responders: int = 0
     random_concealment: tuple[str, ...] = ("open",)
     expected_responders: int | None = None  # how many people are sought (None: unknown)
+    keepouts: tuple[KeepOutZone, ...] = ()  # [[search.keepout]], in ENU
 
     def __post_init__(self) -> None:
         poly = self.area_enu_m
@@ -108,6 +176,10 @@ class SearchSpec:
             raise ValueError(
                 f"the start ({self.start_e_m:g}, {self.start_n_m:g}) is outside area_enu_m"
             )
+        for k in self.keepouts:
+            if k.contains(self.start_e_m, self.start_n_m):
+                raise ValueError(f"the start ({self.start_e_m:g}, {self.start_n_m:g}) is inside "
+                                 f"keep-out {k.name}")
         check_finite("budget_s", self.budget_s)
         if not 0.0 < self.budget_s <= 6 * 3600.0:
             raise ValueError(f"budget_s {self.budget_s:g} is not in (0, 6 h]")
@@ -184,6 +256,12 @@ class Scenario:
         if self.flight is None:
             raise ValueError(f"scenario {self.name} has no [flight] (it is a search)")
         return self.flight.build(self.world)
+
+    @property
+    def keepouts(self) -> tuple[KeepOutZone, ...]:
+        """The search's keep-outs in the world's ENU frame (ENU polygons and circles with
+        their ``top_m``; empty without a ``[search]``)."""
+        return self.search.keepouts if self.search is not None else ()
 
     @property
     def agents(self) -> tuple[AgentSpec, ...]:
@@ -309,14 +387,64 @@ def _terrain(table: dict, base_dir: Path) -> Terrain:
             if t:
                 raise ConfigError(f"world.terrain: unknown key {sorted(t)[0]!r}")
             try:
-                import numpy as np
-
                 arr = np.array(heights, dtype=float)
                 return GridTerrain(arr, **{k: float(v) for k, v in geo.items()})
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"world.terrain.heights_m: {exc}") from exc
         raise ConfigError("world.terrain: a grid terrain needs exactly one of file, heights_m")
-    raise ConfigError(f"world.terrain.kind: {kind!r} is not 'hills' or 'grid'")
+    raise ConfigError(f"world.terrain.kind: {kind!r} is not 'hills', 'grid' or 'dem'")
+
+
+# flat ground: the horizontal geometry of a flight does not depend on the terrain, so a
+# DEM scenario's flight is first built over it to find the window the DEM must cover
+_FLAT = HillsTerrain(slope_e=0.0, slope_n=0.0, hills=(), ripple_amplitude_m=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _DemKeys:
+    path: str
+    datum_offset_m: float = 0.0
+
+
+def _dem_keys(table: dict, base_dir: Path) -> tuple[Path, float]:
+    t = dict(table)
+    t.pop("kind", None)
+    if "path" not in t:
+        raise ConfigError("world.terrain: a dem terrain needs path")
+    keys = from_table(_DemKeys, t, "world.terrain")
+    p = Path(keys.path)
+    return (p if p.is_absolute() else base_dir / p), keys.datum_offset_m
+
+
+def _dem_terrain(path: Path, offset: float, origin: Origin, scenario: Scenario) -> DemTerrain:
+    """The DEM over the window the scenario covers, each part of it checked."""
+    s = scenario.search
+    parts: list[tuple[str, np.ndarray]] = []
+    if s is not None:
+        parts.append(("the search start", np.array([[s.start_e_m, s.start_n_m]])))
+    for r in scenario.world.responders:
+        parts.append((f"responder {r.name}", np.array([[r.e_m, r.n_m]])))
+    for a in scenario.agents_:
+        if a.start_e_m is not None and a.start_n_m is not None:
+            parts.append((f"agent {a.name}'s start", np.array([[a.start_e_m, a.start_n_m]])))
+    if scenario.flight is not None:
+        # a flight that cannot be built is refused with its reason below
+        with contextlib.suppress(KeyError, ValueError):
+            parts.append(("the flight", scenario.trajectory().enu_m[:, :2]))
+    area = np.asarray(s.area_enu_m, dtype=float) if s is not None else None
+    boxes = [p for _, p in parts] + ([area] if area is not None else [])
+    if not boxes:
+        boxes = [np.zeros((1, 2))]
+    try:
+        dem = DemTerrain(path, (origin.lat_deg, origin.lon_deg, origin.h_m), box_of(boxes),
+                         datum_offset_m=offset)
+        if area is not None:
+            dem.require_polygon(area, "the search area")
+        for what, pts in parts:
+            dem.require_points(pts, what)
+    except DemError as exc:
+        raise ConfigError(f"world.terrain: {exc}") from None
+    return dem
 
 
 def _responder(table: dict, origin: Origin, where: str) -> Responder:
@@ -335,6 +463,143 @@ def _responder(table: dict, origin: Origin, where: str) -> Responder:
         e, n, _ = origin.frame().to_enu(float(lat), float(lon), origin.h_m)
         t["e_m"], t["n_m"] = round(e, 3), round(n, 3)
     return from_table(Responder, t, where)
+
+
+def _geo_to_enu(origin: Origin, vertices: Any, where: str) -> tuple[tuple[float, float], ...]:
+    """[[lat, lon], ...] -> ENU (e, n) vertices (mm) at the origin's height."""
+    if not isinstance(vertices, list | tuple) or not all(
+            isinstance(v, list | tuple) and len(v) == 2 for v in vertices):
+        raise ConfigError(f"{where}: expected an array of [lat, lon] pairs")
+    frame = origin.frame()
+    out = []
+    for i, (lat, lon) in enumerate(vertices):
+        for v in (lat, lon):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{where}[{i}]: expected finite numbers, got {v!r}")
+        if not -90.0 <= lat <= 90.0 or not -180.0 <= lon <= 180.0:
+            raise ConfigError(f"{where}[{i}]: ({lat}, {lon}) is not a latitude/longitude")
+        e, n, _ = frame.to_enu(float(lat), float(lon), origin.h_m)
+        out.append((round(e, 3), round(n, 3)))
+    return tuple(out)
+
+
+def _site_file(value: Any, base_dir: Path, where: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{where}: expected a file name")
+    p = Path(value)
+    return p if p.is_absolute() else base_dir / p
+
+
+_KEEPOUT_SHAPES = ("polygon_geo", "polygon_enu_m", "circle_geo", "circle_enu_m", "file")
+
+
+def _zone(shape: GeoShape | None, origin: Origin, where: str, **kw: Any) -> KeepOutZone:
+    try:
+        if shape is not None:
+            if shape.is_circle:
+                lat, lon = shape.center_deg  # type: ignore[misc]
+                kw["center_enu_m"] = _geo_to_enu(origin, [[lat, lon]], where)[0]
+                kw["radius_m"] = shape.radius_m
+            else:
+                kw["polygon_enu_m"] = _geo_to_enu(origin, [list(v) for v in shape.vertices_deg],
+                                                  where)
+        return KeepOutZone(**kw)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def _keepouts(raw: Any, origin: Origin, base_dir: Path) -> tuple[KeepOutZone, ...]:
+    """``[[search.keepout]]`` tables -> ENU zones (a file may give several)."""
+    if not isinstance(raw, list) or not all(isinstance(k, dict) for k in raw):
+        raise ConfigError("search.keepout: expected an array of tables ([[search.keepout]])")
+    out: list[KeepOutZone] = []
+    for i, table in enumerate(raw):
+        where = f"search.keepout[{i}]"
+        t = dict(table)
+        unknown = sorted(set(t) - {*_KEEPOUT_SHAPES, "top_m", "name"})
+        if unknown:
+            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: "
+                              f"{', '.join((*_KEEPOUT_SHAPES, 'name', 'top_m'))})")
+        given = [k for k in _KEEPOUT_SHAPES if k in t]
+        if len(given) != 1:
+            raise ConfigError(f"{where}: give exactly one of {', '.join(_KEEPOUT_SHAPES)}")
+        key = given[0]
+        top = t.get("top_m")
+        if top is not None and (isinstance(top, bool) or not isinstance(top, int | float)):
+            raise ConfigError(f"{where}.top_m: expected a number, got {top!r}")
+        name = t.get("name", f"keepout[{i}]")
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{where}.name: expected a non-empty string")
+        top = None if top is None else float(top)
+        value = t[key]
+        if key == "file":
+            path = _site_file(value, base_dir, f"{where}.file")
+            try:
+                shapes = read_keepouts(path)
+            except SiteFileError as exc:
+                raise ConfigError(f"{where}.file: {exc}") from None
+            for j, sh in enumerate(shapes):
+                nm = f"{name}/{sh.name}" if sh.name else f"{name}/{j}"
+                out.append(_zone(sh, origin, f"{where}.file", name=nm,
+                                 top_m=sh.top_m if sh.top_m is not None else top))
+            continue
+        if key in ("circle_geo", "circle_enu_m"):
+            if not isinstance(value, list) or len(value) != 3 or not all(
+                    isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+                raise ConfigError(f"{where}.{key}: expected three numbers")
+            if key == "circle_geo":
+                center = _geo_to_enu(origin, [value[:2]], f"{where}.{key}")[0]
+            else:
+                center = (float(value[0]), float(value[1]))
+            out.append(_zone(None, origin, where, name=name, center_enu_m=center,
+                             radius_m=float(value[2]), top_m=top))
+            continue
+        if key == "polygon_geo":
+            poly = _geo_to_enu(origin, value, f"{where}.polygon_geo")
+        else:
+            if not isinstance(value, list) or not all(
+                    isinstance(v, list) and len(v) == 2 for v in value):
+                raise ConfigError(f"{where}.polygon_enu_m: expected an array of [e, n] pairs")
+            poly = tuple((float(e), float(n)) for e, n in value)
+        out.append(_zone(None, origin, where, name=name, polygon_enu_m=poly, top_m=top))
+    names = [k.name for k in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"search.keepout: the name {dup[0]!r} is used twice")
+    return tuple(out)
+
+
+def _search(table: Any, origin: Origin, base_dir: Path) -> SearchSpec:
+    """``[search]``: the area in ENU, degrees or a file; the keep-outs converted to ENU."""
+    if not isinstance(table, dict):
+        raise ConfigError("search: expected a table")
+    t = dict(table)
+    if "keepouts" in t:
+        raise ConfigError("search: unknown key 'keepouts' (keep-outs are [[search.keepout]] "
+                          "tables)")
+    given = [k for k in ("area_enu_m", "area_geo", "area_file") if k in t]
+    if len(given) > 1:
+        raise ConfigError(f"search: give one of area_enu_m, area_geo, area_file, not "
+                          f"{' and '.join(given)}")
+    if "area_geo" in t:
+        t["area_enu_m"] = [list(v) for v in _geo_to_enu(origin, t.pop("area_geo"),
+                                                        "search.area_geo")]
+    elif "area_file" in t:
+        path = _site_file(t.pop("area_file"), base_dir, "search.area_file")
+        try:
+            verts = read_area(path)
+        except SiteFileError as exc:
+            raise ConfigError(f"search.area_file: {exc}") from None
+        t["area_enu_m"] = [list(v) for v in _geo_to_enu(origin, [list(v) for v in verts],
+                                                        "search.area_file")]
+    keep = _keepouts(t.pop("keepout"), origin, base_dir) if "keepout" in t else ()
+    spec = from_table(SearchSpec, t, "search")
+    if not keep:
+        return spec
+    try:
+        return dataclasses.replace(spec, keepouts=keep)
+    except ValueError as exc:
+        raise ConfigError(f"search: {exc}") from None
 
 
 def _flight(table: dict) -> Flight:
@@ -423,7 +688,13 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
         if bad:
             raise ConfigError(f"world: unknown key {bad[0]!r}")
         origin = from_table(Origin, world_t.get("origin", {}), "world.origin")
-        terrain = _terrain(world_t.get("terrain", {}), base_dir)
+        terrain_t = world_t.get("terrain", {})
+        dem = None
+        if isinstance(terrain_t, dict) and terrain_t.get("kind") == "dem":
+            dem = _dem_keys(terrain_t, base_dir)
+            terrain: Terrain = _FLAT  # until the window the DEM must cover is known
+        else:
+            terrain = _terrain(terrain_t, base_dir)
         resp_t = world_t.get("responders", [])
         if not isinstance(resp_t, list) or not all(isinstance(r, dict) for r in resp_t):
             raise ConfigError("world.responders: expected an array of tables")
@@ -436,7 +707,7 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
             raise ConfigError(f"world: {exc}") from exc
         search = None
         if "search" in table:
-            search = from_table(SearchSpec, table["search"], "search")
+            search = _search(table["search"], origin, base_dir)
         if search is None and not isinstance(table.get("flight"), dict):
             raise ConfigError("missing [flight] table (or a [search] table)")
         flight = _flight(table["flight"]) if isinstance(table.get("flight"), dict) else None
@@ -458,6 +729,10 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
             log=from_table(LogSettings, table.get("log", {}), "log"),
             source=source,
         )
+        if dem is not None:
+            dem_terrain = _dem_terrain(*dem, origin, scenario)
+            scenario = dataclasses.replace(scenario, world=dataclasses.replace(
+                world, terrain=dem_terrain))
         if flight is not None:
             try:
                 traj = scenario.trajectory()

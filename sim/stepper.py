@@ -41,7 +41,7 @@ from estimator.records import (
 )
 from sim._random import BlockedGaussMarkov
 from sim.clock import PhoneClock
-from sim.ftm import STATUS_NAMES, FtmRadio, FtmTrack, ftm_track
+from sim.ftm import STATUS_NAMES, FtmRadio, FtmTrack, ftm_track, occluder_for
 from sim.gnss import GnssReceiver, GnssTrack, gnss_track
 from sim.realisation import (
     AGENT_CLOCK,
@@ -160,6 +160,7 @@ class Stepper:
         resp = realisation.responder_enu_m()
         models = tuple(sc.ftm.concealment(r.concealment) for r in self.world.responders)
         self.bssids = realisation.bssids
+        occluder = occluder_for(sc.ftm, self.world.terrain, resp)  # one for every radio
         self.agents: list[AgentSim] = []
         self._nav_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}
         for i, spec in enumerate(specs):
@@ -179,7 +180,8 @@ class Stepper:
                 nav_error=rx.process.bias_at if navigate_on_gnss else None,
             )
             radio = FtmRadio(sc.ftm, sc.clock, resp, models, realisation.offsets_m,
-                             realisation.shadowing, realisation.agent_seed(i, AGENT_RADIO))
+                             realisation.shadowing, realisation.agent_seed(i, AGENT_RADIO),
+                             occluder)
             clock = PhoneClock.draw(
                 sc.clock, np.random.default_rng(realisation.agent_seed(i, AGENT_CLOCK))
             )

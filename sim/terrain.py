@@ -12,6 +12,9 @@ horizontal line (how far a straight leg can sag towards the ground). Two kinds:
   terrain" (sec. Experimental Setup).
 - :class:`GridTerrain`: a user-supplied regular grid with bilinear interpolation;
   outside the grid the edge value is held.
+
+A real place's ground comes from a DEM file: :class:`sim.dem.DemTerrain` (GeoTIFF in
+any CRS, SRTM ``.hgt``), the same protocol.
 """
 
 from __future__ import annotations
@@ -177,14 +180,28 @@ class HillsTerrain:
     def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
         """An upper bound of the height over the box [e_min, e_max] x [n_min, n_max]:
         the plane at its highest corner, each hill at the box's point nearest its
-        centre (a valley at most 0), the ripple's amplitude."""
+        centre (a valley at the farthest), the ripple's largest sine over the box's
+        phase interval (tight on small boxes: the FTM occlusion tables use them)."""
         h = (self.base_m + max(self.slope_e * e_min, self.slope_e * e_max)
-             + max(self.slope_n * n_min, self.slope_n * n_max) + self.ripple_amplitude_m)
+             + max(self.slope_n * n_min, self.slope_n * n_max))
         for g in self.hills:
             if g.height_m > 0:
                 de = max(e_min - g.e_m, 0.0, g.e_m - e_max)
                 dn = max(n_min - g.n_m, 0.0, g.n_m - n_max)
-                h += g.height_m * math.exp(-0.5 * (de * de + dn * dn) / (g.sigma_m * g.sigma_m))
+            else:
+                de = max(abs(e_min - g.e_m), abs(e_max - g.e_m))
+                dn = max(abs(n_min - g.n_m), abs(n_max - g.n_m))
+            h += g.height_m * math.exp(-0.5 * (de * de + dn * dn) / (g.sigma_m * g.sigma_m))
+        if self.ripple_amplitude_m > 0:
+            a = math.radians(self.ripple_direction_deg)
+            k = 2.0 * math.pi / self.ripple_wavelength_m
+            ce, sn = k * math.cos(a), k * math.sin(a)
+            lo = min(ce * e_min, ce * e_max) + min(sn * n_min, sn * n_max)
+            hi = max(ce * e_min, ce * e_max) + max(sn * n_min, sn * n_max)
+            crest = 0.5 * math.pi + 2.0 * math.pi * math.ceil((lo - 0.5 * math.pi) / (2 * math.pi))
+            top = 1.0 if crest <= hi else max(math.sin(lo), math.sin(hi))
+            # + 1e-12: the phase's rounding in height_m (k (cos a e + sin a n))
+            h += self.ripple_amplitude_m * min(1.0, top + 1e-12 * (1.0 + abs(lo) + abs(hi)))
         return h
 
     def sag_curvature(self) -> tuple[float, float]:
@@ -269,7 +286,7 @@ class GridTerrain:
             e, n = ca.MX.sym("e"), ca.MX.sym("n")
             f = ca.Function("terrain_height", [e, n], [lut(ca.vertcat(e, n))])
             object.__setattr__(self, "_ca_interp", f)
-        return lambda e, n: _map2(f, e, n)
+        return lambda e, n: map_elementwise(f, e, n)
 
     def max_height_m(self, e_min: float, e_max: float, n_min: float, n_max: float) -> float:
         """An upper bound of the height over the box [e_min, e_max] x [n_min, n_max]: the
@@ -301,7 +318,7 @@ class GridTerrain:
         return 1.5 * concave, 1.5 * convex
 
 
-def _map2(f, e, n):
+def map_elementwise(f, e, n):
     """Evaluate a scalar CasADi function elementwise over matching row/column vectors."""
     import casadi as ca
 

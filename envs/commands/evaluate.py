@@ -260,7 +260,10 @@ def run(args: argparse.Namespace) -> int:
         if client is not None:
             client.close(timeout=args.connect_timeout)
     bar.close()
-    status = _report(args, ev, out, fig_dir)
+    from sim import realise
+
+    # the ground under the example worlds (the same terrain for every seed)
+    status = _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
     journal.remove()  # every row is in FILE now
     return status
 
@@ -274,7 +277,7 @@ def _file_sha256(path: str) -> str | None:
     return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
 
 
-def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path) -> int:
+def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None) -> int:
     from envs.commands._outputs import json_text, written_whole
     from envs.evaluate import format_summary, summarise, write_rows
 
@@ -285,7 +288,7 @@ def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path) -> int:
     if not args.no_figures:
         from envs.evaluate_plots import plot_evaluation
 
-        figures = plot_evaluation(ev, fig_dir)
+        figures = plot_evaluation(ev, fig_dir, terrain=terrain)
     if args.json:
         print(json_text(rows))
         return 0

@@ -46,7 +46,7 @@ from envs.commands._args import finite_float, positive_float
 from envs.commands._outputs import add_force_option
 
 PATTERNS = ("lawnmower", "expanding-square", "helix", "circles", "close-pass", "orbit", "optimal")
-MISSION_SUFFIXES = (".plan", ".waypoints", ".txt")
+MISSION_SUFFIXES = (".plan", ".waypoints", ".txt", ".kml")
 MAX_FLIGHT_S = 2 * 3600.0  # hard limit: beyond any multirotor battery
 DEFAULT_WARN_FLIGHT_MIN = 30.0  # one battery of a survey multirotor
 DEFAULT_MAX_ITEMS = 500  # PX4 on a flight controller (NUM_MISSIONS_SUPPORTED)
@@ -111,8 +111,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("pattern", metavar="PATTERN", choices=PATTERNS, help=" | ".join(PATTERNS))
     p.add_argument("-o", "--output", required=True, metavar="FILE", help=".plan or .waypoints")
     p.add_argument(
-        "--center", required=True, type=_latlon, metavar="LAT,LON",
-        help="centre of the search area / prior AP estimate (degrees)",
+        "--center", type=_latlon, metavar="LAT,LON",
+        help="centre of the search area / prior AP estimate (degrees); required unless "
+             "--area is given",
     )  # fmt: skip
     p.add_argument("--radius", type=positive_float, metavar="M", help=RADIUS_HELP)
     p.add_argument(
@@ -227,6 +228,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help=f"refuse a mission of more items than the vehicle holds (default "
         f"{DEFAULT_MAX_ITEMS}, PX4 on a flight controller)",
     )
+    site = p.add_argument_group("on a site (docs/planner.md)")
+    site.add_argument("--area", metavar="FILE",
+                      help="search area: a KML or GeoJSON polygon, or a .plan whose geoFence "
+                           "holds one inclusion polygon; lawnmower and expanding-square cover "
+                           "it, the other patterns stay inside it")
+    site.add_argument("--keepout", action="append", default=[], metavar="FILE",
+                      help="keep-outs (KML/GeoJSON polygons or points with radius_m, a "
+                           ".plan's exclusion fence; top_m: height above ground); repeatable")
+    site.add_argument("--dem", metavar="FILE",
+                      help="ground heights (GeoTIFF in any CRS, SRTM .hgt): heights follow "
+                           "the ground, every leg within [M - 2, M + 25] m above it")
+    site.add_argument("--agl", type=positive_float, metavar="M",
+                      help="height above the ground (needs --dem or --alt-frame terrain; "
+                           "default: --alt)")
+    site.add_argument("--alt-frame", choices=("relative", "terrain", "amsl"), default=None,
+                      help="item altitudes: relative to home (frame 6, default), above the "
+                           "terrain (frame 11) or above mean sea level (frame 0, needs --dem)")
+    site.add_argument("--margin", type=finite_float, default=10.0, metavar="M",
+                      help="distance kept from the area's edges and the keep-outs (default 10)")
     p.add_argument("--no-rtl", action="store_true", help="no RETURN_TO_LAUNCH item at the end")
     p.add_argument("--geojson", metavar="PATH", help="also write the plan as GeoJSON")
     add_force_option(p)
@@ -262,14 +282,14 @@ def _fmt(v: float, unit: str = " m") -> str:
     return f"{v:.2f}{unit}" if math.isfinite(v) else "inf"
 
 
-def _pattern_segments(args: argparse.Namespace, pat: Any, radius: float, center, prior,
+def pattern_segments(args: argparse.Namespace, pat: Any, radius: float, center, prior,
                       start, flight) -> list:
     """The pattern's exact segments (cheap: nothing sampled yet)."""
     name = args.pattern
     if name in ("lawnmower", "expanding-square"):
         spacing = args.spacing
         if spacing is None:  # the patterns' default: from the detection range at --alt
-            r_det = pat.detection_range_m(args.alt, _scoring().link)
+            r_det = pat.detection_range_m(args.alt, scoring_config().link)
             spacing = pat.lawnmower_spacing_m(r_det, args.overlap)
         if name == "lawnmower":
             return pat.lawnmower_segments(center, radius, spacing, heading_deg=args.heading,
@@ -322,20 +342,23 @@ def check_mission_size(args: argparse.Namespace, duration_s: float, length_m: fl
 
 def _check_suffix(args: argparse.Namespace) -> None:
     if Path(args.output).suffix.lower() not in MISSION_SUFFIXES:
-        raise PlanError(f"{args.output}: unknown mission type (use .plan, .waypoints or .txt)")
+        raise PlanError(f"{args.output}: unknown mission type (use .plan, .waypoints, .txt "
+                        "or .kml)")
 
 
 def claim_outputs(args: argparse.Namespace) -> None:
     """-o and --geojson may be written (envs/commands/_outputs.py: an existing file needs
-    --force), checked before any planning; raises :class:`PlanError`."""
+    --force, an input is never written over), checked before any planning; raises
+    :class:`PlanError`."""
     from envs.commands._outputs import OutputRefusedError, claim_output_file
 
     _check_suffix(args)
     if args.geojson and Path(args.geojson).resolve() == Path(args.output).resolve():
         raise PlanError(f"--geojson {args.geojson} is the mission file -o: name another file")
+    inputs = [f for f in (args.area, *args.keepout, args.dem) if f]
     try:
         for path in filter(None, (args.output, args.geojson)):
-            claim_output_file(path, force=args.force)
+            claim_output_file(path, force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         raise PlanError(str(exc)) from None
 
@@ -343,6 +366,8 @@ def claim_outputs(args: argparse.Namespace) -> None:
 def build_plan(args: argparse.Namespace) -> PlanOutput:
     """Plan from parsed arguments (no file written); raises :class:`PlanError`."""
     _check_suffix(args)
+    if args.center is None:
+        raise PlanError("give --center LAT,LON (or --area FILE)")
     if not 0.0 <= args.overlap < 1.0:
         raise PlanError(f"--overlap must be in [0, 1), got {args.overlap:g}")
     if not 1 <= args.rings <= MAX_RINGS:
@@ -383,7 +408,7 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
             traj, note, fence = _optimal(args, radius, center, prior, start, keep_outs, home)
         else:
             flight = pat.FlightConfig(speed_m_s=args.speed, alt_m=args.alt, origin=home)
-            segs = _pattern_segments(args, pat, radius, center, prior, start, flight)
+            segs = pattern_segments(args, pat, radius, center, prior, start, flight)
             est = pat.estimate_path(segs, flight, start_enu_m=start,
                                     end_enu_m=None if args.no_rtl else start,
                                     tolerance_m=args.tolerance)
@@ -413,14 +438,21 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
 
 
 def run(args: argparse.Namespace) -> int:
+    from envs.commands.plan_site import run_site, site_requested
     from planner.plan_checks import geometry_warnings, site_warnings
 
-    points = [("--home", *args.home[:2])] if args.home else []
-    points += [("--keep-out", lat, lon) for lat, lon, _ in args.keep_out]
-    for w in site_warnings(tuple(args.center), points):
-        print(f"osa plan: warning: {w}", file=sys.stderr)
+    if args.center is not None:
+        points = [("--home", *args.home[:2])] if args.home else []
+        points += [("--keep-out", lat, lon) for lat, lon, _ in args.keep_out]
+        for w in site_warnings(tuple(args.center), points):
+            print(f"osa plan: warning: {w}", file=sys.stderr)
     try:
         claim_outputs(args)
+    except PlanError as exc:
+        return _fail(str(exc), exc.status)
+    if site_requested(args):
+        return run_site(args)
+    try:
         plan = build_plan(args)
     except PlanError as exc:
         return _fail(str(exc), exc.status)
@@ -456,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as exc:
             return _fail(f"{args.geojson}: cannot write GeoJSON: {exc}")
 
-    score = score_trajectory(traj, plan.prior_enu_m, _scoring())
+    score = score_trajectory(traj, plan.prior_enu_m, scoring_config())
     for w in geometry_warnings(score.condition_number):
         print(f"osa plan: warning: {w}", file=sys.stderr)
     n_wp = sum(1 for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT)
@@ -487,7 +519,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scoring():
+def scoring_config():
     """The scorer with the simulator's calibrated link (sim.FtmLink): the planner's
     predictions use the same response model the simulated world has."""
     from planner.scoring import ScoringConfig
@@ -503,7 +535,7 @@ def _optimal(args, radius, center, prior, start, keep_outs, home):
     from planner.optimal import OptimalConfig, OptimalPlanner
     from planner.patterns import Geofence
 
-    cfg = OptimalConfig(scoring=_scoring())
+    cfg = OptimalConfig(scoring=scoring_config())
     fence = Geofence.square(center, radius)
     if fence.signed_distance_m(np.array([start[:2]]))[0] > -cfg.fence_margin_m:
         raise PlanError(f"home is outside the {radius:g} m keep-in square around --center")

@@ -18,6 +18,7 @@ import sys
 import warnings
 
 from envs.commands._args import float_in
+from envs.commands._outputs import OutputRefusedError, add_force_option, claim_output_dir
 from estimator.logio import AGL_MAX_M, AGL_MIN_M, RANGE_OFFSET_MAX_M
 
 
@@ -47,6 +48,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="ENU frame: the paper's tangent plane (eq. 1, default) or exact WGS84")
     p.add_argument("--json", action="store_true", help="print the JSON report only")
     p.add_argument("--quiet", action="store_true", help="do not print log warnings")
+    p.add_argument("--figures", default=None, metavar="DIR",
+                   help="also draw trajectory.png and convergence.png (as osa run does) "
+                   "into the folder DIR")
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -81,12 +86,27 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"osa replay: {exc}", file=sys.stderr)
         return 2
+    figures = None
+    if args.figures is not None:
+        streams = [p for p in args.logs if p == "-" or not os.path.isfile(p)]
+        if streams:  # the figures read the logs again: a pipe would be empty then
+            print(f"osa replay: --figures reads the logs a second time: {streams[0]} is "
+                  "not a regular file (save it to a file first)", file=sys.stderr)
+            return 2
+        try:
+            figures = claim_output_dir(args.figures, command="replay", force=args.force,
+                                       inputs=args.logs, quiet=args.json)
+        except OutputRefusedError as exc:
+            print(f"osa replay: {exc}", file=sys.stderr)
+            return 2
     opts = ReplayOptions(
         modes=modes,
         agl_m=args.agl,
         range_offset_m=args.range_offset,
         projection=args.projection,
-        keep_history=False,  # TWM is accumulated online: memory stays bounded on long logs
+        # TWM is accumulated online: memory stays bounded on long logs; the convergence
+        # figure needs each track's published estimates
+        keep_history=figures is not None,
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -105,8 +125,16 @@ def run(args: argparse.Namespace) -> int:
             if text not in seen:
                 seen.add(text)
                 print(f"osa replay: warning: {text}", file=sys.stderr)
+    if figures is not None:
+        from envs.plots import plot_convergence, plot_trajectory
+
+        title = ", ".join(os.path.basename(p) for p in args.logs)
+        drawn = [plot_trajectory(report, args.logs, figures / "trajectory.png", title=title),
+                 plot_convergence(report, figures / "convergence.png")]
     if args.json:
         print(json_text(report.to_json()))
     else:
         print(format_table(report))
+        if figures is not None:
+            print(f"\nwrote {', '.join(str(p) for p in drawn)}")
     return 0

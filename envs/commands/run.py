@@ -149,7 +149,9 @@ def run(args: argparse.Namespace) -> int:
     (out / "report.json").write_text(json_text(report.to_json(), indent=1))
     progress.step("drawing figures")
     title = f"{args.scenario}, seed {args.seed}"
-    traj = plot_trajectory(report, [log_path], out / "trajectory.png", title=title)
+    world = sim.realise(scenario, args.seed).world  # the ground under the map
+    traj = plot_trajectory(report, [log_path], out / "trajectory.png", title=title,
+                           terrain=world.terrain, terrain_frame=world.frame)
     conv = plot_convergence(report, out / "convergence.png")
     if args.rerun:
         from envs.viz import record_replay

@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from envs.commands._args import non_negative_int
+from envs.commands._outputs import add_force_option
+from estimator.tables import Column, text_table
 
 POLICY_HELP = ("lawnmower (the QGroundControl-style survey), expanding-square, adaptive "
                "(default: search until heard, then plan around the estimate), or ppo:PATH "
@@ -46,25 +50,63 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--connection", "-c", metavar="URL", default=None,
                    help="fly a MAVLink vehicle instead of the in-process simulator, e.g. "
-                   "osa vehicle on the same scenario and seed (udpout:127.0.0.1:14540)")
+                   "osa vehicle on the same scenario and seed (udpout:127.0.0.1:14540); "
+                   "the phone's records come on the same link (the vehicle relays them)")
+    p.add_argument("--phone", metavar="URL", default=None,
+                   help="with --connection: take the phone's records as JSON-line datagrams "
+                   "from a phone app listening here (udpin://0.0.0.0:14600) instead")
     p.add_argument("--vehicle-log", metavar="FILE", default=None,
-                   help="with --connection: the phone's log the vehicle writes as it flies "
-                   "(osa vehicle --log FILE), read as it grows")
+                   help="with --connection: take the phone's records from the log the "
+                   "vehicle writes on this machine (osa vehicle --log FILE) instead")
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
 def _fail(message: object) -> int:
-    print(f"osa search: {message}", file=sys.stderr)
+    print(f"osa search: {' '.join(str(message).split())}", file=sys.stderr)
     return 2
+
+
+class _Stop:
+    """SIGINT (Ctrl-C) and SIGTERM end the search at its next decision: the report says
+    ``interrupted``, what was heard is delivered and the log closed. A second Ctrl-C
+    stops at once."""
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self.previous: dict = {}
+
+    def __enter__(self) -> _Stop:
+        if threading.current_thread() is threading.main_thread():  # signals: main only
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self.previous[s] = signal.signal(s, self._on_signal)
+        return self
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        if self.signal is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.signal = signum
+
+    def __call__(self) -> bool:
+        return self.signal is not None
+
+    def __exit__(self, *exc: object) -> None:
+        for s, h in self.previous.items():
+            signal.signal(s, h)
 
 
 def run(args: argparse.Namespace) -> int:
     import math
 
+    from envs.commands._outputs import (
+        OutputRefusedError,
+        claim_output_dir,
+        claim_output_file,
+    )
     from envs.commands._progress import QuantityProgress
-    from envs.commands.run import writable_file_problem
-    from envs.loop import DEFAULT_MODE, LoopConfig, run_search
+    from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig, fly
     from envs.policies import load_policy
+    from sim.realisation import realise
     from sim.scenario import ScenarioError, search_scenario
 
     try:
@@ -82,17 +124,18 @@ def run(args: argparse.Namespace) -> int:
         policy = load_policy(args.policy, scenario)
     except ValueError as exc:
         return _fail(f"--policy: {exc}")
-    if args.connection is not None or args.vehicle_log is not None:
+    if args.connection is not None or args.vehicle_log is not None or args.phone is not None:
         problem = _link_problem(args, scenario)
         if problem:
             return _fail(problem)
-    out = Path(args.out)
+    # every output is checked before the flight (docs/cli.md, "Outputs")
+    inputs = [p for p in (args.scenario, args.vehicle_log) if p and Path(p).is_file()]
     try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return _fail(f"cannot create {out}: {exc.strerror}")
-    if args.rerun and (problem := writable_file_problem(args.rerun)):
-        return _fail(f"--rerun: {problem}")
+        out = claim_output_dir(args.out, command="search", force=args.force, inputs=inputs)
+        if args.rerun:
+            claim_output_file(args.rerun, force=args.force, inputs=inputs)
+    except OutputRefusedError as exc:
+        return _fail(exc)
     agents = scenario.agents
     logs = [out / ("flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl")
             for i, a in enumerate(agents)]
@@ -100,57 +143,89 @@ def run(args: argparse.Namespace) -> int:
     bar = QuantityProgress(f"osa search {policy.name}", budget, "s",
                            enabled=not args.no_progress, every=60.0)
     try:
-        if args.connection is not None:
-            from envs.mavlink_loop import VehicleLinkError, run_search_mavlink
-            from planner.mavlink_wire import UploadError
+        with _Stop() as stop:
+            if args.connection is not None:
+                from envs.mavlink_vehicle import VehicleLinkError
+                from planner.mavlink_wire import UploadError
 
-            try:
-                result = run_search_mavlink(scenario, policy, args.connection,
-                                            args.vehicle_log, args.seed, config=config,
-                                            log_paths=logs[:1], progress=bar.update)
-            except (VehicleLinkError, UploadError) as exc:
-                bar.close()
-                print(f"osa search: {type(exc).__name__}: {' '.join(str(exc).split())}",
-                      file=sys.stderr)
-                return 1
-        else:
-            result = run_search(scenario, policy, args.seed, config=config, log_paths=logs,
-                                progress=bar.update)
-    finally:
-        bar.close()
+                try:
+                    vehicle = _mavlink_vehicle(args, scenario, realise(scenario, args.seed),
+                                               logs[0])
+                    loop = ClosedLoop(scenario, args.seed, config=config, vehicle=vehicle,
+                                      realisation=vehicle.realisation)
+                    result = fly(loop, policy, progress=bar.update, should_stop=stop)
+                except (VehicleLinkError, UploadError, OSError) as exc:
+                    bar.close("failed")
+                    print(f"osa search: {type(exc).__name__}: {' '.join(str(exc).split())}",
+                          file=sys.stderr)
+                    return 1
+            else:
+                loop = ClosedLoop(scenario, args.seed, config=config, log_paths=logs)
+                result = fly(loop, policy, progress=bar.update, should_stop=stop)
+    except KeyboardInterrupt:  # a second Ctrl-C: stop at once
+        bar.close("interrupted")
+        return 130
+    bar.close("interrupted" if result.ended == "interrupted" else "done")
     report = result.to_json()
     (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False))
     figures: list[Path] = []
     if not args.no_figures:
         from envs.search_plots import plot_search
+        from sim import realise
 
-        figures = list(plot_search(result, out))
+        figures = list(plot_search(result, out,
+                                   terrain=realise(scenario, args.seed).world.terrain))
     if args.rerun:
         from envs.viz import record_search
 
         record_search(result, args.rerun)
     if args.json:
         print(json.dumps(report, allow_nan=False))
-        return 0
-    print(summary(result))
-    wrote = [str(p) for p in (*logs, out / "report.json", *figures)]
-    if args.rerun:
-        wrote.append(args.rerun)
-    print("wrote " + ", ".join(wrote))
-    return 0
+    else:
+        print(summary(result))
+        wrote = [str(p) for p in (*result.logs, out / "report.json", *figures)]
+        if args.rerun:
+            wrote.append(args.rerun)
+        print("wrote " + ", ".join(wrote))
+    return 130 if result.ended == "interrupted" else 0
+
+
+def _mavlink_vehicle(args: argparse.Namespace, scenario, realisation, log: Path):
+    """The vehicle of ``--connection``, its phone's records from the relay, ``--phone``
+    or ``--vehicle-log``."""
+    from envs.mavlink_vehicle import MavlinkVehicle, VehicleLinkError
+    from envs.phone import FileRecords, UdpRecords
+
+    source = None
+    try:
+        if args.phone is not None:
+            source = UdpRecords(args.phone)
+        elif args.vehicle_log is not None:
+            source = FileRecords(args.vehicle_log)
+    except (OSError, ValueError) as exc:
+        raise VehicleLinkError(str(exc)) from None
+    try:
+        return MavlinkVehicle(scenario, realisation, args.connection, phone=source,
+                              log_path=log, seed=args.seed)
+    except BaseException:
+        if source is not None:
+            source.close()
+        raise
 
 
 def _link_problem(args: argparse.Namespace, scenario) -> str | None:
-    """Why ``--connection`` / ``--vehicle-log`` cannot be used (None: they can)."""
-    from envs.mavlink_loop import pymavlink_url
+    """Why ``--connection`` / ``--phone`` / ``--vehicle-log`` cannot be used (None: they
+    can)."""
+    from envs.mavlink_vehicle import pymavlink_url
+    from envs.phone import udp_listen_address
     from planner.mavlink import check_connection_url
     from planner.mavlink_wire import InvalidConnectionError
 
     if args.connection is None:
-        return "--vehicle-log needs --connection"
-    if args.vehicle_log is None:
-        return ("--connection needs --vehicle-log FILE: the phone's records come from the log "
-                "the vehicle writes (osa vehicle --log FILE)")
+        what = "--phone" if args.phone is not None else "--vehicle-log"
+        return f"{what} needs --connection"
+    if args.phone is not None and args.vehicle_log is not None:
+        return "--phone and --vehicle-log are two sources of the same records: give one"
     if len(scenario.agents) != 1:
         return (f"{scenario.name} has {len(scenario.agents)} agents: --connection flies one "
                 "vehicle")
@@ -158,20 +233,25 @@ def _link_problem(args: argparse.Namespace, scenario) -> str | None:
         check_connection_url(pymavlink_url(args.connection))
     except InvalidConnectionError as exc:
         return f"--connection: {exc}"
-    if str(args.vehicle_log).endswith(".gz"):
+    if args.phone is not None:
+        try:
+            udp_listen_address(args.phone)
+        except ValueError as exc:
+            return f"--phone: {exc}"
+    if args.vehicle_log is not None and str(args.vehicle_log).endswith(".gz"):
         return "--vehicle-log: a gzip log cannot be read while it is written"
     return None
 
 
+SUMMARY_COLUMNS = (
+    Column("responder", "<", 18), Column("class", "<", 19), Column("heard", ">", 8),
+    Column("localised", ">", 11), Column("status", ">", 15), Column("sigma_H", ">", 9),
+    Column("err_2D", ">", 8),
+)
+
+
 def summary(result) -> str:
     """A readable report: how the search ended, then one line per responder."""
-    lines = [
-        f"{result.scenario}, seed {result.seed}: {result.policy} ({result.mode}) ended "
-        f"{result.ended} after {result.flight_time_s / 60:.1f} min, "
-        f"{result.path_length_m / 1000:.2f} km, {result.replans} re-plans",
-        f"  {'responder':<18}{'class':<19}{'heard':>8}{'localised':>11}{'status':>15}"
-        f"{'sigma_H':>9}{'err_2D':>8}",
-    ]
 
     def t(v):
         return "-" if v is None else f"{v / 60:.1f} min"
@@ -179,10 +259,12 @@ def summary(result) -> str:
     def m(v):
         return "-" if v is None else f"{v:.2f}"
 
-    for r in result.responders:
-        lines.append(
-            f"  {r['bssid']:<18}{r.get('concealment', '-'):<19}{t(r.get('detected_at_s')):>8}"
-            f"{t(r.get('localised_at_s')):>11}{r['status']:>15}{m(r.get('sigma_h_m')):>9}"
-            f"{m(r.get('err_h_m')):>8}"
-        )
-    return "\n".join(lines)
+    rows = [(r["bssid"], r.get("concealment", "-"), t(r.get("detected_at_s")),
+             t(r.get("localised_at_s")), r["status"], m(r.get("sigma_h_m")),
+             m(r.get("err_h_m"))) for r in result.responders]
+    return "\n".join([
+        f"{result.scenario}, seed {result.seed}: {result.policy} ({result.mode}) ended "
+        f"{result.ended} after {result.flight_time_s / 60:.1f} min, "
+        f"{result.path_length_m / 1000:.2f} km, {result.replans} re-plans",
+        *text_table(SUMMARY_COLUMNS, rows, indent="  "),
+    ])

@@ -1,10 +1,11 @@
 """``osa vehicle SCENARIO --connection URL [--speedup X] [--log FILE] [--seed N]``.
 
-A simulated PX4 multicopter on MAVLink (shared/spec/cli.md; docs/vehicle.md): the
+A simulated PX4 multicopter on MAVLink (docs/vehicle.md, docs/cli.md): the
 scenario's world and sensors behind an autopilot that QGroundControl, MAVSDK,
 pymavlink and ``osa upload`` talk to. Runs until SIGINT or SIGTERM, then closes the
-log and exits 0. Exit 2 with one line on stderr for a bad scenario, URL or option;
-1 if the vehicle crashed (into the terrain).
+log and exits 0. Exit 2 with one line on stderr for a bad scenario, URL or option, or a
+log it may not write (an existing file without ``--force``, the scenario file itself:
+envs/commands/_outputs.py); 1 if the vehicle crashed (into the terrain).
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ import argparse
 import math
 import signal
 import sys
+from pathlib import Path
+
+from envs.commands._outputs import OutputRefusedError, add_force_option, claim_output_file
 
 EXIT_OK = 0
 EXIT_CRASH = 1
@@ -61,7 +65,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="simulated seconds per wall second (default 1; 'max': as fast "
                    "as it can)")
     p.add_argument("--log", metavar="FILE", help="write the phone's flight log here as it "
-                   "flies (with truth records, flushed line by line)")
+                   "flies (with truth records, flushed line by line); an existing file "
+                   "needs --force")
     p.add_argument("--seed", type=int, default=0, metavar="N",
                    help="world seed (default 0)")
     p.add_argument("--param", metavar="NAME=VALUE", type=param_value, action="append",
@@ -69,6 +74,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "e.g. NAV_DLL_ACT=1 GF_ACTION=3; see docs/vehicle.md")
     p.add_argument("--sysid", type=int, default=1, metavar="N",
                    help="MAVLink system id (default 1)")
+    p.add_argument("--lockstep", type=float, default=None, metavar="S",
+                   help="never run more than S seconds of simulated time ahead of the "
+                   "ground station's last acknowledgement (osa search sends one per "
+                   "decision: use its --decision-period): reproducible closed loops")
+    add_force_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -78,6 +88,11 @@ def _fail(status: int, message: str) -> int:
     return status
 
 
+def _inputs(scenario: str) -> list[str]:
+    """The input files never to write over: the scenario's file (a preset: none)."""
+    return [scenario] if Path(scenario).is_file() else []
+
+
 def run(args: argparse.Namespace) -> int:
     from sim.scenario import ScenarioError, load_scenario
 
@@ -85,19 +100,28 @@ def run(args: argparse.Namespace) -> int:
         return _fail(EXIT_USAGE, f"--seed must be >= 0, got {args.seed}")
     if not 1 <= args.sysid <= 254:
         return _fail(EXIT_USAGE, f"--sysid must be in 1..254, got {args.sysid}")
+    if args.lockstep is not None and not (math.isfinite(args.lockstep)
+                                          and 0.05 <= args.lockstep <= 600):
+        return _fail(EXIT_USAGE, f"--lockstep must be in [0.05, 600] s, got {args.lockstep}")
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
         return _fail(EXIT_USAGE, str(exc))
     if scenario.agents[0].kind != "uav":
         return _fail(EXIT_USAGE, f"{scenario.name}: the first agent is not a UAV")
+    if args.log is not None:
+        try:
+            claim_output_file(args.log, force=args.force, inputs=_inputs(args.scenario))
+        except OutputRefusedError as exc:
+            return _fail(EXIT_USAGE, str(exc))
 
-    from envs.vehicle.server import ConnectionURLError, VirtualVehicle
+    from envs.vehicle import ConnectionURLError, VirtualVehicle
 
     try:
         vehicle = VirtualVehicle(
             scenario, args.connection, seed=args.seed, speedup=args.speedup,
             log_path=args.log, params=dict(args.param), sysid=args.sysid,
+            lockstep_s=args.lockstep,
             status=lambda message: print(f"osa vehicle: {message}", file=sys.stderr,
                                          flush=True))
     except ConnectionURLError as exc:
@@ -117,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"osa vehicle: {scenario.name} seed {args.seed}: PX4 quadrotor, system "
           f"{args.sysid}, landed and disarmed at {home.lat_deg:.7f}, {home.lon_deg:.7f} "
           f"({home.alt_m:.1f} m); MAVLink on {', '.join(args.connection)}; speed-up {speed}"
+          + (f"; lockstep {args.lockstep:g} s" if args.lockstep else "")
           + (f"; log {args.log}" if args.log else ""), flush=True)
     try:
         vehicle.run(lambda: stop["signal"] is not None)

@@ -150,7 +150,7 @@ class SearchParallelEnv(ParallelEnv):
             if name in actions:
                 plans.update(self.pilots[name].act(actions[name], self._obs).plans)
         loop.apply(Decision(plans=plans, localised=self.pilots[self.possible_agents[0]].localised))
-        refused = {i for i in plans if i in loop._refused}  # plans the loop refused (outside)
+        refused = {i for i in plans if loop.refused(i)}  # plans the loop refused (outside)
         loop.advance(self.config.decision_period_s)
         self._obs = loop.observe()
         obs, changes = self._observe_all()

@@ -14,12 +14,20 @@ yaw-rate limits to it. Tasks:
   (a turn onto the line is flown at the speed it started with); a cross-track pull
   keeps it on the line (PX4's line-following auto mode). Reaching is judged by the
   caller (acceptance radius).
+- :class:`TerrainLine`: the same line seen from above, at a height above the ground
+  (the terrain database's, at the navigation position) that goes linearly from the
+  start's to the target's along the leg: the climb follows the ground's grade ahead, and
+  the horizontal speed drops where the grade would need more than the climb or descent
+  limits (MAVLink's terrain frames, as ArduPilot flies them).
 - :class:`Orbit`: a circle at a tangential speed the lateral-acceleration and yaw-rate
-  limits allow, for a number of turns.
+  limits allow, for a number of turns (at a height, or a height above the ground).
 - :class:`Land`: hold the horizontal position and descend (fast, then
   MPC_LAND_SPEED below MPC_LAND_ALT2), braking to touch down gently; touchdown is
   judged on the true height above the terrain (a land detector feels the ground,
   the estimate does not).
+
+Also the geometry the autopilot's parts share: :data:`Vec3` (ENU metres),
+:class:`Home`, :class:`Limits` and :data:`TERRAIN_CLEARANCE_M`.
 """
 
 from __future__ import annotations
@@ -29,6 +37,17 @@ from dataclasses import dataclass
 from typing import Protocol
 
 Vec3 = tuple[float, float, float]
+TERRAIN_CLEARANCE_M = 2.0  # the vehicle never flies lower above the ground (not PX4)
+
+
+@dataclass
+class Home:
+    """Home position: ENU (navigation frame) and geodetic (ellipsoidal height)."""
+
+    enu: Vec3
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
 
 
 @dataclass(frozen=True)
@@ -58,6 +77,10 @@ class Context(Protocol):
     def velocity(self) -> Vec3: ...
 
     def true_agl_m(self, p: Vec3) -> float: ...
+
+    def ground_m(self, e_m: float, n_m: float) -> float:
+        """The terrain database's ground height (ENU up) at (e, n)."""
+        ...
 
 
 class Task:
@@ -182,17 +205,84 @@ def corner_speed(u_in: tuple[float, float], u_out: tuple[float, float], radius_m
     return min(speed_mps, math.sqrt(lim.lateral_mps2 * r), lim.yaw_rate_rps * r)
 
 
+class TerrainLine(Task):
+    """A horizontal line ``start`` -> ``target`` at a height above the ground going from
+    ``agl_start_m`` to ``agl_end_m`` (see the module docstring); ``target`` is where it
+    ends (its height the ground's there plus ``agl_end_m``), ``end_speed_mps`` and
+    ``end_at_m`` as for :class:`Line`."""
+
+    name = "terrain-line"
+    LOOKAHEAD_S = 1.5  # the grade is judged this far ahead (at the speed of the moment)
+
+    def __init__(self, start: Vec3, target: Vec3, agl_start_m: float, agl_end_m: float, *,
+                 end_speed_mps: float = 0.0, end_at_m: float = 0.0) -> None:
+        self.start = start
+        self.target = target
+        self.agl_start = agl_start_m
+        self.agl_end = agl_end_m
+        self.end_speed = max(0.0, end_speed_mps)
+        self.end_at = max(0.0, end_at_m) if self.end_speed > 0 else 0.0
+        d = (target[0] - start[0], target[1] - start[1])
+        self.length = math.hypot(*d)
+        self.u = (d[0] / self.length, d[1] / self.length) if self.length > 1e-6 else (0.0, 0.0)
+
+    def agl_at(self, along_m: float) -> float:
+        """The height above the ground wanted ``along_m`` into the leg."""
+        if self.length <= 1e-6:
+            return self.agl_end
+        f = min(max(along_m / self.length, 0.0), 1.0)
+        return self.agl_start + f * (self.agl_end - self.agl_start)
+
+    def setpoint(self, ctx: Context, p: Vec3, dt: float) -> Vec3:
+        lim = ctx.limits
+        k = lim.gain_per_s
+        t = self.target
+        ux, uy = self.u
+        sx, sy = self.start[0], self.start[1]
+        along = (p[0] - sx) * ux + (p[1] - sy) * uy
+        ground = ctx.ground_m(p[0], p[1])
+        if self.length <= 1e-6 or along >= self.length:
+            vx, vy = _cap_horizontal(k * (t[0] - p[0]), k * (t[1] - p[1]),
+                                     max(self.end_speed, 1.0))
+            return vx, vy, _cap_vertical(k * (ground + self.agl_end - p[2]), lim)
+        a = max(along, 0.0)
+        rem = max(self.length - a - self.end_at, 0.0)
+        v = min(lim.cruise_mps, math.sqrt(self.end_speed ** 2 + 2.0 * lim.brake_mps2 * rem))
+        vx0, vy0, _ = ctx.velocity
+        s0 = math.hypot(vx0, vy0)
+        if s0 > 0.5 and (vx0 * ux + vy0 * uy) / s0 < 0.97:
+            v = min(v, s0 + 0.2)  # still turning onto the line: no faster yet
+        # the grade ahead: the ground's and the wanted height's change per metre
+        d = min(max(2.0, self.LOOKAHEAD_S * max(v, s0)), self.length - a + 2.0)
+        ahead = ctx.ground_m(p[0] + ux * d, p[1] + uy * d)
+        grade = (ahead - ground) / d + (self.agl_end - self.agl_start) / self.length
+        if grade > 1e-6:
+            v = min(v, 0.9 * lim.climb_mps / grade)
+        elif grade < -1e-6:
+            v = min(v, 0.9 * lim.descent_mps / -grade)
+        cx, cy = sx + ux * a, sy + uy * a
+        vz = grade * v + k * (ground + self.agl_at(a) - p[2])
+        return v * ux + k * (cx - p[0]), v * uy + k * (cy - p[1]), _cap_vertical(vz, lim)
+
+    def distances(self, p: Vec3) -> tuple[float, float]:
+        """(horizontal, vertical) distance from ``p`` to the target."""
+        t = self.target
+        return math.hypot(t[0] - p[0], t[1] - p[1]), abs(t[2] - p[2])
+
+
 class Orbit(Task):
-    """``turns`` circles of ``radius`` about ``center`` at height ``z``; ``direction``
-    +1 counter-clockwise, -1 clockwise (seen from above)."""
+    """``turns`` circles of ``radius`` about ``center`` at height ``z`` (or, with
+    ``agl_m``, that high above the ground); ``direction`` +1 counter-clockwise, -1
+    clockwise (seen from above)."""
 
     name = "orbit"
 
     def __init__(self, center: tuple[float, float], radius_m: float, z: float,
-                 direction: int, turns: float) -> None:
+                 direction: int, turns: float, *, agl_m: float | None = None) -> None:
         self.center = center
         self.radius = max(radius_m, 0.5)
         self.z = z
+        self.agl = agl_m
         self.direction = 1 if direction >= 0 else -1
         self.goal_rad = 2.0 * math.pi * max(turns, 0.0)
         self.swept_rad = 0.0
@@ -217,7 +307,14 @@ class Orbit(Task):
         vt = min(lim.cruise_mps, math.sqrt(lim.lateral_mps2 * R), 0.9 * lim.yaw_rate_rps * R)
         tx, ty = -ey * self.direction, ex * self.direction
         pull = k * (R - r)
-        return (vt * tx + pull * ex, vt * ty + pull * ey, _cap_vertical(k * (self.z - p[2]), lim))
+        if self.agl is None:
+            vz = k * (self.z - p[2])
+        else:  # the ground's grade along the circle, and the pull to the height above it
+            ground = ctx.ground_m(p[0], p[1])
+            d = max(2.0, vt)
+            ahead = ctx.ground_m(p[0] + tx * d, p[1] + ty * d)
+            vz = (ahead - ground) / d * vt + k * (ground + self.agl - p[2])
+        return vt * tx + pull * ex, vt * ty + pull * ey, _cap_vertical(vz, lim)
 
 
 class Land(Task):

@@ -13,8 +13,18 @@ import math
 import struct
 from dataclasses import dataclass
 
-MAV_PARAM_TYPE_INT32 = 6
-MAV_PARAM_TYPE_REAL32 = 9
+from pymavlink.dialects.v20.common import (
+    MAV_PARAM_TYPE_INT8,
+    MAV_PARAM_TYPE_INT16,
+    MAV_PARAM_TYPE_INT32,
+    MAV_PARAM_TYPE_REAL32,
+    MAV_PARAM_TYPE_UINT8,
+    MAV_PARAM_TYPE_UINT16,
+    MAV_PARAM_TYPE_UINT32,
+)
+
+_INT32_OR_NARROWER = (MAV_PARAM_TYPE_UINT8, MAV_PARAM_TYPE_INT8, MAV_PARAM_TYPE_UINT16,
+                      MAV_PARAM_TYPE_INT16, MAV_PARAM_TYPE_UINT32, MAV_PARAM_TYPE_INT32)
 
 
 @dataclass(frozen=True)
@@ -118,6 +128,6 @@ class Params:
     @staticmethod
     def from_wire(value: float, kind: int) -> float:
         """A PARAM_SET value: INT32 bytewise-encoded (PX4), REAL32 as is."""
-        if kind in (1, 2, 3, 4, 5, MAV_PARAM_TYPE_INT32):  # the integer types up to INT32
+        if kind in _INT32_OR_NARROWER:
             return float(struct.unpack("<i", struct.pack("<f", value))[0])
         return float(value)

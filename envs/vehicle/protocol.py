@@ -25,22 +25,21 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from envs.vehicle.mission import (
-    CAPACITY,
-    MISSION_ACCEPTED,
-    MISSION_DENIED,
-    MISSION_INVALID_SEQUENCE,
-    MISSION_NO_SPACE,
-    MISSION_OPERATION_CANCELLED,
-    MISSION_UNSUPPORTED,
-    check_item,
-    check_list,
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_ACCEPTED,
+    MAV_MISSION_DENIED,
+    MAV_MISSION_INVALID_SEQUENCE,
+    MAV_MISSION_NO_SPACE,
+    MAV_MISSION_OPERATION_CANCELLED,
+    MAV_MISSION_TYPE_ALL,
+    MAV_MISSION_UNSUPPORTED,
 )
+
+from envs.vehicle.mission import CAPACITY, check_item, check_list
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
-MAV_MISSION_TYPE_ALL = 255
-Peer = tuple[int, int, int]  # (port index, system id, component id)
+Peer = tuple[int, int, int]  # (link id: envs.vehicle.links, system id, component id)
 Send = Callable[[Peer, str, tuple], None]  # peer, pymavlink message name, args after target
 
 
@@ -112,19 +111,19 @@ class MissionServer:
     def on_count(self, peer: Peer, count: int, mission_type: int) -> None:
         now = self.clock()
         if mission_type not in CAPACITY:
-            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
             return
         rx = self._rx.get(mission_type)
         if rx is not None and rx.peer != peer and now - rx.activity_s < self.timeout_s:
-            self._ack(peer, MISSION_DENIED, mission_type)  # another ground station's upload
+            self._ack(peer, MAV_MISSION_DENIED, mission_type)  # another ground station's upload
             return
         if count > CAPACITY[mission_type]:
-            self._refuse(peer, MISSION_NO_SPACE, mission_type)
+            self._refuse(peer, MAV_MISSION_NO_SPACE, mission_type)
             return
         if count <= 0:
             self._rx.pop(mission_type, None)
             self._commit(peer, mission_type, [])
-            self._ack(peer, MISSION_ACCEPTED, mission_type)
+            self._ack(peer, MAV_MISSION_ACCEPTED, mission_type)
             return
         if rx is not None and rx.peer == peer and rx.count == count and not rx.items:
             self._request(rx)  # the count again: our request was lost
@@ -138,17 +137,17 @@ class MissionServer:
         if rx is None or rx.peer != peer:
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
-                self._ack(peer, MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
+                self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
             return
         n = len(rx.items)
         if w.seq < n:
             self._request(rx)  # a resend of an item we hold: ask for the next one
             return
         if w.seq > n:
-            self._refuse(peer, MISSION_INVALID_SEQUENCE, rx.mission_type)
+            self._refuse(peer, MAV_MISSION_INVALID_SEQUENCE, rx.mission_type)
             return
         result = check_item(w, rx.count)
-        if result != MISSION_ACCEPTED:
+        if result != MAV_MISSION_ACCEPTED:
             self._refuse(peer, result, rx.mission_type)
             return
         rx.items.append(w)
@@ -157,12 +156,12 @@ class MissionServer:
             self._request(rx)
             return
         result = check_list(rx.items, rx.mission_type)
-        if result != MISSION_ACCEPTED:
+        if result != MAV_MISSION_ACCEPTED:
             self._refuse(peer, result, rx.mission_type)
             return
         del self._rx[rx.mission_type]
         self._commit(peer, rx.mission_type, rx.items)
-        self._ack(peer, MISSION_ACCEPTED, rx.mission_type)
+        self._ack(peer, MAV_MISSION_ACCEPTED, rx.mission_type)
 
     def on_item_int(self, peer: Peer, msg: Any) -> None:
         self.on_item(peer, WireItem.from_msg(msg))
@@ -182,7 +181,7 @@ class MissionServer:
     def on_ack(self, peer: Peer, result: int, mission_type: int) -> None:
         """A ground station's MISSION_ACK: a non-zero one cancels its upload."""
         rx = self._rx.get(mission_type)
-        if rx is not None and rx.peer == peer and result != MISSION_ACCEPTED:
+        if rx is not None and rx.peer == peer and result != MAV_MISSION_ACCEPTED:
             del self._rx[mission_type]
 
     def tick(self) -> None:
@@ -190,14 +189,14 @@ class MissionServer:
         now = self.clock()
         for t, rx in list(self._rx.items()):
             if now - rx.activity_s > self.timeout_s:
-                self._refuse(rx.peer, MISSION_OPERATION_CANCELLED, t)
+                self._refuse(rx.peer, MAV_MISSION_OPERATION_CANCELLED, t)
             elif now - rx.requested_s > self.retry_s:
                 self._request(rx)
 
     # ------------------------------------------------------------------ download
     def on_request_list(self, peer: Peer, mission_type: int) -> None:
         if mission_type not in self.held:
-            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
             return
         self.send(peer, "mission_count", (len(self.held[mission_type]), mission_type))
 
@@ -211,10 +210,10 @@ class MissionServer:
                    float_form: bool = False) -> None:
         items = self.held.get(mission_type)
         if items is None:
-            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
             return
         if not 0 <= seq < len(items):
-            self._ack(peer, MISSION_INVALID_SEQUENCE, mission_type)
+            self._ack(peer, MAV_MISSION_INVALID_SEQUENCE, mission_type)
             return
         name = "mission_item" if float_form else "mission_item_int"
         self.send(peer, name, self._item_args(items[seq], float_form))
@@ -224,9 +223,9 @@ class MissionServer:
         types: Sequence[int] = tuple(self.held) if mission_type == MAV_MISSION_TYPE_ALL \
             else (mission_type,)
         if any(t not in self.held for t in types):
-            self._ack(peer, MISSION_UNSUPPORTED, mission_type)
+            self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
             return
         for t in types:
             self._rx.pop(t, None)
             self._commit(peer, t, [])
-        self._ack(peer, MISSION_ACCEPTED, mission_type)
+        self._ack(peer, MAV_MISSION_ACCEPTED, mission_type)

@@ -1,21 +1,27 @@
-"""The virtual vehicle's loop: simulated time, MAVLink ports, the phone's log.
+"""The virtual vehicle's loop: simulated time, MAVLink links, the phone's log.
 
 :class:`VirtualVehicle` realises the scenario's world for a seed
 (:func:`sim.realise`), flies its first agent with the :class:`Autopilot` and talks
-MAVLink 2 on one or more pymavlink ports (``udpin:HOST:PORT``: the vehicle listens
-and answers whoever wrote last; ``udpout:HOST:PORT``: it sends there, as PX4 SITL to
-QGroundControl's 14550; ``tcpin:``/``tcp:``). Each loop iteration (about 50 per wall
-second) it reads every port, advances simulated time to ``speedup`` x the elapsed
-wall time in steps of at most ``step_s`` (``speedup=inf``: one step per iteration,
-as fast as it can), publishes the autopilot's events and the telemetry streams that
-are due, and runs the mission protocol's and the operator timeouts. If the
-simulation cannot keep up with the speed-up it says so (``status``) and runs as fast
-as it can, re-basing its clock instead of drifting silently. ``--log`` receives the
-phone's records as they reach the file (:class:`sim.stepper.LogSink`, flushed).
+MAVLink 2 on one or more ports (:mod:`envs.vehicle.links`: ``udpin:HOST:PORT``: the
+vehicle listens and answers whoever wrote last; ``udpout:HOST:PORT``: it sends there,
+as PX4 SITL to QGroundControl's 14550; ``tcpin:HOST:PORT``: any number of ground
+stations connect; ``tcp:HOST:PORT``). Each loop iteration (about 50 per wall second)
+it reads every link, advances simulated time to ``speedup`` x the elapsed wall time
+in steps of at most ``step_s`` (``speedup=inf``: one step per iteration, as fast as
+it can), publishes the autopilot's events and the telemetry streams that are due, and
+runs the mission protocol's and the operator timeouts. If the simulation cannot keep
+up with the speed-up it says so (``status``) and runs as fast as it can, re-basing its
+clock instead of drifting silently. ``--log`` receives the phone's records as they
+reach the file (:class:`sim.stepper.LogSink`, flushed): :meth:`VirtualVehicle._on_phone_records`
+is the one place the phone's records leave the simulation.
 
-Replies go to the port and system that asked; telemetry to every port. Any message
-from another system keeps the ground-station link alive; after COM_DL_LOSS_T wall
-seconds of silence the autopilot's link-loss rule applies.
+Replies go to the link and system that asked; telemetry to every link; a ground
+station heard for the first time gets a HEARTBEAT at once (it need not wait a second to
+discover the vehicle). Every
+COMMAND_LONG and COMMAND_INT is answered with a COMMAND_ACK, malformed ones too (NaN
+or out-of-range parameters: DENIED; a command it does not know: UNSUPPORTED; one that
+fails: FAILED). Any message from another system keeps the ground-station link alive;
+after COM_DL_LOSS_T wall seconds of silence the autopilot's link-loss rule applies.
 """
 
 from __future__ import annotations
@@ -25,7 +31,6 @@ import contextlib
 import math
 import os
 import select
-import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -33,110 +38,65 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.params import MAV_PARAM_TYPE_REAL32, Params
-from envs.vehicle.protocol import MissionServer, Peer
-from envs.vehicle.px4 import (
+from pymavlink.dialects.v20.common import (
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_CHANGE_SPEED,
+    MAV_CMD_DO_PAUSE_CONTINUE,
+    MAV_CMD_DO_REPOSITION,
+    MAV_CMD_DO_SET_HOME,
+    MAV_CMD_DO_SET_MISSION_CURRENT,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_GET_HOME_POSITION,
+    MAV_CMD_GET_MESSAGE_INTERVAL,
+    MAV_CMD_MISSION_START,
+    MAV_CMD_NAV_LAND,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+    MAV_PARAM_TYPE_REAL32,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
+    MAV_RESULT_FAILED,
     MAV_RESULT_UNSUPPORTED,
+    MAV_SEVERITY_CRITICAL,
+    MAV_SEVERITY_INFO,
+    MAV_SEVERITY_WARNING,
     MAV_TYPE_GCS,
-    SEVERITY_CRITICAL,
-    SEVERITY_INFO,
-    SEVERITY_WARNING,
+    MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    MAVLINK_MSG_ID_HOME_POSITION,
+    MAVLINK_MSG_ID_MISSION_CURRENT,
+)
+
+from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.links import ConnectionURLError, Links
+from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
+from envs.vehicle.params import Params
+from envs.vehicle.protocol import MissionServer, Peer
+from envs.vehicle.px4 import (
+    FORCE_DISARM_MAGIC,
     Mode,
     decode_custom_mode,
     mode_from_main_sub,
     mode_name,
 )
-from envs.vehicle.telemetry import (
-    MSG_EXTENDED_SYS_STATE,
-    MSG_HOME_POSITION,
-    MSG_MISSION_CURRENT,
-    REQUESTABLE,
-    Telemetry,
-)
+from envs.vehicle.relay import RecordRelay
+from envs.vehicle.telemetry import REQUESTABLE, Telemetry
+from envs.vehicle.terrain import REQUEST_BLOCKS_E, REQUEST_BLOCKS_N
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
 from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION
 from sim.realisation import realise
-from sim.scenario import Scenario
-from sim.stepper import LogSink, Stepper
+from sim.scenario import KeepOutZone, Scenario
+from sim.stepper import Emitted, LogSink, Stepper
 from sim.vehicle import FlightError
 
 mavlink = mavutil.mavlink
-
-# MAV_CMD
-CMD_NAV_RETURN_TO_LAUNCH = 20
-CMD_NAV_LAND = 21
-CMD_NAV_TAKEOFF = 22
-CMD_DO_SET_MODE = 176
-CMD_DO_CHANGE_SPEED = 178
-CMD_DO_SET_HOME = 179
-CMD_DO_REPOSITION = 192
-CMD_DO_PAUSE_CONTINUE = 193
-CMD_DO_SET_MISSION_CURRENT = 224
-CMD_MISSION_START = 300
-CMD_COMPONENT_ARM_DISARM = 400
-CMD_GET_HOME_POSITION = 410
-CMD_GET_MESSAGE_INTERVAL = 510
-CMD_SET_MESSAGE_INTERVAL = 511
-CMD_REQUEST_MESSAGE = 512
-CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
-RELATIVE_COMMAND_FRAMES = (3, 6)
-
-_SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
-            "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
-_PYMAVLINK = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcpin:", "tcp:")
-
-
-class ConnectionURLError(ValueError):
-    """A connection URL the vehicle cannot open (one line)."""
-
-
-def vehicle_url(url: str) -> str:
-    """The pymavlink form of a vehicle-side URL (MAVSDK ``scheme://`` forms accepted)."""
-    u = url.strip()
-    for scheme, py in _SCHEMES.items():
-        if u.startswith(scheme):
-            u = py + u[len(scheme):]
-            break
-    if not u.startswith(_PYMAVLINK):
-        raise ConnectionURLError(
-            f"unsupported connection URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, "
-            "tcpin:HOST:PORT or tcp:HOST:PORT")
-    host, _, port = u.split(":", 1)[1].rpartition(":")
-    try:
-        p = int(port)
-    except ValueError:
-        raise ConnectionURLError(f"bad connection URL {url!r}: port {port!r} "
-                                 "is not a number") from None
-    if not host or not 0 < p < 65536:
-        raise ConnectionURLError(f"bad connection URL {url!r}: expected HOST:PORT")
-    return u
-
-
-def open_port(url: str, sysid: int = 1, compid: int = 1) -> Any:
-    """A pymavlink connection for ``url`` (:class:`ConnectionURLError` if impossible)."""
-    u = vehicle_url(url)
-    scheme, rest = u.split(":", 1)
-    if scheme in ("udpin", "udp"):
-        # pymavlink binds with SO_REUSEADDR: two vehicles could share a port unnoticed
-        host, _, port = rest.rpartition(":")
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            try:
-                probe.bind((host, int(port)))
-            except OSError as exc:
-                raise ConnectionURLError(f"cannot listen on {url}: "
-                                         f"{exc.strerror or exc}") from None
-    try:
-        conn = mavutil.mavlink_connection(u, source_system=sysid, source_component=compid,
-                                          autoreconnect=False, retries=0,
-                                          reconnect_delay=0.1)
-    except (OSError, ValueError) as exc:
-        raise ConnectionURLError(f"cannot open {url}: {getattr(exc, 'strerror', None) or exc}") \
-            from None
-    return conn
+MAX_PEERS = 1024  # ground stations remembered (to greet a new one with a HEARTBEAT)
 
 
 @dataclass
@@ -156,18 +116,12 @@ class Stats:
 
 
 @dataclass
-class _Port:
-    url: str
-    conn: Any
-    fd: int | None = None
-
-
-@dataclass
 class _Link:
     last_rx_wall: float = -math.inf
     seen: bool = False
     lost: bool = False
     gcs: set[tuple[int, int]] = field(default_factory=set)
+    peers: set[Peer] = field(default_factory=set)  # (link, system, component) heard from
 
 
 class VirtualVehicle:
@@ -175,7 +129,9 @@ class VirtualVehicle:
 
     ``with VirtualVehicle(scenario, ["udpin:127.0.0.1:14540"], speedup=20) as v:``
     runs it in a background thread (tests, benchmarks); :meth:`run` runs it in the
-    calling thread until ``should_stop()`` (the CLI).
+    calling thread until ``should_stop()`` (the CLI). ``keepouts``
+    (:class:`sim.scenario.KeepOutZone`, world ENU metres; None: the scenario's
+    ``[[search.keepout]]``) are preloaded into the autopilot's geofence.
     """
 
     LOOP_PERIOD_S = 0.02
@@ -187,7 +143,9 @@ class VirtualVehicle:
                  params: dict[str, float] | None = None, sysid: int = 1, compid: int = 1,
                  step_s: float | None = None, status: Callable[[str], None] | None = None,
                  transfer_timeout_s: float = 5.0,
-                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 keepouts: Sequence[KeepOutZone] | None = None,
+                 lockstep_s: float | None = None) -> None:
         if not connections:
             raise ConnectionURLError("a vehicle needs at least one --connection")
         if not speedup > 0:
@@ -205,23 +163,20 @@ class VirtualVehicle:
         # the configured H_AGL of a search is its height (as in osa search)
         agl = scenario.search.height_m if scenario.search is not None else None
         self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
-        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock)
+        self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock,
+                                   keepouts=scenario.keepouts if keepouts is None else keepouts)
         for name, value in (params or {}).items():
             why = self.autopilot.params.set(name, value)
             if why is not None:
                 raise ValueError(why)
         self.telemetry = Telemetry(self.autopilot)
+        # the phone's records to the ground stations (TUNNEL), lockstep pacing
+        self.relay = RecordRelay(self._broadcast, self.stepper.agents[0].header,
+                                 lockstep_s=lockstep_s, tick_s=self.autopilot.dt)
         self.protocol = MissionServer(self._send_to, self._on_commit,
                                       lambda: self.autopilot.mission.seq,
                                       timeout_s=transfer_timeout_s, clock=wall_clock)
-        self.ports: list[_Port] = []
-        try:
-            for url in connections:
-                conn = open_port(url, sysid, compid)
-                self.ports.append(_Port(url, conn))
-        except BaseException:
-            self._close_ports()
-            raise
+        self.links = Links(connections, sysid, compid)
         self.log_path = Path(log_path) if log_path is not None else None
         self._sink: LogSink | None = None
         if self.log_path is not None:
@@ -235,6 +190,7 @@ class VirtualVehicle:
         self._thread: threading.Thread | None = None
         self._last_current: tuple[int, int, int] | None = None
         self._bad_kinds: set[str] = set()
+        self.terrain_data_ignored = 0  # TERRAIN_DATA received (the database needs none)
         self._closed = False
         self._lock = threading.Lock()
 
@@ -268,16 +224,11 @@ class VirtualVehicle:
             if self._closed:
                 return
             self._closed = True
+            with contextlib.suppress(FlightError):
+                self._on_phone_records(self.autopilot.finish(), math.inf)
             if self._sink is not None:
-                with contextlib.suppress(FlightError):
-                    self._sink.add(self.autopilot.finish(), math.inf)
                 self._sink.close()
-            self._close_ports()
-
-    def _close_ports(self) -> None:
-        for p in self.ports:
-            with contextlib.suppress(OSError):
-                p.conn.close()
+            self.links.close()
 
     # ------------------------------------------------------------------ loop
     def run(self, should_stop: Callable[[], bool]) -> None:
@@ -293,8 +244,11 @@ class VirtualVehicle:
             if not window or now - window[-1][0] >= 0.5:
                 window.append((now, self.t_s))
             self._receive(now)
+            limit = self.relay.limit_s
             if math.isfinite(self.speedup):
                 target = sim0 + (now - wall0) * self.speedup
+                if target > limit:  # lockstep: waiting for the ground station is not lag
+                    target, sim0, wall0 = limit, self.t_s, now
                 if (target - self.t_s) / self.speedup > self.BEHIND_WALL_S:
                     self.stats.behind_events += 1
                     if now >= next_report:
@@ -304,16 +258,16 @@ class VirtualVehicle:
                                     f"simulated time ran at {ratio:.0f}x real time over the "
                                     f"last {now - w0:.0f} s; it runs as fast as it can")
                         next_report = now + 30.0
-                    target = self.t_s + self.step_s
+                    target = min(self.t_s + self.step_s, limit)
                     sim0, wall0 = target, now
             else:
-                target = self.t_s + self.step_s
+                target = min(self.t_s + self.step_s, limit)
             try:
                 self._advance_to(target)
             except FlightError as exc:
                 self.error = f"the vehicle crashed: {exc}"
                 self.autopilot.crashed = True
-                self.autopilot.text(SEVERITY_CRITICAL, "crashed")
+                self.autopilot.text(MAV_SEVERITY_CRITICAL, "crashed")
                 self.status(self.error)
                 self._publish_events()
                 break
@@ -327,7 +281,8 @@ class VirtualVehicle:
             self._publish_events()
             self.stats.wall_s = self.clock() - start_wall
             self.stats.sim_s = self.t_s - start_sim
-            self._wait(0.0 if not math.isfinite(self.speedup) else self.LOOP_PERIOD_S)
+            waiting = self.t_s >= limit - 1e-9
+            self._wait(self.LOOP_PERIOD_S if math.isfinite(self.speedup) or waiting else 0.0)
 
     def _advance_to(self, target_s: float) -> None:
         """Step towards ``target_s``, for at most STEP_WALL_S of wall time (the ports
@@ -339,23 +294,32 @@ class VirtualVehicle:
             t = min(target_s, self.t_s + self.step_s)
             emitted = ap.step_to(t)
             self.stats.steps += 1
-            for e in emitted:
-                if isinstance(e.record, GnssFix):
-                    self.telemetry.last_fix = e.record
-            if self._sink is not None:
-                self._sink.add(emitted, self.t_s)
+            self._on_phone_records(emitted, self.t_s)
             self._publish_events()
             self._publish_streams()
+        if self.relay.held(self.t_s):  # lockstep: where it waits, at that instant
+            self._broadcast(self.telemetry.build(MAVLINK_MSG_ID_GLOBAL_POSITION_INT))
+
+    def _on_phone_records(self, emitted: list[Emitted], now_s: float) -> None:
+        """The phone's new records (delivery order, :class:`sim.stepper.Emitted`) at
+        simulated time ``now_s``: the latest GNSS fix for GPS_RAW_INT, the lines for the
+        log. The one place the phone's records leave the simulation."""
+        for e in emitted:
+            if isinstance(e.record, GnssFix):
+                self.telemetry.last_fix = e.record
+        if self._sink is not None:
+            self._sink.add(emitted, now_s)
+        self.relay.relay(emitted)  # to the ground stations that asked (TUNNEL)
 
     def _publish_streams(self) -> None:
         for msg_id in self.telemetry.streams.due(self.t_s):
             self._broadcast(self.telemetry.build(msg_id))
 
     def _wait(self, timeout_s: float) -> None:
-        fds = [p.conn.fd for p in self.ports]
         if timeout_s <= 0:
             return
-        if any(fd is None for fd in fds):
+        fds = self.links.fds()
+        if fds is None:
             time.sleep(timeout_s)
             return
         with contextlib.suppress(OSError, ValueError):
@@ -363,25 +327,16 @@ class VirtualVehicle:
 
     # ------------------------------------------------------------------ sending
     def _broadcast(self, msg: Any) -> None:
-        if msg is None:
-            return
-        for p in self.ports:
-            with contextlib.suppress(OSError):
-                p.conn.mav.send(msg)
-                self.stats.sent += 1
+        self.links.broadcast(msg)
+        self.stats.sent = self.links.sent
 
     def _send_to(self, peer: Peer, name: str, args: tuple) -> None:
-        port = self.ports[peer[0]]
-        with contextlib.suppress(OSError):
-            getattr(port.conn.mav, f"{name}_send")(peer[1], peer[2], *args)
-            self.stats.sent += 1
+        self.links.send_args(peer, name, args)
+        self.stats.sent = self.links.sent
 
     def _send_msg(self, peer: Peer, msg: Any) -> None:
-        if msg is None:
-            return
-        with contextlib.suppress(OSError):
-            self.ports[peer[0]].conn.mav.send(msg)
-            self.stats.sent += 1
+        self.links.send(peer, msg)
+        self.stats.sent = self.links.sent
 
     def _ack(self, peer: Peer, command: int, result: int) -> None:
         self._send_msg(peer, mavlink.MAVLink_command_ack_message(command, result, 0, 0,
@@ -405,25 +360,18 @@ class VirtualVehicle:
             elif kind in ("mode", "armed"):
                 self._broadcast(self.telemetry.heartbeat())
             elif kind == "home":
-                self._broadcast(self.telemetry.build(MSG_HOME_POSITION))
+                self._broadcast(self.telemetry.build(MAVLINK_MSG_ID_HOME_POSITION))
             elif kind == "landed":
-                self._broadcast(self.telemetry.build(MSG_EXTENDED_SYS_STATE))
+                self._broadcast(self.telemetry.build(MAVLINK_MSG_ID_EXTENDED_SYS_STATE))
             elif kind == "text":
                 self._statustext(int(ev[1]), str(ev[2]))
 
     # ------------------------------------------------------------------ receiving
     def _receive(self, now: float) -> None:
-        for k, port in enumerate(self.ports):
-            for _ in range(1000):
-                try:
-                    msg = port.conn.recv_msg()
-                except (OSError, ValueError):
-                    break
-                if msg is None:
-                    break
-                self._dispatch(k, msg, now)
+        for link, msg in self.links.poll():
+            self._dispatch(link, msg, now)
 
-    def _dispatch(self, port: int, msg: Any, now: float) -> None:
+    def _dispatch(self, link: int, msg: Any, now: float) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             return
@@ -432,9 +380,15 @@ class VirtualVehicle:
             return
         self.stats.received += 1
         self._link.last_rx_wall = now
+        here = (link, *src)
+        if here not in self._link.peers:  # a new ground station: it hears from us at once
+            if len(self._link.peers) >= MAX_PEERS:
+                self._link.peers.clear()
+            self._link.peers.add(here)
+            self._send_msg(here, self.telemetry.heartbeat())
         if not self._link.seen or self._link.lost:
             if self._link.lost:
-                self.autopilot.text(SEVERITY_WARNING, "ground station regained")
+                self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
             self._link.seen, self._link.lost = True, False
         target = getattr(msg, "target_system", 0)
         if target not in (0, self.sysid):
@@ -442,7 +396,7 @@ class VirtualVehicle:
         tcomp = getattr(msg, "target_component", 0)
         if kind not in ("SET_MODE",) and tcomp not in (0, self.compid):
             return
-        peer = (port, src[0], src[1])
+        peer = (link, src[0], src[1])
         handler = getattr(self, f"_on_{kind.lower()}", None)
         if handler is None:
             return
@@ -453,6 +407,9 @@ class VirtualVehicle:
             if kind not in self._bad_kinds:
                 self._bad_kinds.add(kind)
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
+
+    def _on_tunnel(self, peer: Peer, msg: Any) -> None:
+        self.relay.on_tunnel(msg, self.t_s)
 
     def _on_heartbeat(self, peer: Peer, msg: Any) -> None:
         if msg.type == MAV_TYPE_GCS:
@@ -487,8 +444,8 @@ class VirtualVehicle:
     def _on_mission_set_current(self, peer: Peer, msg: Any) -> None:
         result, why = self.autopilot.set_current(int(msg.seq))
         if result != MAV_RESULT_ACCEPTED:
-            self.autopilot.text(SEVERITY_WARNING, why)
-        self._send_msg(peer, self.telemetry.build(MSG_MISSION_CURRENT))
+            self.autopilot.text(MAV_SEVERITY_WARNING, why)
+        self._send_msg(peer, self.telemetry.build(MAVLINK_MSG_ID_MISSION_CURRENT))
 
     def _on_commit(self, mission_type: int, items: list, current: int) -> None:
         ap = self.autopilot
@@ -526,14 +483,34 @@ class VirtualVehicle:
         params = self.autopilot.params
         name = msg.param_id
         if params.index(name) is None:
-            self.autopilot.text(SEVERITY_WARNING, f"unknown parameter {name}")
+            self.autopilot.text(MAV_SEVERITY_WARNING, f"unknown parameter {name}")
             return
         value = Params.from_wire(float(msg.param_value), int(msg.param_type or
                                                                 MAV_PARAM_TYPE_REAL32))
         why = params.set(name, value)
         if why is not None:
-            self.autopilot.text(SEVERITY_WARNING, why)
+            self.autopilot.text(MAV_SEVERITY_WARNING, why)
         self._param_value(None, name)
+
+    # terrain protocol (envs/vehicle/terrain.py)
+    def _on_terrain_check(self, peer: Peer, msg: Any) -> None:
+        self._send_msg(peer, self.telemetry.terrain_report(int(msg.lat), int(msg.lon)))
+
+    def _on_terrain_request(self, peer: Peer, msg: Any) -> None:
+        """The blocks of the mask from the database (none: it needs no data)."""
+        db = self.autopilot.terrain
+        lat, lon, spacing, mask = int(msg.lat), int(msg.lon), int(msg.grid_spacing), \
+            int(msg.mask)
+        for bit in range(REQUEST_BLOCKS_E * REQUEST_BLOCKS_N):
+            if mask >> bit & 1:
+                heights = db.block(lat, lon, spacing, bit)
+                if heights is not None:
+                    self._send_msg(peer, mavlink.MAVLink_terrain_data_message(
+                        lat, lon, spacing, bit, heights))
+
+    def _on_terrain_data(self, peer: Peer, msg: Any) -> None:
+        """Accepted without effect: the database is the scenario's terrain."""
+        self.terrain_data_ignored += 1
 
     def _on_timesync(self, peer: Peer, msg: Any) -> None:
         if msg.tc1 == 0:
@@ -555,74 +532,112 @@ class VirtualVehicle:
     def _on_set_mode(self, peer: Peer, msg: Any) -> None:
         """SET_MODE (deprecated): answered as PX4 does, with a DO_SET_MODE COMMAND_ACK."""
         main, sub = decode_custom_mode(int(msg.custom_mode))
-        self._command(peer, CMD_DO_SET_MODE, [float(msg.base_mode), float(main), float(sub),
+        self._command(peer, MAV_CMD_DO_SET_MODE, [float(msg.base_mode), float(main), float(sub),
                                               0.0, 0.0, 0.0, 0.0], None)
 
-    def _alt_amsl(self, alt: float, frame: int | None) -> float:
-        """A command's altitude as AMSL (COMMAND_LONG: AMSL; COMMAND_INT: by frame)."""
-        if frame in RELATIVE_COMMAND_FRAMES and math.isfinite(alt):
-            return self.autopilot.home.alt_m + alt
+    def _alt_amsl(self, alt: float, frame: int | None, lat_deg: float = math.nan,
+                  lon_deg: float = math.nan) -> float:
+        """A command's altitude as AMSL (COMMAND_LONG: AMSL; COMMAND_INT: by frame; above
+        the terrain: at (lat, lon), NaN: under the vehicle)."""
+        ap = self.autopilot
+        if frame in RELATIVE_FRAMES and math.isfinite(alt):
+            return ap.home.alt_m + alt
+        if frame in TERRAIN_FRAMES and math.isfinite(alt):
+            if not (math.isfinite(lat_deg) and math.isfinite(lon_deg)):
+                lat_deg, lon_deg = ap.geodetic(ap.position)[:2]
+            return ap.terrain.height_m(lat_deg, lon_deg) + alt
         return alt
 
     def _command(self, peer: Peer, cmd: int, p: list[float], frame: int | None) -> None:
+        """Answer a COMMAND_LONG / COMMAND_INT: always one COMMAND_ACK to ``peer`` (a
+        refusal also a STATUSTEXT saying why), then what was asked for."""
         ap = self.autopilot
-        result, why, after = MAV_RESULT_UNSUPPORTED, "", None
-        if cmd == CMD_COMPONENT_ARM_DISARM:
-            if p[0] == 1.0:
-                result, why = ap.arm()
-            elif p[0] == 0.0:
-                result, why = ap.disarm(force=round(p[1]) == 21196)
-            else:
-                result, why = MAV_RESULT_DENIED, f"arm/disarm param1 {p[0]:g}"
-        elif cmd == CMD_NAV_TAKEOFF:
-            result, why = ap.takeoff(self._alt_amsl(p[6], frame))
-        elif cmd == CMD_DO_SET_MODE:
-            result, why = self._set_mode(p)
-        elif cmd == CMD_MISSION_START:
-            result, why = ap.mission_start(p[0], p[1])
-        elif cmd == CMD_NAV_RETURN_TO_LAUNCH:
-            result, why = ap.return_to_launch()
-        elif cmd == CMD_NAV_LAND:
-            result, why = ap.land()
-        elif cmd == CMD_DO_PAUSE_CONTINUE:
-            result, why = ap.pause_continue(p[0] >= 1.0)
-        elif cmd == CMD_DO_CHANGE_SPEED:
-            result, why = ap.change_speed(p[1])
-        elif cmd == CMD_DO_REPOSITION:
-            result, why = self._reposition(p, frame)
-        elif cmd == CMD_DO_SET_HOME:
-            if p[0] == 1.0 or not (math.isfinite(p[4]) and math.isfinite(p[5])):
-                result, why = ap.set_home(None)
-            else:
-                result, why = ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame)))
-        elif cmd == CMD_DO_SET_MISSION_CURRENT:
-            seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
-            result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
-            after = self.telemetry.build(MSG_MISSION_CURRENT)
-        elif cmd == CMD_SET_MESSAGE_INTERVAL:
-            ok = self.telemetry.streams.set_interval(int(p[0]), p[1])
-            result = MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED
-        elif cmd == CMD_GET_MESSAGE_INTERVAL:
-            result = MAV_RESULT_ACCEPTED
-            after = mavlink.MAVLink_message_interval_message(
-                int(p[0]), self.telemetry.streams.interval_us(int(p[0])))
-        elif cmd in (CMD_REQUEST_MESSAGE, CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                     CMD_GET_HOME_POSITION):
-            msg_id = {CMD_REQUEST_AUTOPILOT_CAPABILITIES: 148,
-                      CMD_GET_HOME_POSITION: MSG_HOME_POSITION}.get(cmd, int(p[0]))
-            if msg_id in REQUESTABLE:
-                result, after = MAV_RESULT_ACCEPTED, self.telemetry.build(msg_id)
+        try:
+            result, why, after = self._decide(cmd, p, frame)
+        except (ArithmeticError, ValueError, TypeError, KeyError) as exc:
+            result, why, after = MAV_RESULT_FAILED, f"command {cmd} failed: {exc}", None
         self._ack(peer, cmd, result)
         if why:
-            ap.text(SEVERITY_WARNING if result else SEVERITY_INFO, why)
+            ap.text(MAV_SEVERITY_WARNING if result else MAV_SEVERITY_INFO, why)
         self._send_msg(peer, after)
         self._publish_events()
 
+    def _decide(self, cmd: int, p: list[float], frame: int | None) -> tuple[int, str, Any]:
+        """(MAV_RESULT, why, the message to send after the ACK or None)."""
+        ap = self.autopilot
+        if cmd == MAV_CMD_COMPONENT_ARM_DISARM:
+            if p[0] == 1.0:
+                return (*ap.arm(), None)
+            if p[0] == 0.0:
+                return (*ap.disarm(force=p[1] == FORCE_DISARM_MAGIC), None)
+            return MAV_RESULT_DENIED, f"arm/disarm param1 {p[0]:g}", None
+        if cmd == MAV_CMD_NAV_TAKEOFF:
+            why = _bad_frame(frame) or _bad_altitude(p[6], nan_ok=True)
+            if why:
+                return MAV_RESULT_DENIED, f"takeoff denied: {why}", None
+            return (*ap.takeoff(self._alt_amsl(p[6], frame)), None)
+        if cmd == MAV_CMD_DO_SET_MODE:
+            return (*self._set_mode(p), None)
+        if cmd == MAV_CMD_MISSION_START:
+            return (*ap.mission_start(p[0], p[1]), None)
+        if cmd == MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return (*ap.return_to_launch(), None)
+        if cmd == MAV_CMD_NAV_LAND:
+            return (*ap.land(), None)
+        if cmd == MAV_CMD_DO_PAUSE_CONTINUE:
+            if p[0] not in (0.0, 1.0):
+                return MAV_RESULT_DENIED, f"pause/continue param1 {p[0]:g}", None
+            return (*ap.pause_continue(p[0] == 1.0), None)
+        if cmd == MAV_CMD_DO_CHANGE_SPEED:
+            return (*ap.change_speed(p[1]), None)
+        if cmd == MAV_CMD_DO_REPOSITION:
+            why = _bad_frame(frame) or _bad_position(p[4], p[5]) \
+                or _bad_altitude(p[6], nan_ok=True)
+            if why:
+                return MAV_RESULT_DENIED, f"reposition denied: {why}", None
+            return (*self._reposition(p, frame), None)
+        if cmd == MAV_CMD_DO_SET_HOME:
+            if p[0] == 1.0 or (p[0] == 0.0 and not (math.isfinite(p[4])
+                                                    and math.isfinite(p[5]))):
+                return (*ap.set_home(None), None)
+            why = (f"param1 {p[0]:g}" if p[0] != 0.0 else "") or _bad_frame(frame) \
+                or _bad_position(p[4], p[5]) or _bad_altitude(p[6], nan_ok=False)
+            if why:
+                return MAV_RESULT_DENIED, f"set home denied: {why}", None
+            return (*ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame, p[4], p[5]))),
+                    None)
+        if cmd == MAV_CMD_DO_SET_MISSION_CURRENT:
+            seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
+            result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
+            return result, why, self.telemetry.build(MAVLINK_MSG_ID_MISSION_CURRENT)
+        if cmd in (MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_GET_MESSAGE_INTERVAL,
+                   MAV_CMD_REQUEST_MESSAGE):
+            if not _is_message_id(p[0]):
+                return MAV_RESULT_DENIED, f"no message id {p[0]:g}", None
+            msg_id = int(p[0])
+            if cmd == MAV_CMD_GET_MESSAGE_INTERVAL:
+                return MAV_RESULT_ACCEPTED, "", mavlink.MAVLink_message_interval_message(
+                    msg_id, self.telemetry.streams.interval_us(msg_id))
+            if cmd == MAV_CMD_SET_MESSAGE_INTERVAL:
+                if not (math.isfinite(p[1]) and p[1] >= -1.0):
+                    return MAV_RESULT_DENIED, f"message interval {p[1]:g} us", None
+                ok = self.telemetry.streams.set_interval(msg_id, p[1])
+                return (MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED), "", None
+        if cmd in (MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                   MAV_CMD_GET_HOME_POSITION):
+            msg_id = {MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+                      MAV_CMD_GET_HOME_POSITION: MAVLINK_MSG_ID_HOME_POSITION}.get(cmd, int(p[0]))
+            if msg_id in REQUESTABLE:
+                return MAV_RESULT_ACCEPTED, "", self.telemetry.build(msg_id)
+        return MAV_RESULT_UNSUPPORTED, "", None
+
     def _set_mode(self, p: list[float]) -> tuple[int, str]:
-        base = int(p[0]) if math.isfinite(p[0]) else 0
-        if not base & 1:
+        base = int(p[0]) if math.isfinite(p[0]) and 0 <= p[0] <= 255 else 0
+        if not base & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return MAV_RESULT_DENIED, "mode change without a custom mode"
-        main, sub = int(p[1]), int(p[2]) if math.isfinite(p[2]) else 0
+        if not all(math.isfinite(x) and 0 <= x <= 255 for x in p[1:3]):
+            return MAV_RESULT_DENIED, f"mode change to main mode {p[1]:g}, sub mode {p[2]:g}"
+        main, sub = int(p[1]), int(p[2])
         mode = mode_from_main_sub(main, sub)
         if mode is None:
             return MAV_RESULT_DENIED, f"mode {mode_name(main, sub)} not supported"
@@ -634,7 +649,7 @@ class VirtualVehicle:
         lat, lon, alt = ap.geodetic(here)
         if math.isfinite(p[4]) and math.isfinite(p[5]):
             lat, lon = p[4], p[5]
-        a = self._alt_amsl(p[6], frame)
+        a = self._alt_amsl(p[6], frame, lat, lon)
         if math.isfinite(a):
             alt = a
         e, n, u = ap.frame.to_enu(lat, lon, alt)
@@ -648,3 +663,33 @@ class VirtualVehicle:
         if link.seen and not link.lost and now - link.last_rx_wall > timeout:
             link.lost = True
             self.autopilot.on_link_lost()
+
+
+def _is_message_id(x: float) -> bool:
+    """A MAVLink 2 message id (24 bits) in a float parameter."""
+    return math.isfinite(x) and x == int(x) and 0 <= x < (1 << 24)
+
+
+def _bad_frame(frame: int | None) -> str:
+    """Why a COMMAND_INT's frame cannot place a position ('' if it can)."""
+    return "" if frame is None or frame in GLOBAL_FRAMES else f"frame {frame} not supported"
+
+
+def _bad_position(lat_deg: float, lon_deg: float) -> str:
+    """Why a command's latitude and longitude are unusable (NaN: none given; '' if fine)."""
+    if math.isnan(lat_deg) and math.isnan(lon_deg):
+        return ""
+    if not (math.isfinite(lat_deg) and -90.0 <= lat_deg <= 90.0):
+        return f"latitude {lat_deg:g}"
+    if not (math.isfinite(lon_deg) and -180.0 <= lon_deg <= 180.0):
+        return f"longitude {lon_deg:g}"
+    return ""
+
+
+def _bad_altitude(alt_m: float, *, nan_ok: bool) -> str:
+    """Why a command's altitude is unusable (NaN: unchanged, when ``nan_ok``)."""
+    if math.isnan(alt_m) and nan_ok:
+        return ""
+    if not (math.isfinite(alt_m) and abs(alt_m) <= MAX_ALTITUDE_M):
+        return f"altitude {alt_m:g} m"
+    return ""

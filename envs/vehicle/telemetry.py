@@ -2,7 +2,8 @@
 
 Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUDE
 10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT
-1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz), on the simulated clock (as PX4 SITL
+1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz; TERRAIN_REPORT for its own position
+1 Hz, as ArduPilot), on the simulated clock (as PX4 SITL
 with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
 time) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most once per
 simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
@@ -17,15 +18,28 @@ import hashlib
 import math
 from dataclasses import dataclass, field
 
-from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.px4 import (
+from pymavlink.dialects.v20.common import (
     MAV_AUTOPILOT_PX4,
     MAV_STATE_ACTIVE,
     MAV_STATE_STANDBY,
     MAV_TYPE_QUADROTOR,
-    Mode,
-    base_mode,
+    MAVLINK_MSG_ID_ATTITUDE,
+    MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    MAVLINK_MSG_ID_BATTERY_STATUS,
+    MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    MAVLINK_MSG_ID_GPS_RAW_INT,
+    MAVLINK_MSG_ID_HEARTBEAT,
+    MAVLINK_MSG_ID_HOME_POSITION,
+    MAVLINK_MSG_ID_MISSION_CURRENT,
+    MAVLINK_MSG_ID_SYS_STATUS,
+    MAVLINK_MSG_ID_TERRAIN_REPORT,
+    MAVLINK_MSG_ID_VFR_HUD,
 )
+
+from envs.vehicle.autopilot import Autopilot
+from envs.vehicle.px4 import Mode, base_mode
+from envs.vehicle.terrain import TerrainReport
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
 from planner.mission import deg_to_e7
@@ -33,31 +47,22 @@ from sim.realisation import Realisation
 
 mavlink = mavutil.mavlink
 
-MSG_HEARTBEAT = 0
-MSG_SYS_STATUS = 1
-MSG_GPS_RAW_INT = 24
-MSG_ATTITUDE = 30
-MSG_GLOBAL_POSITION_INT = 33
-MSG_MISSION_CURRENT = 42
-MSG_VFR_HUD = 74
-MSG_AUTOPILOT_VERSION = 148
-MSG_BATTERY_STATUS = 147
-MSG_HOME_POSITION = 242
-MSG_EXTENDED_SYS_STATE = 245
 
 # message id -> default rate (Hz of simulated time)
 DEFAULT_RATES_HZ = {
-    MSG_GLOBAL_POSITION_INT: 5.0,
-    MSG_ATTITUDE: 10.0,
-    MSG_VFR_HUD: 4.0,
-    MSG_GPS_RAW_INT: 1.0,
-    MSG_SYS_STATUS: 1.0,
-    MSG_EXTENDED_SYS_STATE: 1.0,
-    MSG_MISSION_CURRENT: 1.0,
-    MSG_HOME_POSITION: 0.5,
-    MSG_BATTERY_STATUS: 0.5,
+    MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+    MAVLINK_MSG_ID_ATTITUDE: 10.0,
+    MAVLINK_MSG_ID_VFR_HUD: 4.0,
+    MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
+    MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
+    MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
+    MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
+    MAVLINK_MSG_ID_TERRAIN_REPORT: 1.0,
 }
-REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MSG_HEARTBEAT, MSG_AUTOPILOT_VERSION})
+REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MAVLINK_MSG_ID_HEARTBEAT,
+                         MAVLINK_MSG_ID_AUTOPILOT_VERSION})
 
 CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
@@ -67,6 +72,7 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+    | mavlink.MAV_PROTOCOL_CAPABILITY_TERRAIN
 )
 FLIGHT_SW_VERSION = (1 << 24) | (14 << 16) | (0 << 8) | 255  # "PX4 1.14.0, official"
 VEHICLE_TAG = b"osa-veh"  # AUTOPILOT_VERSION.flight_custom_version of this vehicle
@@ -92,7 +98,10 @@ _SENSORS = (
     | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL | mavlink.MAV_SYS_STATUS_AHRS
     | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY | mavlink.MAV_SYS_STATUS_PREARM_CHECK
 )
-_FIX_TYPES = {"none": 1, "2d": 2, "3d": 3, "dgps": 4, "rtk_float": 5, "rtk_fixed": 6}
+_FIX_TYPES = {"none": mavlink.GPS_FIX_TYPE_NO_FIX, "2d": mavlink.GPS_FIX_TYPE_2D_FIX,
+              "3d": mavlink.GPS_FIX_TYPE_3D_FIX, "dgps": mavlink.GPS_FIX_TYPE_DGPS,
+              "rtk_float": mavlink.GPS_FIX_TYPE_RTK_FLOAT,
+              "rtk_fixed": mavlink.GPS_FIX_TYPE_RTK_FIXED}
 ENDURANCE_S = 40 * 60.0  # battery: linear drain over 40 min of flight (no failsafe)
 GRAVITY = 9.80665
 
@@ -163,9 +172,9 @@ class Telemetry:
     def build(self, msg_id: int) -> object | None:
         """The message ``msg_id`` now, or None if there is nothing to say yet."""
         ap = self.ap
-        if msg_id == MSG_HEARTBEAT:
+        if msg_id == MAVLINK_MSG_ID_HEARTBEAT:
             return self.heartbeat()
-        if msg_id == MSG_GLOBAL_POSITION_INT:
+        if msg_id == MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
             p, v = ap.position, ap.velocity
             lat, lon, alt = ap.geodetic(p)
             hdg = self._heading_deg()
@@ -173,13 +182,13 @@ class Telemetry:
                 self._time_ms(), deg_to_e7(lat), deg_to_e7(lon), round(alt * 1000.0),
                 round((p[2] - ap.home.enu[2]) * 1000.0),
                 _cms(v[1]), _cms(v[0]), _cms(-v[2]), round(hdg * 100.0) % 36000)
-        if msg_id == MSG_ATTITUDE:
+        if msg_id == MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch, yaw = self._attitude()
             return mavlink.MAVLink_attitude_message(self._time_ms(), roll, pitch, yaw,
                                                     0.0, 0.0, 0.0)
-        if msg_id == MSG_GPS_RAW_INT:
+        if msg_id == MAVLINK_MSG_ID_GPS_RAW_INT:
             return self._gps_raw()
-        if msg_id == MSG_SYS_STATUS:
+        if msg_id == MAVLINK_MSG_ID_SYS_STATUS:
             enabled = _SENSORS | (mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS if ap.armed else 0)
             if not ap.fence.empty:
                 enabled |= mavlink.MAV_SYS_STATUS_GEOFENCE
@@ -189,35 +198,45 @@ class Telemetry:
             return mavlink.MAVLink_sys_status_message(
                 present, enabled, enabled, 250, round(volts * 1000), round(amps * 100), left,
                 0, 0, 0, 0, 0, 0, 0, 0, 0)
-        if msg_id == MSG_EXTENDED_SYS_STATE:
+        if msg_id == MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             return mavlink.MAVLink_extended_sys_state_message(0, ap.landed_state)
-        if msg_id == MSG_HOME_POSITION:
+        if msg_id == MAVLINK_MSG_ID_HOME_POSITION:
             h = ap.home
             return mavlink.MAVLink_home_position_message(
                 deg_to_e7(h.lat_deg), deg_to_e7(h.lon_deg), round(h.alt_m * 1000.0),
                 h.enu[1], h.enu[0], -h.enu[2], [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
                 int(ap.t_s * 1e6))
-        if msg_id == MSG_MISSION_CURRENT:
+        if msg_id == MAVLINK_MSG_ID_MISSION_CURRENT:
             seq, total, state = ap.mission_current()
             mode = 1 if ap.mode is Mode.MISSION else 2 if total else 0
             return mavlink.MAVLink_mission_current_message(seq, total, state, mode)
-        if msg_id == MSG_VFR_HUD:
+        if msg_id == MAVLINK_MSG_ID_VFR_HUD:
             v = ap.velocity
             gs = math.hypot(v[0], v[1])
             lat, lon, alt = ap.geodetic(ap.position)
             throttle = 0 if not ap.armed else 20 if ap.landed else 50
             return mavlink.MAVLink_vfr_hud_message(gs, gs, round(self._heading_deg()) % 360,
                                                    throttle, alt, v[2])
-        if msg_id == MSG_BATTERY_STATUS:
+        if msg_id == MAVLINK_MSG_ID_BATTERY_STATUS:
             volts, amps, left = self._battery()
             cells = [round(volts * 250)] * 4 + [65535] * 6
             return mavlink.MAVLink_battery_status_message(
-                0, 1, 3, 32767, cells, round(amps * 100), -1, -1, left, 0, 0)
-        if msg_id == MSG_AUTOPILOT_VERSION:
+                0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LION, 32767, cells,
+                round(amps * 100), -1, -1, left, 0, 0)
+        if msg_id == MAVLINK_MSG_ID_TERRAIN_REPORT:
+            p = ap.position
+            return _terrain_report(ap.terrain.report_below(p, ap.geodetic(p)))
+        if msg_id == MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return mavlink.MAVLink_autopilot_version_message(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
                 [0] * 8, [0] * 8, 0, 0, self.fingerprint, [0] * 18)
         return None
+
+    def terrain_report(self, lat_e7: int, lon_e7: int) -> object:
+        """TERRAIN_REPORT for (lat, lon): the ground there and the vehicle's height
+        above it (envs/vehicle/terrain.py)."""
+        ap = self.ap
+        return _terrain_report(ap.terrain.report(lat_e7, lon_e7, ap.geodetic(ap.position)[2]))
 
     def _heading_deg(self) -> float:
         yaw = self.ap.vehicle.state.yaw_rad  # ENU, counter-clockwise from east
@@ -247,17 +266,24 @@ class Telemetry:
         gs = math.hypot(v[0], v[1])
         cog = round(self._heading_deg() * 100) % 36000 if gs > 0.5 else 65535
         if f is None:
-            return mavlink.MAVLink_gps_raw_int_message(t_us, 0, 0, 0, 0, 65535, 65535, 65535,
-                                                       65535, 0, 0, 0, 0, 0, 0, 0)
+            return mavlink.MAVLink_gps_raw_int_message(
+                t_us, mavlink.GPS_FIX_TYPE_NO_GPS, 0, 0, 0, 65535, 65535, 65535, 65535, 0, 0, 0,
+                0, 0, 0, 0)
         acc = f.acc_m if f.acc_m is not None else 9.99
         vacc = f.vacc_m if f.vacc_m is not None else 2.0 * acc
         alt_mm = round(f.alt_m * 1000.0)
         return mavlink.MAVLink_gps_raw_int_message(
-            t_us, _FIX_TYPES.get(f.fix or "3d", 3), deg_to_e7(f.lat_deg),
+            t_us, _FIX_TYPES.get(f.fix or "3d", mavlink.GPS_FIX_TYPE_3D_FIX), deg_to_e7(f.lat_deg),
             deg_to_e7(f.lon_deg), alt_mm,
             min(round(acc * 100), 65534), min(round(vacc * 100), 65534), round(gs * 100), cog,
             f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
             round(vacc * 1000), 0, 0, 0)
+
+
+def _terrain_report(r: TerrainReport) -> object:
+    return mavlink.MAVLink_terrain_report_message(
+        r.lat_e7, r.lon_e7, r.spacing, r.terrain_height_m, r.current_height_m, r.pending,
+        r.loaded)
 
 
 def _cms(v_mps: float) -> int:

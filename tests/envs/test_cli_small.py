@@ -93,7 +93,7 @@ def test_no_progress_prints_nothing():
 
 @pytest.mark.parametrize("text", ["all+robust", "all,robust", "robust+all", "all+baseline"])
 def test_replay_takes_the_same_modes_as_run(text, log, capsys):
-    from estimator.pipeline import PAPER_MODES
+    from estimator.modes import PAPER_MODES
 
     assert main(["replay", str(log), "--mode", text, "--json"]) == 0
     modes = [e["mode"] for e in json.loads(capsys.readouterr().out)["estimates"]]
@@ -103,7 +103,7 @@ def test_replay_takes_the_same_modes_as_run(text, log, capsys):
 
 
 def test_one_mode_parser_for_run_and_replay(tmp_path, log, capsys):
-    from estimator.pipeline import PAPER_MODES
+    from estimator.modes import PAPER_MODES
     from estimator.replay import parse_modes
 
     assert parse_modes("all+robust") == (*PAPER_MODES, "robust")

@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from estimator.pipeline import MODES, PAPER_MODES, Track
+from estimator.modes import MODES, PAPER_MODES
+from estimator.pipeline import Track
 from estimator.records import AssociatedRange
 from estimator.replay import ReplayOptions, parse_modes, replay_logs
 from tests.estimator.synth import BSSID, write_flight
@@ -129,7 +130,7 @@ def test_track_alone_matches_replay(report, flight):
     log = read_log(flight)
     geo = list(Associator().run(sorted(log.gnss + log.rtt, key=lambda r: r.t_ns)))
     fr = TangentPlaneENU(geo[0].lat_deg, geo[0].lon_deg, geo[0].alt_m)
-    tr = Track(BSSID, "empirical-r")
+    tr = Track(BSSID, MODES["empirical-r"])
     for g in geo:
         tr.process(AssociatedRange(t_s=g.t_ns * 1e-9, bssid=g.bssid, range_m=g.range_m,
                                    rssi_dbm=g.rssi_dbm,

@@ -11,8 +11,8 @@ import pytest
 from estimator.convergence import ConvergenceMonitor
 from estimator.filters import FilterError
 from estimator.gate import MadGate
+from estimator.modes import MODES, PAPER_MODES
 from estimator.pipeline import (
-    PAPER_MODES,
     GroundPriorConfig,
     PipelineConfig,
     SharedFront,
@@ -46,7 +46,7 @@ def test_ground_prior_is_applied_after_every_accepted_update():
     (eq. 18), exactly; with the prior disabled the height update is skipped."""
     for enabled in (True, False):
         cfg = PipelineConfig(ground=GroundPriorConfig(enabled=enabled))
-        tr = Track("b", "baseline", cfg)
+        tr = Track("b", MODES["baseline"], cfg)
         checked = 0
         for m in stream():
             f = tr.run.filter
@@ -71,7 +71,7 @@ def test_adaptive_r_is_wired_into_the_filter_update():
     """Mode adaptive-r: each measurement reaching the filter updates R_hat with nu and
     H P^- H^T at the prior (eq. 24, R_0 = sigma_gate^2, clipped to [0.01, 25]) and the
     update uses exactly that R (then the ground prior)."""
-    tr = Track("b", "adaptive-r")
+    tr = Track("b", MODES["adaptive-r"])
     checked = 0
     for m in stream():
         f = tr.run.filter
@@ -102,7 +102,7 @@ def test_adaptive_r_is_wired_into_the_filter_update():
 
 
 def _converged_track():
-    tr = Track("b", "baseline")
+    tr = Track("b", MODES["baseline"])
     ms = stream(duration_s=240.0)
     for m in ms[:400]:
         tr.process(m)
@@ -143,7 +143,7 @@ def test_restart_keeps_the_count_identity_and_resets_n_acc(where):
 
 def test_mad_rejections_reset_the_streak():
     ms = stream(rate_hz=10.0, duration_s=60.0, outliers=(450,))
-    tr = Track("b", "baseline")
+    tr = Track("b", MODES["baseline"])
     for m in ms[:450]:
         tr.process(m)
     assert tr.monitor.streak > 3
@@ -204,6 +204,8 @@ def test_paper_table_shape_on_a_seeded_flight(tmp_path):
 
 def test_refined_mode_needs_its_own_track_class():
     with pytest.raises(ValueError):
-        Track("b", "refined")
+        Track("b", MODES["refined"])
+    with pytest.raises(TypeError):  # names are resolved at the edge, not by a track
+        Track("b", "baseline")
     front = SharedFront()
-    assert front.filter_run(Track("b", "baseline", front=front).spec) is not None
+    assert front.filter_run(Track("b", MODES["baseline"], front=front).spec) is not None

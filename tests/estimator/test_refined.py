@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from estimator.batch import r_circle_m
+from estimator.modes import MODE_ALIASES, MODES, PAPER_MODES, resolve_mode
 from estimator.online import EstimatorOptions, OnlineEstimator
-from estimator.pipeline import MODE_ALIASES, PAPER_MODES, SharedFront
-from estimator.refined import RefinedTrack, make_track
+from estimator.pipeline import SharedFront, make_track
+from estimator.refined import RefinedTrack
 from estimator.replay import ReplayOptions, parse_modes, replay_logs
 from tests.estimator import worlds as W  # noqa: N812
 
@@ -164,7 +165,7 @@ def test_fusion_weights_each_agent_by_its_own_quality(tmp_path):
     UAVs (acc 0.9 m) 1.6 m; each agent has its own range bias."""
     w = W.three_agent_world(0, tmp_path)
     ms, _ = W.associated_ranges(w.paths)
-    tr = make_track(W.BSSID, "refined", front=SharedFront())
+    tr = make_track(W.BSSID, MODES["refined"], front=SharedFront())
     for m in ms:
         tr.process(m)
     tr.finalize()
@@ -192,8 +193,9 @@ def test_best_is_an_alias_for_refined(tmp_path):
     assert parse_modes("best") == ("refined",)
     assert parse_modes("best,refined,baseline") == ("refined", "baseline")
     assert "refined" not in parse_modes("all") and len(parse_modes("all")) == 6
-    assert ReplayOptions(modes=("best",)).modes == ("refined",)
-    assert EstimatorOptions(modes=("best", "baseline")).modes == ("refined", "baseline")
+    assert ReplayOptions(modes=("best",)).modes == (MODES["refined"],)
+    assert EstimatorOptions(modes=("best", "baseline")).modes == (MODES["refined"],
+                                                                  MODES["baseline"])
 
 
 def test_osa_replay_mode_best_json(tmp_path, capsys):
@@ -221,11 +223,12 @@ def test_online_front_refinements_and_final(tmp_path):
     over every range; the same input gives the same output."""
     w = W.los_world(5, tmp_path)
     ms, _ = W.associated_ranges(w.paths)
-    tr = make_track(W.BSSID, "best", front=SharedFront())
+    tr = make_track(W.BSSID, resolve_mode("best"), front=SharedFront())
     assert isinstance(tr, RefinedTrack) and tr.spec.name == "refined"
-    assert tr.run.ground_prior is False and tr.run.iekf_cfg.q_diag == (0.0, 0.0, 0.0, 0.0)
+    assert tr.run.ground_prior is False
     pubs = [p for m in ms if (p := tr.process(m)) is not None]
     assert len(pubs) >= 0.8 * len(ms)
+    assert tr.run.filter.cfg.q_diag == (0.0, 0.0, 0.0, 0.0)  # the static front
     assert 4 <= tr.n_refinements <= 8  # at 2x growth of ~490 ranges
     sol = tr.solution
     assert tr.run.filter.x[:3] != list(sol.theta[:3]) or tr.buffer.n == tr._n_refined
@@ -258,7 +261,7 @@ def test_a_front_restart_keeps_the_refined_estimate_and_the_counts(tmp_path):
 
     w = W.los_world(2, tmp_path)
     ms, _ = W.associated_ranges(w.paths)
-    tr = make_track(W.BSSID, "refined", front=SharedFront())
+    tr = make_track(W.BSSID, MODES["refined"], front=SharedFront())
     for m in ms[:200]:
         tr.process(m)
     assert tr.status == "converged" and tr.n_refinements >= 3

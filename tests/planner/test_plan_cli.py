@@ -184,7 +184,7 @@ def test_osa_plan_waypoints_file_and_options(tmp_path, capsys) -> None:
         (["plan", "helix", "-o", "x.plan", "--center", CENTER, "--radius", "0"], "> 0"),
         (["plan", "helix", "-o", "x.plan", "--center", CENTER, "--radius", "-5"], "--radius"),
         (["plan", "helix", "-o", "x.plan", "--center", CENTER, "--alt", "nan"], "finite"),
-        (["plan", "helix", "-o", "x.kml", "--center", CENTER], "unknown mission type"),
+        (["plan", "helix", "-o", "x.gpx", "--center", CENTER], "unknown mission type"),
         (["plan", "helix", "-o", "/dev/null/x.plan", "--center", CENTER], "cannot write"),
         (["plan", "lawnmower", "-o", "x.plan", "--center", CENTER, "--overlap", "1"], "overlap"),
         (

@@ -1,9 +1,13 @@
-"""The vehicle's compiled inner loops (sim._kernels) give the interpreted source's values
-bit for bit, so a flight is the same flight with and without numba's compiler."""
+"""Every compiled kernel (numba: sim._kernels, and the loops given to
+estimator._jit.compiled: the WGS84 conversion's, the FTM radio's and its terrain
+occlusion's) gives the interpreted source's values bit for bit, so a flight is the
+same flight with and without numba's compiler."""
 
 from __future__ import annotations
 
+import ast
 import hashlib
+import json
 import math
 import os
 import subprocess
@@ -14,11 +18,23 @@ import numpy as np
 
 from estimator.geodesy import ExactENU
 from sim import _kernels as kn
-from sim.terrain import HillsTerrain
-from sim.vehicle import WALKER, HoldGuidance, Multirotor, PathGuidance, VehicleConfig, VehicleState
-from sim.world import Origin, World
+from sim._random import BlockedGaussMarkov
+from sim.clock import ClockConfig
+from sim.ftm import FtmConfig, simulate_ftm
+from sim.terrain import GridTerrain, HillsTerrain
+from sim.vehicle import (
+    WALKER,
+    HoldGuidance,
+    Multirotor,
+    PathGuidance,
+    VehicleConfig,
+    VehicleState,
+    VehicleTrack,
+)
+from sim.world import Origin, Responder, World
 
 WORLD = World(Origin(), HillsTerrain(), ())
+ROOT = Path(__file__).parents[2]
 
 
 def test_hypot_rounds_as_cpython_does() -> None:
@@ -67,25 +83,94 @@ def flights_digest() -> str:
         v.advance(37.35)
         v.set_guidance(HoldGuidance(tuple(p[0]), cfg))
         v.advance(60.0)
-        for a in (g._path, g._dwell, g._stop_after, g._gs, v.state_log.view):
+        at = v.position_at(rng.uniform(-5.0, 65.0, 50))  # the logged grid, interpolated
+        for a in (g._path, g._dwell, g._stop_after, g._gs, v.state_log.view, at):
             h.update(np.ascontiguousarray(a).tobytes())
+    # a blocked Gauss-Markov process (the GNSS and wander errors), interpolated
+    gm = BlockedGaussMarkov(np.random.SeedSequence(3), 0.1, (1.5, 1.5, 2.5), 60.0, order=2)
+    h.update(gm.at(np.sort(rng.uniform(0.0, 300.0, 400))).tobytes())
     # the GNSS records' geodesy (estimator.geodesy's compiled pymap3d path) and terrain
     frame = ExactENU(36.72, -4.48, 60.0)
     for _ in range(20):
         e, n, u = rng.normal(0.0, 10.0 ** rng.uniform(0, 5), (3, 200))
         for a in (*frame.to_geodetic(e, n, u), WORLD.ground_m(e, n)):
             h.update(np.ascontiguousarray(a).tobytes())
+    # the FTM radio (its reach bound, time warp and request scan): a 2-minute pass by
+    # 16 responders, some out of reach, up to 6 ranged per request
+    resp = tuple(Responder(name=f"R{k}", bssid=f"02:00:00:00:00:{k:02x}", e_m=float(e),
+                           n_m=float(n), concealment=("open", "vegetation")[k % 2])
+                 for k, (e, n) in enumerate(rng.uniform((-350, -150), (350, 150), (16, 2))))
+    world = World(Origin(), HillsTerrain(), resp)
+    t = np.arange(0.0, 120.0, 0.05)
+    p = np.column_stack([-300.0 + 5.0 * t, 40.0 * np.sin(t / 9.0), 45.0 + 10.0 * np.sin(t / 20.0)])
+    track = VehicleTrack(t, p, np.gradient(p, t, axis=0), np.zeros(len(t)),
+                         world.ground_m(p[:, 0], p[:, 1]))
+    f = simulate_ftm(track, world, FtmConfig(), ClockConfig(), 4)
+    for name in ("t_s", "request", "responder", "status", "range_m", "rssi_dbm", "request_peers",
+                 "occlusion_loss_db", "occlusion_excess_m"):
+        h.update(np.ascontiguousarray(getattr(f, name)).tobytes())
+    # the radio's terrain occlusion (its clearance test, profile sampling and nu)
+    h.update(occlusion_digest().encode())
     return h.hexdigest()
 
 
+def compiled_kernels() -> set[tuple[str, str]]:
+    """(file, function) of every compiled kernel in the packages: functions decorated
+    with numba's ``njit`` / ``jit`` and functions given to ``estimator._jit.compiled``
+    (``compiled(f)`` or ``map(compiled, (f, g, ...))``)."""
+    out = set()
+    for pkg in ("estimator", "sim", "planner", "envs"):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            rel = path.relative_to(ROOT).as_posix()
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.FunctionDef):
+                    for d in node.decorator_list:
+                        t = d.func if isinstance(d, ast.Call) else d
+                        if getattr(t, "id", getattr(t, "attr", None)) in ("njit", "jit"):
+                            out.add((rel, node.name))
+                elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+                    args = node.args
+                    if node.func.id == "map" and args and getattr(args[0], "id", "") == "compiled":
+                        args = getattr(args[1], "elts", []) if len(args) > 1 else []
+                    elif node.func.id != "compiled":
+                        continue
+                    out |= {(rel, a.id) for a in args if isinstance(a, ast.Name)}
+    return out
+
+
+_INTERPRETED = """
+import json, sys
+from tests.sim.test_kernels import flights_digest
+ran = set()
+def seen(frame, event, arg):
+    if event == "call":
+        ran.add((frame.f_code.co_filename, frame.f_code.co_name))
+sys.setprofile(seen)
+digest = flights_digest()
+sys.setprofile(None)
+print(json.dumps({"digest": digest, "ran": sorted(ran)}))
+"""
+
+
 def test_compiled_flights_equal_the_interpreted_source_bit_for_bit() -> None:
-    """The same flights with numba's compiler and with NUMBA_DISABLE_JIT=1 (the source
-    run by the interpreter, CPython's math.hypot included): the same bytes."""
-    code = "from tests.sim.test_kernels import flights_digest; print(flights_digest())"
+    """The same flights, geodesy, terrain and FTM ranging with numba's compiler and with
+    NUMBA_DISABLE_JIT=1 (the source run by the interpreter, CPython's math.hypot
+    included): the same bytes; and the interpreted run went through every kernel."""
     env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                         text=True, timeout=120, cwd=Path(__file__).parents[2], check=True)
-    assert out.stdout.strip() == flights_digest()
+    out = subprocess.run([sys.executable, "-c", _INTERPRETED], env=env, capture_output=True,
+                         text=True, timeout=300, cwd=ROOT, check=True)
+    got = json.loads(out.stdout)
+    assert got["digest"] == flights_digest()
+    ran = set()
+    for file, name in got["ran"]:
+        p = Path(file)
+        if p.is_relative_to(ROOT):
+            ran.add((p.relative_to(ROOT).as_posix(), name))
+    kernels = compiled_kernels()
+    assert {("sim/ftm.py", k) for k in ("_warp", "_scan", "_maybe_reached")} <= kernels
+    assert {("sim/occlusion.py", k) for k in ("_profile_samples", "_profile_max_nu",
+                                               "_cleared_annuli")} <= kernels
+    assert len(kernels) >= 21 and not kernels - ran, f"not exercised: {sorted(kernels - ran)}"
 
 
 def test_walker_and_generic_guidance_tick_by_tick_equal_the_compiled_run() -> None:
@@ -126,3 +211,25 @@ def test_walker_and_generic_guidance_tick_by_tick_equal_the_compiled_run() -> No
     st = v.state_log.view
     assert np.allclose(st[:, 3], world.ground_m(st[:, 1], st[:, 2]) + 1.5)
     assert math.dist(st[-1, 1:3], (20.0, 5.0)) < 0.5
+
+
+def occlusion_digest() -> str:
+    """SHA-256 of the FTM occlusion profiles (sim.occlusion's compiled sampling and nu
+    loops) of seeded random links over hills and a grid, with and without the
+    clearance tables' cleared annuli."""
+    from sim.occlusion import Occluder, profile_nu
+
+    rng = np.random.default_rng(9)
+    h = hashlib.sha256()
+    grid = GridTerrain(rng.normal(0.0, 2.0, (81, 81)).cumsum(0) * 0.3, -200.0, -200.0, 5.0)
+    for terrain in (HillsTerrain(), grid):
+        resp = np.column_stack([rng.uniform(-150, 150, (3, 2)), np.zeros(3)])
+        resp[:, 2] = terrain.height_m(resp[:, 0], resp[:, 1]) + 0.5
+        k = rng.integers(0, 3, 400)
+        p = resp[k] + np.column_stack([rng.uniform(-250, 250, (400, 2)),
+                                       rng.uniform(-5.0, 60.0, 400)])
+        occ = Occluder(terrain, resp, 5.18e9, 2.0)
+        ob = occ.obstruction(k, p)
+        for a in (profile_nu(resp[k], p, terrain, 0.0579, 3.0), ob.nu, ob.loss_db, ob.excess_m):
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()

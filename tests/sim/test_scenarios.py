@@ -39,7 +39,7 @@ def test_presets_exist_and_load():
         assert sc.name == name and sc.description
         assert 35.0 <= sc.header_agl_m <= 55.0
         if sc.flight is None:  # a search preset: its area holds its start
-            assert name.startswith("search-") and sc.search.contains(*sc.start_enu_m())
+            assert name.startswith(("search-", "site-")) and sc.search.contains(*sc.start_enu_m())
             continue
         traj = sc.trajectory()
         assert traj.duration_s > 10.0 and np.all(np.isfinite(traj.enu_m))

@@ -12,24 +12,26 @@ from __future__ import annotations
 import math
 
 import pytest
-
-from envs.vehicle.autopilot import TERRAIN_CLEARANCE_M
-from envs.vehicle.mission import (
-    MAV_CMD_DO_JUMP,
+from pymavlink.dialects.v20.common import (
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_LOITER_TURNS,
-)
-from envs.vehicle.px4 import (
-    LANDED_IN_AIR,
-    LANDED_ON_GROUND,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
     MAV_RESULT_TEMPORARILY_REJECTED,
     MISSION_STATE_COMPLETE,
-    Mode,
 )
+from pymavlink.dialects.v20.common import (
+    MAV_LANDED_STATE_IN_AIR as LANDED_IN_AIR,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_LANDED_STATE_ON_GROUND as LANDED_ON_GROUND,
+)
+
+from envs.vehicle.autopilot import TERRAIN_CLEARANCE_M
+from envs.vehicle.px4 import Mode
 from planner.mission import (
     MAV_CMD_DO_CHANGE_SPEED,
+    MAV_CMD_DO_JUMP,
     MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
     MAV_CMD_NAV_LAND,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,

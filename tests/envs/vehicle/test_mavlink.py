@@ -11,14 +11,14 @@ import math
 from pathlib import Path
 
 import pytest
+from pymavlink.dialects.v20.common import MAV_PARAM_TYPE_REAL32
 
 from envs.cli import main as osa_main
-from envs.vehicle.mission import MAV_CMD_DO_JUMP
-from envs.vehicle.params import MAV_PARAM_TYPE_REAL32
 from envs.vehicle.px4 import Mode
 from estimator.replay import ReplayOptions, replay_logs
 from planner.mavlink import TransferConfig, upload_mission
 from planner.mission import (
+    MAV_CMD_DO_JUMP,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_CMD_NAV_TAKEOFF,
     Mission,

@@ -7,19 +7,35 @@ from __future__ import annotations
 from dataclasses import replace
 
 import pytest
-
-from envs.vehicle.mission import (
-    CAPACITY,
-    MISSION_ACCEPTED,
-    MISSION_DENIED,
-    MISSION_INVALID_PARAM1,
-    MISSION_INVALID_PARAM5_X,
-    MISSION_INVALID_SEQUENCE,
-    MISSION_NO_SPACE,
-    MISSION_OPERATION_CANCELLED,
-    MISSION_UNSUPPORTED,
-    MISSION_UNSUPPORTED_FRAME,
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_ACCEPTED as MISSION_ACCEPTED,
 )
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_DENIED as MISSION_DENIED,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_INVALID_PARAM1 as MISSION_INVALID_PARAM1,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_INVALID_PARAM5_X as MISSION_INVALID_PARAM5_X,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_INVALID_SEQUENCE as MISSION_INVALID_SEQUENCE,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_NO_SPACE as MISSION_NO_SPACE,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_OPERATION_CANCELLED as MISSION_OPERATION_CANCELLED,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_UNSUPPORTED as MISSION_UNSUPPORTED,
+)
+from pymavlink.dialects.v20.common import (
+    MAV_MISSION_UNSUPPORTED_FRAME as MISSION_UNSUPPORTED_FRAME,
+)
+
+from envs.vehicle.mission import CAPACITY
 from envs.vehicle.protocol import MissionServer
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_MISSION

@@ -1,0 +1,293 @@
+"""The vehicle's MAVLink links: the ports it opens and the ground stations on them.
+
+:class:`Links` opens one endpoint per connection URL and keeps the links that talk
+through them, each with an id (the first element of a :data:`Peer`):
+
+- ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``: one pymavlink
+  connection, one link (``udpin`` answers the address that wrote last, as pymavlink
+  does);
+- ``tcpin:HOST:PORT``: a listening socket that accepts every ground station that
+  connects; each client is a link of its own, with its own parser and encoder, so each
+  gets the telemetry and the answers to its own requests. Sockets never block the
+  vehicle: what a client does not read waits in a bounded buffer
+  (:data:`TCP_BUFFER_BYTES`; whole messages beyond it are dropped for that client
+  only, counted in :attr:`TcpClient.dropped`), a client that hangs up is forgotten.
+  (pymavlink's own ``tcpin`` serves one client at a time: an idle one would lock the
+  others out.)
+
+MAVSDK's ``udpin://``, ``udpout://``, ``tcp://`` forms are accepted too
+(:func:`vehicle_url`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import socket
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+from envs.vehicle.protocol import Peer
+from planner.mavlink import mavutil
+
+mavlink = mavutil.mavlink
+
+TCP_BUFFER_BYTES = 1 << 20  # per TCP client: what it has not read yet, at most
+TCP_SEND_BUFFER_BYTES = 1 << 16  # the kernel's send buffer per TCP client (SO_SNDBUF)
+TCP_BACKLOG = 8
+MAX_MESSAGES_PER_POLL = 1000  # per link and poll: a flood never starves the loop
+
+_SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
+            "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
+_PYMAVLINK = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcpin:", "tcp:")
+
+
+class ConnectionURLError(ValueError):
+    """A connection URL the vehicle cannot open (one line)."""
+
+
+def vehicle_url(url: str) -> str:
+    """The pymavlink form of a vehicle-side URL (MAVSDK ``scheme://`` forms accepted)."""
+    u = url.strip()
+    for scheme, py in _SCHEMES.items():
+        if u.startswith(scheme):
+            u = py + u[len(scheme):]
+            break
+    if not u.startswith(_PYMAVLINK):
+        raise ConnectionURLError(
+            f"unsupported connection URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, "
+            "tcpin:HOST:PORT or tcp:HOST:PORT")
+    host, _, port = u.split(":", 1)[1].rpartition(":")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ConnectionURLError(f"bad connection URL {url!r}: port {port!r} "
+                                 "is not a number") from None
+    if not host or not 0 < p < 65536:
+        raise ConnectionURLError(f"bad connection URL {url!r}: expected HOST:PORT")
+    return u
+
+
+class MavPort:
+    """One pymavlink connection (udpin, udpout, tcp): one link."""
+
+    def __init__(self, url: str, sysid: int, compid: int) -> None:
+        u = vehicle_url(url)
+        scheme, rest = u.split(":", 1)
+        if scheme in ("udpin", "udp"):
+            # pymavlink binds with SO_REUSEADDR: two vehicles could share a port unnoticed
+            host, _, port = rest.rpartition(":")
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                try:
+                    probe.bind((host, int(port)))
+                except OSError as exc:
+                    raise ConnectionURLError(f"cannot listen on {url}: "
+                                             f"{exc.strerror or exc}") from None
+        try:
+            self.conn = mavutil.mavlink_connection(u, source_system=sysid,
+                                                   source_component=compid,
+                                                   autoreconnect=False, retries=0,
+                                                   reconnect_delay=0.1)
+        except (OSError, ValueError) as exc:
+            raise ConnectionURLError(
+                f"cannot open {url}: {getattr(exc, 'strerror', None) or exc}") from None
+        self.url = url
+        self.mav = self.conn.mav
+        self.closed = False
+
+    def fileno(self) -> int | None:
+        return self.conn.fd
+
+    def receive(self) -> Iterator[Any]:
+        for _ in range(MAX_MESSAGES_PER_POLL):
+            try:
+                msg = self.conn.recv_msg()
+            except (OSError, ValueError):
+                return
+            if msg is None:
+                return
+            yield msg
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.conn.close()
+
+
+class TcpClient:
+    """One ground station connected to a ``tcpin`` port (non-blocking; see the module
+    docstring). ``mav`` encodes into its buffer (``write``) and parses what it sends."""
+
+    def __init__(self, sock: socket.socket, address: tuple, sysid: int, compid: int) -> None:
+        sock.setblocking(False)
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, TCP_SEND_BUFFER_BYTES)
+        self.sock = sock
+        self.address = address
+        self.url = f"tcp client {address[0]}:{address[1]}"
+        self.out = bytearray()
+        self.dropped = 0  # messages not queued: the client did not read
+        self.closed = False
+        self.mav = mavlink.MAVLink(self, srcSystem=sysid, srcComponent=compid)
+        self.mav.robust_parsing = True
+
+    def fileno(self) -> int | None:
+        return None if self.closed else self.sock.fileno()
+
+    def write(self, buf: bytes) -> None:
+        """Queue one encoded message (whole, or not at all) and send what the socket
+        takes now."""
+        if self.closed:
+            return
+        if len(self.out) + len(buf) > TCP_BUFFER_BYTES:
+            self.dropped += 1
+            return
+        self.out += buf
+        self.flush()
+
+    def flush(self) -> None:
+        if self.closed or not self.out:
+            return
+        try:
+            n = self.sock.send(self.out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self.close()
+            return
+        del self.out[:n]
+
+    def receive(self) -> Iterator[Any]:
+        if self.closed:
+            return
+        self.flush()
+        for _ in range(64):  # at most 4 MB per poll
+            try:
+                data = self.sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self.close()
+                return
+            if not data:
+                self.close()
+                return
+            yield from self.mav.parse_buffer(data) or ()
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            with contextlib.suppress(OSError):
+                self.sock.close()
+
+
+class TcpListener:
+    """A ``tcpin:HOST:PORT`` port: accepts any number of ground stations."""
+
+    def __init__(self, url: str, sysid: int, compid: int) -> None:
+        host, _, port = vehicle_url(url).split(":", 1)[1].rpartition(":")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((host, int(port)))
+            sock.listen(TCP_BACKLOG)
+            sock.setblocking(False)
+        except OSError as exc:
+            sock.close()
+            raise ConnectionURLError(f"cannot listen on {url}: {exc.strerror or exc}") from None
+        self.url = url
+        self.sock = sock
+        self.sysid, self.compid = sysid, compid
+
+    def fileno(self) -> int | None:
+        return self.sock.fileno()
+
+    def accept(self) -> list[TcpClient]:
+        out = []
+        for _ in range(TCP_BACKLOG):
+            try:
+                conn, addr = self.sock.accept()
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                break
+            out.append(TcpClient(conn, addr, self.sysid, self.compid))
+        return out
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.close()
+
+
+Link = MavPort | TcpClient
+
+
+class Links:
+    """Every port of the vehicle and the links on them (see the module docstring)."""
+
+    def __init__(self, urls: Sequence[str], sysid: int, compid: int) -> None:
+        self.links: dict[int, Link] = {}
+        self.listeners: list[TcpListener] = []
+        self._ids = itertools.count()
+        self.sent = 0
+        try:
+            for url in urls:
+                if vehicle_url(url).startswith("tcpin:"):
+                    self.listeners.append(TcpListener(url, sysid, compid))
+                else:
+                    self.links[next(self._ids)] = MavPort(url, sysid, compid)
+        except BaseException:
+            self.close()
+            raise
+
+    def poll(self) -> Iterator[tuple[int, Any]]:
+        """(link id, message) for everything received; new TCP clients are accepted."""
+        for lst in self.listeners:
+            for client in lst.accept():
+                self.links[next(self._ids)] = client
+        for k, link in list(self.links.items()):
+            for msg in link.receive():
+                yield k, msg
+            if link.closed:
+                del self.links[k]
+
+    def fds(self) -> list[int] | None:
+        """The file descriptors to wait on (None: a link has none, sleep instead)."""
+        fds = [lst.fileno() for lst in self.listeners] + \
+            [link.fileno() for link in self.links.values() if not link.closed]
+        if any(fd is None for fd in fds):
+            return None
+        return [fd for fd in fds if fd is not None]
+
+    def broadcast(self, msg: Any) -> None:
+        """``msg`` on every link."""
+        if msg is None:
+            return
+        for link in list(self.links.values()):
+            with contextlib.suppress(OSError):
+                link.mav.send(msg)
+                self.sent += 1
+
+    def send(self, peer: Peer, msg: Any) -> None:
+        """``msg`` on the link of ``peer`` (gone: nothing)."""
+        link = self.links.get(peer[0])
+        if msg is None or link is None:
+            return
+        with contextlib.suppress(OSError):
+            link.mav.send(msg)
+            self.sent += 1
+
+    def send_args(self, peer: Peer, name: str, args: tuple) -> None:
+        """``<name>_send(target system, target component, *args)`` to ``peer``."""
+        link = self.links.get(peer[0])
+        if link is None:
+            return
+        with contextlib.suppress(OSError):
+            getattr(link.mav, f"{name}_send")(peer[1], peer[2], *args)
+            self.sent += 1
+
+    def close(self) -> None:
+        for link in self.links.values():
+            link.close()
+        for lst in self.listeners:
+            lst.close()

@@ -1,0 +1,293 @@
+"""ArduPilot DataFlash logs (``.bin``), read with pymavlink's ``DFReader``.
+
+``GPS`` messages give the fix: ``GWk`` (GPS week) and ``GMS`` (milliseconds of the
+week) for the time, ``Status`` (0-1 no fix, skipped as ``no_fix``; 2 ``2d``, 3
+``3d``, 4 ``dgps``, 5 ``rtk_float``, 6 ``rtk_fixed``), ``NSats``, ``HDop``, ``Lat``,
+``Lng`` and ``Alt`` (above mean sea level). The ``GPA`` message written with it (same
+instance ``I`` and ``TimeUS``) gives ``HAcc`` and ``VAcc`` (``acc_m``, ``vacc_m``) and,
+in recent firmware, ``Und``: the receiver's geoid undulation N, so alt_m = Alt + Und.
+Without ``Und``, ``--geoid-offset`` gives N (else a warning); without ``HAcc``,
+acc_m = 1.5 m x HDop (as for NMEA). Instance 0 is read (``--topic GPS[1]`` picks the
+second receiver). Fixes without GPS time (``GWk`` 0) are skipped as ``no_utc``.
+
+GPS time runs ahead of UTC by the leap seconds since 1980 (18 s since 2017-01-01):
+:data:`LEAP_SECONDS` is the table (IERS Bulletin C; no leap second has been added
+since 2017).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import re
+import sys
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from estimator.importers.common import (
+    NS_PER_S,
+    GnssOptions,
+    Skip,
+    Source,
+    SourceError,
+    Stamped,
+    Tally,
+    ellipsoidal_m,
+    float32_decimal,
+    make_fix,
+)
+
+FORMAT = "dataflash"
+KIND = "gnss"
+HEAD = b"\xa3\x95\x80"  # message header bytes, then the FMT message's type (128)
+GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
+HDOP_TO_ACC_M = 1.5
+STATUS = {2: "2d", 3: "3d", 4: "dgps", 5: "rtk_float", 6: "rtk_fixed"}
+# (UTC date from which it holds, GPS - UTC in seconds)
+LEAP_SECONDS: tuple[tuple[str, int], ...] = (
+    ("2017-01-01", 18), ("2015-07-01", 17), ("2012-07-01", 16), ("2009-01-01", 15),
+    ("2006-01-01", 14), ("1999-01-01", 13), ("1997-07-01", 12), ("1996-01-01", 11),
+    ("1994-07-01", 10), ("1993-07-01", 9), ("1992-07-01", 8), ("1991-01-01", 7),
+    ("1990-01-01", 6), ("1988-01-01", 5), ("1985-07-01", 4), ("1983-07-01", 3),
+    ("1982-07-01", 2), ("1981-07-01", 1), ("1980-01-06", 0),
+)
+_LEAPS_NS = tuple(
+    (int(datetime.fromisoformat(d).replace(tzinfo=UTC).timestamp()) * NS_PER_S, s)
+    for d, s in LEAP_SECONDS
+)
+
+
+def sniff(head: bytes) -> bool:
+    return head.startswith(HEAD)
+
+
+def gps_to_utc_ns(week: int, ms: int) -> int:
+    """UTC (Unix nanoseconds) of GPS week ``week`` + ``ms`` milliseconds."""
+    gps_ns = (GPS_EPOCH_S + week * 604_800) * NS_PER_S + ms * 1_000_000
+    for start_ns, leap in _LEAPS_NS:
+        if gps_ns - leap * NS_PER_S >= start_ns:
+            return gps_ns - leap * NS_PER_S
+    return gps_ns
+
+
+@contextlib.contextmanager
+def quiet_output() -> Iterator[None]:
+    """Silence what pymavlink prints about bad bytes (from Python and from its compiled
+    indexer) so that it cannot mix with osa's own output; the counts say it instead."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            with contextlib.redirect_stdout(io.StringIO()) as a, \
+                    contextlib.redirect_stderr(io.StringIO()) as b:
+                yield
+                a.truncate(0)
+                b.truncate(0)
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+
+
+def _topic(text: str | None) -> int:
+    if text is None:
+        return 0
+    t = text.strip().upper()
+    if t == "GPS":
+        return 0
+    if t.startswith("GPS[") and t.endswith("]") and t[4:-1].isdigit():
+        return int(t[4:-1])
+    raise SourceError(f"--topic {text!r}: a DataFlash log takes GPS or GPS[N] (instance N)")
+
+
+_NUMPY = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "q": "<i8",
+          "Q": "<u8", "f": "<f4", "d": "<f8", "e": "<f2", "s": "S", "?": "?"}
+
+
+def message_dtype(msg_struct: str) -> np.dtype:
+    """The packed numpy record of a DFReader format's ``struct`` layout."""
+    fields = []
+    for k, (count, code) in enumerate(re.findall(r"(\d*)([a-zA-Z?])", msg_struct.lstrip("<"))):
+        np_code = _NUMPY[code] + (count if code == "s" else "")
+        shape = (int(count),) if count and code != "s" else ()
+        fields.append((f"f{k}", np.dtype(np_code), shape) if shape else (f"f{k}", np_code))
+    return np.dtype(fields)
+
+
+class Reader:
+    """The fixes of one DataFlash log (see the module docstring).
+
+    pymavlink's ``DFReader_binary`` indexes the file (every message's offset by type)
+    and describes each type from the log's own ``FMT`` messages (layout, columns,
+    multipliers); the ``GPS`` and ``GPA`` messages are then unpacked in bulk with that
+    description (the same values ``DFReader``'s messages give, tested), once: the
+    reader keeps the GNSS columns, as the ULog reader keeps its topic. pymavlink's
+    index stops at the first message header of an undefined type (a corrupt stretch);
+    the rest of the file is then read message by message with ``DFReader.recv_msg``,
+    which skips bad bytes. Bytes no message covers are counted (``corrupt_bytes``).
+    """
+
+    def __init__(self, path: Path, options: GnssOptions) -> None:
+        from pymavlink import DFReader
+
+        self.options = options
+        self.instance = _topic(options.topic)
+        self.source = Source(path=path, format=FORMAT, kind=KIND,
+                             label=f"GPS[{self.instance}] with GPA",
+                             utc_uncertainty_ns=500_000)  # GMS: 1 ms steps
+        try:
+            with quiet_output():  # pymavlink prints about bad bytes, from C too
+                df = DFReader.DFReader_binary(str(path), zero_time_base=True)
+        except Exception as exc:  # pymavlink raises bare Exceptions on foreign data
+            raise SourceError(f"{path}: not a readable DataFlash log ({exc})") from None
+        try:
+            self._load(df, path)
+        finally:
+            df.close()
+
+    def _load(self, df, path: Path) -> None:
+        if "GPS" not in df.name_to_id:
+            raise SourceError(f"{path}: no GPS messages (no FMT for GPS)")
+        gps_fmt = df.formats[df.name_to_id["GPS"]]
+        missing = [c for c in ("GMS", "GWk", "Lat", "Lng", "Alt", "Status")
+                   if c not in gps_fmt.columns]
+        if missing:
+            raise SourceError(f"{path}: GPS messages without {', '.join(missing)} "
+                              "(a log older than ArduPilot 3.3?)")
+        types = [t for t in df.formats if isinstance(t, int) and t < len(df.offsets)]
+        covered = sum(len(df.offsets[t]) * df.formats[t].len for t in types)
+        end = max((df.offsets[t][-1] + df.formats[t].len for t in types if df.offsets[t]),
+                  default=0)
+        self.truncated = 0
+        gps = self._columns(df, "GPS")
+        gpa = self._columns(df, "GPA") if "GPA" in df.name_to_id else {}
+        if end < df.data_len - 3:  # the index stopped: read on message by message
+            more, n_bytes = self._read_on(df, end)
+            covered += n_bytes
+            for name, cols in (("GPS", gps), ("GPA", gpa)):
+                rows = more[name]
+                if rows:
+                    fmt = df.formats[df.name_to_id[name]]
+                    for c in fmt.columns:
+                        extra = np.array([r[c] for r in rows]).astype(
+                            cols[c].dtype if c in cols else float)
+                        cols[c] = np.concatenate([cols[c], extra]) if c in cols else extra
+        self.corrupt_bytes = max(0, df.data_len - covered)
+        inst = gps.get("I", np.zeros(len(gps["TimeUS"]), dtype=np.int64))
+        self.other_instances = {int(i): int(n) for i, n in zip(
+            *np.unique(inst[inst != self.instance], return_counts=True), strict=True)}
+        mine = inst == self.instance
+        self.gps = {k: v[mine] for k, v in gps.items()}
+        self.n = int(mine.sum())
+        # the GPA written with each GPS: same instance and TimeUS
+        self.gpa_index = np.full(self.n, -1, dtype=np.int64)
+        if gpa:
+            gi = gpa.get("I", np.zeros(len(gpa["TimeUS"]), dtype=np.int64))
+            sel = np.flatnonzero(gi == self.instance)
+            t = gpa["TimeUS"][sel]
+            order = np.argsort(t, kind="stable")
+            ts = t[order]
+            pos = np.searchsorted(ts, self.gps["TimeUS"])
+            ok = pos < len(ts)
+            hit = np.zeros(self.n, dtype=bool)
+            hit[ok] = ts[pos[ok]] == self.gps["TimeUS"][ok]
+            self.gpa_index[hit] = sel[order[pos[hit]]]
+        self.gpa = gpa
+
+    @staticmethod
+    def _read_on(df, offset: int) -> tuple[dict[str, list[dict]], int]:
+        """GPS and GPA messages from ``offset`` on, parsed one by one by DFReader (which
+        skips bad bytes), and the bytes the messages parsed there cover."""
+        df.offset, df.remaining = offset, df.data_len - offset
+        out: dict[str, list[dict]] = {"GPS": [], "GPA": []}
+        n_bytes = 0
+        with quiet_output():
+            while (m := df.recv_msg()) is not None:
+                n_bytes += m.fmt.len
+                kind = m.get_type()
+                if kind in out:
+                    out[kind].append({c: getattr(m, c) for c in m.fmt.columns})
+        return out, n_bytes
+
+    def _columns(self, df, name: str) -> dict[str, np.ndarray]:
+        """Every column of the indexed ``name`` messages, scaled as DFReader scales them."""
+        type_id = df.name_to_id[name]
+        fmt = df.formats[type_id]
+        offs = np.asarray(df.offsets[type_id], dtype=np.int64)
+        whole = offs + fmt.len <= df.data_len
+        self.truncated += int((~whole).sum())
+        offs = offs[whole]
+        buf = np.frombuffer(df.data_map, dtype=np.uint8)
+        body = buf[offs[:, None] + 3 + np.arange(fmt.len - 3)]
+        rec = body.view(message_dtype(fmt.msg_struct)).reshape(len(offs))
+        out = {}
+        for k, col in enumerate(fmt.columns):
+            v = rec[f"f{k}"]
+            mult = fmt.msg_mults[k]
+            if v.dtype.kind in "iuf":
+                v = v.astype(np.float64 if (mult is not None or v.dtype.kind == "f")
+                             else np.int64)
+                if mult is not None:  # as DFReader: divide by 1/mult for mult < 1
+                    v = v / (1.0 / mult) if 0.0 < mult < 1.0 else v * mult
+            out[col] = v
+        return out
+
+    def records(self, tally: Tally) -> Iterator[Stamped]:
+        if self.corrupt_bytes:
+            tally.counts.rejected["corrupt_bytes"] += self.corrupt_bytes
+        if self.truncated:
+            tally.skip("truncated")
+        for inst, n in self.other_instances.items():
+            tally.counts.unknown_types[f"GPS[{inst}]"] += n
+        g, a = self.gps, self.gpa
+        has = {c: c in a for c in ("HAcc", "VAcc", "Und")}
+        for i in range(self.n):
+            tally.counts.lines += 1
+            j = int(self.gpa_index[i])
+            try:
+                yield self._fix(g, i, a if j >= 0 else None, j, has, tally)
+            except Skip as s:
+                tally.skip(s.reason)
+
+    def _fix(self, g: dict, i: int, a: dict | None, j: int, has: dict,
+             tally: Tally) -> Stamped:
+        status = int(g["Status"][i])
+        if status not in STATUS:
+            raise Skip("no_fix")
+        week, ms = int(g["GWk"][i]), int(g["GMS"][i])
+        if week <= 0:
+            raise Skip("no_utc")
+        hacc = round(float(a["HAcc"][j]), 2) if a is not None and has["HAcc"] else None
+        vacc = round(float(a["VAcc"][j]), 2) if a is not None and has["VAcc"] else None
+        und = float32_decimal(a["Und"][j]) if a is not None and has["Und"] else None
+        if und == 0.0:  # a receiver without an undulation model logs 0
+            und = None
+        if not hacc and "HDop" in g:
+            hdop = round(float(g["HDop"][i]), 2)
+            if hdop:
+                hacc = HDOP_TO_ACC_M * hdop
+                self.source.warn("fixes without GPA.HAcc: acc_m = 1.5 m x HDop")
+        alt, how = ellipsoidal_m(self.source, round(float(g["Alt"][i]), 2), und,
+                                 self.options.geoid_offset_m)
+        fix = make_fix(
+            lat_deg=round(float(g["Lat"][i]), 7), lon_deg=round(float(g["Lng"][i]), 7),
+            alt_m=alt, acc_m=hacc, vacc_m=vacc, fix=STATUS[status],
+            sats=int(g["NSats"][i]) if "NSats" in g else None,
+            default_acc_m=self.options.default_acc_m,
+        )
+        tally.heights[how] += 1
+        return Stamped(fix, utc_ns=gps_to_utc_ns(week, ms))
+
+    def close(self) -> None:
+        self.gps, self.gpa = {}, {}

@@ -1,0 +1,146 @@
+"""ROS 2 bags, read with rosbags: ``sensor_msgs/msg/NavSatFix`` messages.
+
+A bag is its directory (with ``metadata.yaml``), or one storage file, ``.db3``
+(sqlite3) or ``.mcap``, with or without the ``metadata.yaml`` beside it (a directory
+without it is read through the storage files it holds). Messages are deserialised with
+the definitions the bag carries, else with the ROS 2 Humble type store. The topic is
+the bag's only NavSatFix topic, or ``--topic``.
+
+Used: ``header.stamp`` (UTC), ``latitude``, ``longitude``, ``altitude`` (above the
+WGS84 ellipsoid, as the message defines it), ``status.status`` (-1 no fix and -2
+unknown are skipped as ``no_fix``; 1 SBAS and 2 GBAS are ``dgps``; 0 leaves the fix
+type unknown) and ``position_covariance``: with a covariance type other than 0
+(unknown), acc_m is the square root of the larger horizontal variance (east or north)
+and vacc_m that of the vertical one. A message with a zero stamp is skipped
+(``no_utc``), one that cannot be deserialised counted as ``corrupt_message``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+from estimator.importers.common import (
+    NS_PER_S,
+    GnssOptions,
+    Skip,
+    Source,
+    SourceError,
+    Stamped,
+    Tally,
+    make_fix,
+)
+
+FORMAT = "rosbag2"
+KIND = "gnss"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+MCAP_MAGIC = b"\x89MCAP"
+STORAGE_SUFFIXES = (".db3", ".mcap")
+STATUS = {0: None, 1: "dgps", 2: "dgps"}
+
+
+def sniff(head: bytes) -> bool:
+    return head.startswith((SQLITE_MAGIC, MCAP_MAGIC))
+
+
+def is_bag_directory(path: Path) -> bool:
+    return path.is_dir() and ((path / "metadata.yaml").is_file() or any(
+        p.suffix in STORAGE_SUFFIXES for p in path.iterdir()))
+
+
+def _storage_paths(path: Path) -> list[Path]:
+    """What rosbags opens: the bag directory when it has its metadata.yaml, else the
+    storage files themselves."""
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return [path]
+        files = sorted(p for p in path.iterdir() if p.suffix in STORAGE_SUFFIXES)
+        if not files:
+            raise SourceError(f"{path}: a directory with no metadata.yaml, .db3 or .mcap")
+        return files
+    if path.suffix not in STORAGE_SUFFIXES:
+        raise SourceError(f"{path}: a bag file must be named .db3 (sqlite3) or .mcap")
+    return [path]
+
+
+class Reader:
+    """The NavSatFix fixes of one ROS 2 bag (see the module docstring)."""
+
+    def __init__(self, path: Path, options: GnssOptions) -> None:
+        self.options = options
+        self.paths = _storage_paths(path)
+        self.source = Source(path=path, format=FORMAT, kind=KIND, utc_uncertainty_ns=1)
+        with self._open() as reader:
+            topics = sorted({c.topic for c in reader.connections if c.msgtype == NAVSATFIX})
+            if options.topic is not None:
+                if options.topic not in topics:
+                    raise SourceError(f"{path}: no NavSatFix topic {options.topic!r} "
+                                      f"(NavSatFix topics: {', '.join(topics) or 'none'})")
+                self.topic = options.topic
+            elif len(topics) == 1:
+                self.topic = topics[0]
+            elif not topics:
+                raise SourceError(f"{path}: no {NAVSATFIX} topic")
+            else:
+                raise SourceError(f"{path}: several NavSatFix topics ({', '.join(topics)}): "
+                                  "name one with --topic")
+        self.source.label = f"NavSatFix on {self.topic}"
+
+    def _open(self):
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.typesys import Stores, get_typestore
+
+        try:
+            reader = AnyReader(self.paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            reader.open()
+        except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+            raise SourceError(f"{self.source.path}: not a readable ROS 2 bag ({exc})") from None
+        except Exception as exc:  # storage plugins raise their own (sqlite3, mcap) errors
+            raise SourceError(f"{self.source.path}: not a readable ROS 2 bag "
+                              f"({type(exc).__name__}: {exc})") from None
+        return contextlib.closing(reader)
+
+    def records(self, tally: Tally) -> Iterator[Stamped]:
+        with self._open() as reader:
+            conns = [c for c in reader.connections if c.topic == self.topic]
+            for conn in reader.connections:
+                if conn.topic != self.topic:
+                    tally.counts.unknown_types[conn.topic] += conn.msgcount
+            for conn, _, raw in reader.messages(connections=conns):
+                tally.counts.lines += 1
+                try:
+                    try:
+                        msg = reader.deserialize(raw, conn.msgtype)
+                    except Exception:  # any failure of one message
+                        raise Skip("corrupt_message") from None
+                    yield self._fix(msg, tally)
+                except Skip as s:
+                    tally.skip(s.reason)
+
+    def _fix(self, msg, tally: Tally) -> Stamped:
+        stamp = msg.header.stamp
+        utc_ns = int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+        if utc_ns <= 0:
+            raise Skip("no_utc")
+        status = int(msg.status.status)
+        if status not in STATUS:
+            raise Skip("no_fix")
+        acc = vacc = None
+        if int(msg.position_covariance_type) != 0:
+            c = [float(x) for x in msg.position_covariance]
+            if any(not math.isfinite(x) for x in (c[0], c[4], c[8])):
+                raise Skip("non_finite")
+            if min(c[0], c[4], c[8]) < 0:
+                raise Skip("bad_value")
+            acc, vacc = math.sqrt(max(c[0], c[4])), math.sqrt(c[8])
+        fix = make_fix(lat_deg=float(msg.latitude), lon_deg=float(msg.longitude),
+                       alt_m=float(msg.altitude), acc_m=acc, vacc_m=vacc, fix=STATUS[status],
+                       default_acc_m=self.options.default_acc_m)
+        tally.heights["ellipsoid"] += 1
+        return Stamped(fix, utc_ns=utc_ns)
+
+    def close(self) -> None:
+        pass

@@ -1,0 +1,371 @@
+"""Site files: search areas and keep-outs drawn in Google Earth, QGIS or QGroundControl.
+
+Readers for the three formats an operator has (docs/scenarios.md, docs/planner.md):
+
+- KML (Google Earth, QGIS): ``Placemark`` elements with a ``Polygon`` (its
+  ``outerBoundaryIs`` ring; holes are refused) or a ``Point`` with a ``radius_m``
+  (a circle), in a ``Document``/``Folder`` tree or inside a ``MultiGeometry``;
+  ``top_m`` and ``radius_m`` from the placemark's ``ExtendedData`` (``<Data
+  name="top_m"><value>35</value></Data>`` or ``<SimpleData name="top_m">``).
+  Coordinates are ``lon,lat[,alt]`` tuples. Parsed with :mod:`xml.etree.ElementTree`
+  with care: a document type declaration (``<!DOCTYPE``, hence any entity) is
+  refused, so no external entity is ever resolved and no entity expands.
+- GeoJSON (RFC 7946): a ``Polygon`` (or ``MultiPolygon`` of one polygon) geometry,
+  ``Feature`` or ``FeatureCollection``; ``Point`` features with a ``radius_m``
+  property are circles; ``top_m`` is a feature property. Positions are [lon, lat].
+- QGroundControl ``.plan``: its ``geoFence`` polygons and circles ([lat, lon]
+  vertices, ``inclusion`` flags).
+
+:func:`read_area` returns the one polygon of a search area (a KML or GeoJSON with one
+polygon, a ``.plan`` whose geoFence holds one inclusion polygon); :func:`read_keepouts`
+every shape of a keep-out file (a ``.plan``'s exclusion polygons and circles). Files
+are bounded (:data:`MAX_FILE_BYTES`, :data:`MAX_VERTICES`); every problem is a
+:class:`SiteFileError` with one line naming the file. Nothing here knows a frame: the
+scenario (``sim.scenario``) and ``osa plan`` convert the shapes once to their ENU frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+MAX_FILE_BYTES = 20_000_000
+MAX_VERTICES = 200_000
+AREA_SUFFIXES = (".kml", ".geojson", ".json", ".plan")
+
+LatLon = tuple[float, float]
+
+
+class SiteFileError(ValueError):
+    """A site file that cannot be read or used (one line, naming the file)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class GeoShape:
+    """A polygon (``vertices_deg``: (lat, lon), open ring) or a circle (``center_deg``
+    and ``radius_m``), with an optional height above ground (``top_m``) and a name."""
+
+    vertices_deg: tuple[LatLon, ...] = ()
+    center_deg: LatLon | None = None
+    radius_m: float | None = None
+    top_m: float | None = None
+    name: str = ""
+    inclusion: bool = False  # a .plan fence shape's flag (areas are inclusion polygons)
+
+    @property
+    def is_circle(self) -> bool:
+        return self.center_deg is not None
+
+
+# ----------------------------------------------------------------------------- checks
+
+
+def _latlon(lat: Any, lon: Any, where: str) -> LatLon:
+    for v in (lat, lon):
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise SiteFileError(f"{where}: coordinate {v!r} is not a finite number")
+    if not -90.0 <= lat <= 90.0 or not -180.0 <= lon <= 180.0:
+        raise SiteFileError(f"{where}: ({lat}, {lon}) is not a latitude/longitude")
+    return float(lat), float(lon)
+
+
+def _ring(vertices: list[LatLon], where: str) -> tuple[LatLon, ...]:
+    """An open ring: the closing vertex (and repeated ones) dropped, >= 3 left."""
+    out: list[LatLon] = []
+    for v in vertices:
+        if not out or v != out[-1]:
+            out.append(v)
+    if len(out) > 1 and out[0] == out[-1]:
+        out.pop()
+    if len(out) < 3:
+        raise SiteFileError(f"{where}: a polygon needs at least 3 distinct vertices")
+    return tuple(out)
+
+
+def _height(value: Any, key: str, where: str, positive: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SiteFileError(f"{where}: {key} {value!r} is not a number") from None
+    if isinstance(value, bool) or not math.isfinite(v) or v < 0 or (positive and v == 0):
+        raise SiteFileError(f"{where}: {key} {value!r} must be a finite number "
+                            f"{'> 0' if positive else '>= 0'}")
+    return v
+
+
+def _read(path: Path) -> str:
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise SiteFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if size > MAX_FILE_BYTES:
+        raise SiteFileError(f"{path}: {size:,} bytes, more than the {MAX_FILE_BYTES:,} a site "
+                            "file may hold")
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SiteFileError(f"{path}: cannot read: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- KML
+
+_DOCTYPE = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
+
+
+def _local(tag: str) -> str:
+    return tag.rsplit("}", 1)[-1]
+
+
+def _children(el: ET.Element, name: str) -> list[ET.Element]:
+    return [c for c in el if _local(c.tag) == name]
+
+
+def _descendants(el: ET.Element, name: str) -> list[ET.Element]:
+    return [c for c in el.iter() if _local(c.tag) == name]
+
+
+def _kml_coords(text: str | None, where: str) -> list[LatLon]:
+    out = []
+    for tok in (text or "").split():
+        parts = tok.split(",")
+        if len(parts) < 2:
+            raise SiteFileError(f"{where}: coordinates {tok!r} are not lon,lat[,alt]")
+        try:
+            lon, lat = float(parts[0]), float(parts[1])
+        except ValueError:
+            raise SiteFileError(f"{where}: coordinates {tok!r} are not numbers") from None
+        out.append(_latlon(lat, lon, where))
+    return out
+
+
+def _kml_extended(pm: ET.Element) -> dict[str, str]:
+    data: dict[str, str] = {}
+    for ext in _children(pm, "ExtendedData"):
+        for d in _descendants(ext, "Data"):
+            vals = _children(d, "value")
+            if d.get("name") and vals:
+                data[d.get("name", "")] = (vals[0].text or "").strip()
+        for d in _descendants(ext, "SimpleData"):
+            if d.get("name"):
+                data[d.get("name", "")] = (d.text or "").strip()
+    return data
+
+
+def _parse_kml(text: str, source: str) -> list[GeoShape]:
+    if _DOCTYPE.search(text):
+        raise SiteFileError(f"{source}: a document type declaration (DOCTYPE/ENTITY) is not "
+                            "accepted in a KML file")
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise SiteFileError(f"{source}: not well-formed XML: {exc}") from None
+    if _local(root.tag) != "kml":
+        raise SiteFileError(f"{source}: the root element is <{_local(root.tag)}>, not <kml>")
+    shapes: list[GeoShape] = []
+    n_vertices = 0
+    for k, pm in enumerate(_descendants(root, "Placemark")):
+        names = _children(pm, "name")
+        name = (names[0].text or "").strip() if names else f"placemark {k + 1}"
+        where = f"{source}: placemark {name!r}"
+        ext = _kml_extended(pm)
+        top = _height(ext["top_m"], "top_m", where) if ext.get("top_m") else None
+        for poly in _descendants(pm, "Polygon"):
+            if _descendants(poly, "innerBoundaryIs"):
+                raise SiteFileError(f"{where}: polygons with holes are not supported (draw "
+                                    "the hole as a keep-out)")
+            rings = [r for ob in _descendants(poly, "outerBoundaryIs")
+                     for r in _descendants(ob, "coordinates")]
+            if len(rings) != 1:
+                raise SiteFileError(f"{where}: a Polygon needs one outerBoundaryIs ring")
+            verts = _kml_coords(rings[0].text, where)
+            n_vertices += len(verts)
+            shapes.append(GeoShape(vertices_deg=_ring(verts, where), top_m=top, name=name))
+        for pt in _descendants(pm, "Point"):
+            coords = _descendants(pt, "coordinates")
+            if "radius_m" not in ext:
+                continue  # a Point without a radius is a label, not a shape
+            verts = _kml_coords(coords[0].text if coords else "", where)
+            if len(verts) != 1:
+                raise SiteFileError(f"{where}: a Point needs one lon,lat")
+            shapes.append(GeoShape(center_deg=verts[0],
+                                   radius_m=_height(ext["radius_m"], "radius_m", where, True),
+                                   top_m=top, name=name))
+        if n_vertices > MAX_VERTICES:
+            raise SiteFileError(f"{source}: more than {MAX_VERTICES:,} vertices")
+    return shapes
+
+
+# ----------------------------------------------------------------------------- GeoJSON
+
+
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"bare {name} is not JSON")
+
+
+def _json(text: str, source: str) -> Any:
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise SiteFileError(f"{source}: malformed JSON at line {exc.lineno} column "
+                            f"{exc.colno}: {exc.msg}") from None
+    except ValueError as exc:
+        raise SiteFileError(f"{source}: {exc}") from None
+
+
+def _geojson_ring(ring: Any, where: str) -> tuple[LatLon, ...]:
+    if not isinstance(ring, list):
+        raise SiteFileError(f"{where}: a ring is a list of [lon, lat] positions")
+    if len(ring) > MAX_VERTICES:
+        raise SiteFileError(f"{where}: more than {MAX_VERTICES:,} vertices")
+    verts = []
+    for p in ring:
+        if not isinstance(p, list) or not 2 <= len(p) <= 3:
+            raise SiteFileError(f"{where}: a position is [lon, lat] or [lon, lat, h]")
+        verts.append(_latlon(p[1], p[0], where))
+    return _ring(verts, where)
+
+
+def _geojson_shapes(obj: Any, source: str) -> list[GeoShape]:
+    if not isinstance(obj, dict):
+        raise SiteFileError(f"{source}: the top level is not a GeoJSON object")
+    kind = obj.get("type")
+    if kind == "FeatureCollection":
+        feats = obj.get("features")
+        if not isinstance(feats, list):
+            raise SiteFileError(f"{source}: a FeatureCollection needs a features list")
+        out: list[GeoShape] = []
+        for k, f in enumerate(feats):
+            out += _geojson_feature(f, f"{source}: feature {k}")
+        return out
+    if kind == "Feature":
+        return _geojson_feature(obj, source)
+    return _geojson_geometry(obj, {}, source, "")
+
+
+def _geojson_feature(f: Any, where: str) -> list[GeoShape]:
+    if not isinstance(f, dict) or f.get("type") != "Feature":
+        raise SiteFileError(f"{where}: not a GeoJSON Feature")
+    props = f.get("properties") or {}
+    if not isinstance(props, dict):
+        raise SiteFileError(f"{where}: properties must be an object")
+    name = str(props.get("name", ""))
+    return _geojson_geometry(f.get("geometry"), props, where, name)
+
+
+def _geojson_geometry(g: Any, props: dict, where: str, name: str) -> list[GeoShape]:
+    if not isinstance(g, dict):
+        raise SiteFileError(f"{where}: missing geometry")
+    top = _height(props["top_m"], "top_m", where) if props.get("top_m") is not None else None
+    kind, coords = g.get("type"), g.get("coordinates")
+    if kind == "Polygon":
+        polys = [coords]
+    elif kind == "MultiPolygon":
+        polys = coords if isinstance(coords, list) else [None]
+    elif kind == "Point":
+        if props.get("radius_m") is None:
+            return []  # a point without a radius is a label, not a shape
+        if not isinstance(coords, list) or not 2 <= len(coords) <= 3:
+            raise SiteFileError(f"{where}: a Point is [lon, lat]")
+        return [GeoShape(center_deg=_latlon(coords[1], coords[0], where),
+                         radius_m=_height(props["radius_m"], "radius_m", where, True),
+                         top_m=top, name=name)]
+    elif kind == "GeometryCollection":
+        out: list[GeoShape] = []
+        for sub in g.get("geometries") or []:
+            out += _geojson_geometry(sub, props, where, name)
+        return out
+    else:
+        return []  # lines and other geometries are not areas
+    out = []
+    for rings in polys:
+        if not isinstance(rings, list) or not rings:
+            raise SiteFileError(f"{where}: a Polygon needs its rings")
+        if len(rings) > 1:
+            raise SiteFileError(f"{where}: polygons with holes are not supported (draw the "
+                                "hole as a keep-out)")
+        out.append(GeoShape(vertices_deg=_geojson_ring(rings[0], where), top_m=top, name=name))
+    return out
+
+
+# ----------------------------------------------------------------------------- .plan
+
+
+def _plan_shapes(obj: Any, source: str) -> list[GeoShape]:
+    if not isinstance(obj, dict) or obj.get("fileType") != "Plan":
+        raise SiteFileError(f"{source}: not a QGroundControl plan (fileType 'Plan')")
+    fence = obj.get("geoFence")
+    if not isinstance(fence, dict):
+        raise SiteFileError(f"{source}: the plan has no geoFence")
+    out: list[GeoShape] = []
+    for k, p in enumerate(fence.get("polygons") or []):
+        where = f"{source}: geoFence.polygons[{k}]"
+        verts = p.get("polygon") if isinstance(p, dict) else None
+        if not isinstance(verts, list) or len(verts) > MAX_VERTICES:
+            raise SiteFileError(f"{where}: expected a polygon of [lat, lon] vertices")
+        pts = []
+        for v in verts:
+            if not isinstance(v, list) or len(v) != 2:
+                raise SiteFileError(f"{where}: a vertex is [lat, lon]")
+            pts.append(_latlon(v[0], v[1], where))
+        out.append(GeoShape(vertices_deg=_ring(pts, where), inclusion=bool(p.get("inclusion")),
+                            name=f"fence polygon {k}"))
+    for k, c in enumerate(fence.get("circles") or []):
+        where = f"{source}: geoFence.circles[{k}]"
+        circ = c.get("circle") if isinstance(c, dict) else None
+        center = circ.get("center") if isinstance(circ, dict) else None
+        if not isinstance(center, list) or len(center) != 2:
+            raise SiteFileError(f"{where}: expected circle.center [lat, lon] and radius")
+        out.append(GeoShape(center_deg=_latlon(center[0], center[1], where),
+                            radius_m=_height(circ.get("radius"), "radius", where, True),
+                            inclusion=bool(c.get("inclusion")), name=f"fence circle {k}"))
+    return out
+
+
+# ----------------------------------------------------------------------------- API
+
+
+def read_shapes(path: str | Path) -> list[GeoShape]:
+    """Every polygon and circle of a KML, GeoJSON or ``.plan`` file, in file order."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in AREA_SUFFIXES:
+        raise SiteFileError(f"{p}: unknown site file type {suffix!r} (use .kml, .geojson, "
+                            ".json or .plan)")
+    text = _read(p)
+    if suffix == ".kml":
+        return _parse_kml(text, str(p))
+    obj = _json(text, str(p))
+    if suffix == ".plan":
+        return _plan_shapes(obj, str(p))
+    return _geojson_shapes(obj, str(p))
+
+
+def read_area(path: str | Path) -> tuple[LatLon, ...]:
+    """The search area's polygon, (lat, lon) vertices: the one polygon of a KML or
+    GeoJSON file, or the one inclusion polygon of a ``.plan``'s geoFence."""
+    shapes = read_shapes(path)
+    if Path(path).suffix.lower() == ".plan":
+        polys = [s for s in shapes if not s.is_circle and s.inclusion]
+        what = "inclusion polygons in its geoFence"
+    else:
+        polys = [s for s in shapes if not s.is_circle]
+        what = "polygons"
+    if len(polys) != 1:
+        raise SiteFileError(f"{path}: holds {len(polys)} {what}; a search area is exactly one")
+    return polys[0].vertices_deg
+
+
+def read_keepouts(path: str | Path) -> list[GeoShape]:
+    """The keep-outs of a file: its polygons and circles (a ``.plan``: the exclusion
+    ones), each with its ``top_m`` if the file gives one. At least one."""
+    shapes = read_shapes(path)
+    if Path(path).suffix.lower() == ".plan":
+        shapes = [s for s in shapes if not s.inclusion]
+    if not shapes:
+        raise SiteFileError(f"{path}: holds no keep-out (a polygon, or a point with a radius_m)")
+    return shapes

@@ -1,0 +1,216 @@
+"""Several ground stations at once and a COMMAND_ACK for every command.
+
+Over ``tcpin`` the vehicle accepts any number of pymavlink TCP clients: an idle one
+(connected first, never reading or writing) locks no one out, every client gets the
+telemetry, each one's commands are answered to it alone, a client whose buffers are
+full only loses its own (whole) messages, and one that hangs up is forgotten. Every COMMAND_LONG
+and COMMAND_INT is acknowledged, malformed ones too (a table of NaN and out-of-range
+parameters with the MAV_RESULT each gets), and none of them changes the vehicle."""
+
+from __future__ import annotations
+
+import math
+import socket
+
+import pytest
+from pymavlink.dialects.v20.common import (
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_CHANGE_SPEED,
+    MAV_CMD_DO_PAUSE_CONTINUE,
+    MAV_CMD_DO_REPOSITION,
+    MAV_CMD_DO_SET_HOME,
+    MAV_CMD_DO_SET_MISSION_CURRENT,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_GET_MESSAGE_INTERVAL,
+    MAV_CMD_MISSION_START,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    MAV_FRAME_LOCAL_NED,
+    MAV_RESULT_ACCEPTED,
+    MAV_RESULT_DENIED,
+    MAV_RESULT_TEMPORARILY_REJECTED,
+    MAV_RESULT_UNSUPPORTED,
+    MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+)
+
+from envs.vehicle import VirtualVehicle, links
+from envs.vehicle.px4 import Mode
+from planner.mavlink import mavutil
+from sim import load_scenario
+from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port, until
+from tests.vehicles import running_vehicle
+
+NAN, INF = math.nan, math.inf
+
+
+def _drain(conn) -> list:
+    """Every message waiting on a pymavlink connection (non-blocking)."""
+    out = []
+    for _ in range(100_000):
+        m = conn.recv_match(blocking=False)
+        if m is None:
+            break
+        if m.get_type() != "BAD_DATA":
+            out.append(m)
+    return out
+
+
+def test_tcp_ground_stations_one_idle(monkeypatch) -> None:
+    # small buffers: a client that never reads fills them within a second
+    monkeypatch.setattr(links, "TCP_BUFFER_BYTES", 8192)
+    monkeypatch.setattr(links, "TCP_SEND_BUFFER_BYTES", 4096)
+    port = free_tcp_port()
+    url = f"tcp:127.0.0.1:{port}"
+    v = VirtualVehicle(load_scenario(SEARCH_SCENARIO), [f"tcpin:127.0.0.1:{port}"],
+                       speedup=20.0)
+    with v:
+        idle = mavutil.mavlink_connection(url, source_system=254, source_component=190)
+        # (pymavlink's tcpin would now serve the idle client only)
+        a, b = Gcs(url), Gcs(url)
+        # and one that never reads with a small receive buffer
+        deaf = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        deaf.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        deaf.connect(("127.0.0.1", port))
+        try:
+            assert until(lambda: len(v.links.links) == 4, 15.0)
+            # each one's commands are answered to it, with what it asked for
+            assert a.command(MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_AUTOPILOT_VERSION) == \
+                MAV_RESULT_ACCEPTED
+            assert a.wait("AUTOPILOT_VERSION").flight_custom_version == list(b"osa-veh\0")
+            assert b.command(MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                             5e5) == MAV_RESULT_ACCEPTED
+            assert b.command(MAV_CMD_DO_SET_MODE, 1, 3, 0) == MAV_RESULT_ACCEPTED  # POSCTL
+            assert until(lambda: v.autopilot.mode is Mode.POSCTL, 10.0)
+            # both get the telemetry, and the mode b set
+            for gcs in (a, b):
+                gcs.wait("HEARTBEAT", where=lambda m: m.get_srcSystem() == 1
+                         and m.custom_mode == Mode.POSCTL.custom_mode)
+                gcs.wait("GLOBAL_POSITION_INT")
+            a.collect(0.5)
+            b.collect(0.5)
+            acks_a = {m.command for m in a.messages if m.get_type() == "COMMAND_ACK"}
+            acks_b = {m.command for m in b.messages if m.get_type() == "COMMAND_ACK"}
+            assert acks_a == {MAV_CMD_REQUEST_MESSAGE}
+            assert acks_b == {MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_DO_SET_MODE}
+            assert not [m for m in b.messages if m.get_type() == "AUTOPILOT_VERSION"]
+            # the deaf client lost its own messages, nobody else's
+            deaf_link = next(k for k in list(v.links.links.values())
+                             if isinstance(k, links.TcpClient)
+                             and k.address[1] == deaf.getsockname()[1])
+            assert until(lambda: deaf_link.dropped > 0, 30.0)
+            assert a.command(MAV_CMD_DO_SET_MODE, 1, 4, 3) == MAV_RESULT_ACCEPTED  # LOITER
+            b.wait("HEARTBEAT", where=lambda m: m.get_srcSystem() == 1
+                   and m.custom_mode == Mode.LOITER.custom_mode)
+            # the idle one read nothing meanwhile: it holds telemetry, no one's answers
+            got = _drain(idle)
+            kinds = {m.get_type() for m in got}
+            assert {"HEARTBEAT", "GLOBAL_POSITION_INT"} <= kinds
+            assert "COMMAND_ACK" not in kinds and "AUTOPILOT_VERSION" not in kinds
+            # a client that hangs up is forgotten
+            a.close()
+            assert until(lambda: len(v.links.links) == 3, 15.0)
+            assert b.command(MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_AUTOPILOT_VERSION) == \
+                MAV_RESULT_ACCEPTED
+        finally:
+            for c in (a, b):
+                c.close()
+            idle.close()
+            deaf.close()
+
+
+# (command, params 1..7, MAV_RESULT) on a landed, disarmed vehicle without a mission
+MALFORMED_LONG = [
+    (MAV_CMD_COMPONENT_ARM_DISARM, (NAN,), MAV_RESULT_DENIED),
+    (MAV_CMD_COMPONENT_ARM_DISARM, (2.0,), MAV_RESULT_DENIED),
+    (MAV_CMD_COMPONENT_ARM_DISARM, (0.0, NAN), MAV_RESULT_ACCEPTED),  # disarmed already
+    (MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, INF), MAV_RESULT_DENIED),
+    (MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, 1e9), MAV_RESULT_DENIED),
+    (MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, NAN), MAV_RESULT_TEMPORARILY_REJECTED),
+    (MAV_CMD_DO_SET_MODE, (NAN, 4, 3), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_MODE, (1, NAN, 3), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_MODE, (1, 4, 1e12), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_MODE, (1, -3, 0), MAV_RESULT_DENIED),
+    (MAV_CMD_MISSION_START, (NAN,), MAV_RESULT_DENIED),
+    (MAV_CMD_MISSION_START, (1e12,), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_PAUSE_CONTINUE, (NAN,), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_PAUSE_CONTINUE, (7,), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_CHANGE_SPEED, (1, NAN), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_CHANGE_SPEED, (1, -7), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_REPOSITION, (-1, 0, 0, NAN, 95.0, 10.0, 50), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_REPOSITION, (-1, 0, 0, NAN, 36.7, 400.0, 50), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_REPOSITION, (-1, 0, 0, NAN, NAN, NAN, INF), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_REPOSITION, (-1, 0, 0, NAN, NAN, NAN, NAN), MAV_RESULT_TEMPORARILY_REJECTED),
+    (MAV_CMD_DO_SET_HOME, (0, 0, 0, 0, 36.7, -4.4, NAN), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_HOME, (NAN, 0, 0, 0, 36.7, -4.4, 100), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_HOME, (0, 0, 0, 0, -91.0, -4.4, 100), MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_MISSION_CURRENT, (NAN,), MAV_RESULT_DENIED),  # no mission
+    (MAV_CMD_SET_MESSAGE_INTERVAL, (NAN, 1e6), MAV_RESULT_DENIED),
+    (MAV_CMD_SET_MESSAGE_INTERVAL, (33, NAN), MAV_RESULT_DENIED),
+    (MAV_CMD_SET_MESSAGE_INTERVAL, (33, -5), MAV_RESULT_DENIED),
+    (MAV_CMD_SET_MESSAGE_INTERVAL, (1e30, 1e6), MAV_RESULT_DENIED),
+    (MAV_CMD_SET_MESSAGE_INTERVAL, (9999, 1e6), MAV_RESULT_UNSUPPORTED),
+    (MAV_CMD_GET_MESSAGE_INTERVAL, (NAN,), MAV_RESULT_DENIED),
+    (MAV_CMD_REQUEST_MESSAGE, (NAN,), MAV_RESULT_DENIED),
+    (MAV_CMD_REQUEST_MESSAGE, (33.5,), MAV_RESULT_DENIED),
+    (MAV_CMD_REQUEST_MESSAGE, (-1,), MAV_RESULT_DENIED),
+    (MAV_CMD_REQUEST_MESSAGE, (9999,), MAV_RESULT_UNSUPPORTED),
+    (31000, (NAN,) * 7, MAV_RESULT_UNSUPPORTED),
+]
+# (command, frame, params 1..4, x, y, z, MAV_RESULT)
+MALFORMED_INT = [
+    (MAV_CMD_DO_REPOSITION, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, (-1, 0, 0, NAN),
+     2**31 - 1, 0, 30.0, MAV_RESULT_DENIED),
+    (MAV_CMD_DO_REPOSITION, MAV_FRAME_LOCAL_NED, (-1, 0, 0, NAN), 367_000_000, -44_000_000,
+     30.0, MAV_RESULT_DENIED),
+    (MAV_CMD_DO_SET_HOME, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, (0, 0, 0, 0), 367_000_000,
+     -44_000_000, INF, MAV_RESULT_DENIED),
+    (MAV_CMD_NAV_TAKEOFF, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, (0, 0, 0, NAN), 0, 0, NAN,
+     MAV_RESULT_TEMPORARILY_REJECTED),
+    (MAV_CMD_SET_MESSAGE_INTERVAL, 0, (NAN, 1e6, 0, 0), 0, 0, 0.0, MAV_RESULT_DENIED),
+    (31000, 0, (0, 0, 0, 0), 0, 0, 0.0, MAV_RESULT_UNSUPPORTED),
+]
+
+
+def test_every_command_is_acknowledged_malformed_ones_too() -> None:
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        ap = rv.autopilot
+        home = (ap.home.lat_deg, ap.home.lon_deg, ap.home.alt_m)
+        intervals = dict(rv.vehicle.telemetry.streams.interval_s)
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            got = []
+            for cmd, params, _ in MALFORMED_LONG:
+                got.append(gcs.command(cmd, *params))
+            for cmd, frame, p, x, y, z, _ in MALFORMED_INT:
+                gcs.conn.mav.command_int_send(1, 1, frame, cmd, 0, 0, *p, x, y, z)
+                got.append(int(gcs.wait("COMMAND_ACK", 3.0,
+                                        where=lambda m, c=cmd: m.command == c).result))
+            gcs.collect(0.3)
+            acks = [m for m in gcs.messages if m.get_type() == "COMMAND_ACK"]
+        finally:
+            gcs.close()
+        expected = [r for *_, r in MALFORMED_LONG] + [r for *_, r in MALFORMED_INT]
+        assert got == expected
+        assert len(acks) == len(expected)  # one each, no more
+        # nothing changed
+        assert (ap.home.lat_deg, ap.home.lon_deg, ap.home.alt_m) == home
+        assert not ap.armed and ap.mode is Mode.LOITER and ap.landed
+        assert rv.vehicle.telemetry.streams.interval_s == intervals
+        assert rv.vehicle._bad_kinds == set()  # no message it could not handle
+
+
+def test_tcpin_that_cannot_listen_is_one_line() -> None:
+    busy = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    busy.bind(("127.0.0.1", 0))
+    busy.listen(1)
+    try:
+        for url in (f"tcpin:127.0.0.1:{busy.getsockname()[1]}", "tcpin:256.1.1.1:5000"):
+            with pytest.raises(links.ConnectionURLError, match=r"^cannot listen on tcpin:") \
+                    as info:
+                links.Links([url], 1, 1)
+            assert "\n" not in str(info.value)
+    finally:
+        busy.close()

@@ -1,0 +1,223 @@
+"""``osa plan`` on a site: an area and keep-outs from files, heights over a rough DEM,
+the altitude frames, KML; every leg checked as an autopilot flies it (straight between
+the items), the DEM sampled independently (rasterio, pyproj)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import rasterio
+from pyproj import Transformer
+from rasterio.transform import from_origin
+
+from envs.cli import main
+from estimator.geodesy import ExactENU
+from planner.files import read_mission
+from planner.mission import (
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_NAV_WAYPOINT,
+    MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
+)
+from sim.sitefiles import read_area, read_keepouts
+
+LAT0, LON0 = 36.7105, -4.4905
+UTM = "EPSG:32630"
+AGL = 40.0
+TOWER_EN, TOWER_R = (120.0, 60.0), 20.0
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    d = tmp_path_factory.mktemp("site")
+    to_utm = Transformer.from_crs("EPSG:4326", UTM, always_xy=True)
+    x0, y0 = to_utm.transform(LON0, LAT0)
+    res, n = 10.0, 200
+    west, north = x0 - n / 2 * res, y0 + n / 2 * res
+    X, Y = np.meshgrid(west + res * (np.arange(n) + 0.5), north - res * (np.arange(n) + 0.5))
+    rng = np.random.default_rng(7)
+    rough = (300.0 + 45.0 * np.sin((X - x0) / 70.0) * np.cos((Y - y0) / 95.0)
+             + 0.25 * (X - x0) + 30.0 * np.tanh((Y - y0 - 80.0) / 15.0)
+             + rng.normal(0.0, 2.5, X.shape))
+    dem = d / "rough.tif"
+    with rasterio.open(dem, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32",
+                       crs=UTM, transform=from_origin(west, north, res, res)) as dst:
+        dst.write(rough.astype("float32"), 1)
+    frame = ExactENU(LAT0, LON0, 0.0)
+
+    def deg(en):
+        lat, lon, _ = frame.to_geodetic(np.array([p[0] for p in en], dtype=float),
+                                        np.array([p[1] for p in en], dtype=float),
+                                        np.zeros(len(en)))
+        return list(zip(np.atleast_1d(lat).tolist(), np.atleast_1d(lon).tolist(), strict=True))
+
+    area_en = [(-250.0, -200.0), (300.0, -200.0), (300.0, 220.0), (0.0, 250.0), (-250.0, 100.0)]
+    ring = " ".join(f"{lo!r},{la!r},0" for la, lo in [*deg(area_en), deg(area_en)[0]])
+    area = d / "area.kml"
+    area.write_text('<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2">'
+                    "<Document><Placemark><name>area</name><Polygon><outerBoundaryIs>"
+                    f"<LinearRing><coordinates>{ring}</coordinates></LinearRing>"
+                    "</outerBoundaryIs></Polygon></Placemark></Document></kml>",
+                    encoding="utf-8")
+    (tlat, tlon), = deg([TOWER_EN])
+    wires = deg([(-300.0, -60.0), (350.0, -60.0), (350.0, -40.0), (-300.0, -40.0)])
+    keep = d / "keep.geojson"
+    keep.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"name": "tower", "radius_m": TOWER_R, "top_m": 60},
+         "geometry": {"type": "Point", "coordinates": [tlon, tlat]}},
+        {"type": "Feature", "properties": {"name": "wires", "top_m": 15},
+         "geometry": {"type": "Polygon",
+                      "coordinates": [[[lo, la] for la, lo in [*wires, wires[0]]]]}},
+    ]}), encoding="utf-8")
+    with rasterio.open(dem) as src:
+        heights, inv = src.read(1).astype(float), ~src.transform
+
+    def ground(lat, lon):
+        """The DEM's height at (lat, lon): bilinear between cell centres, by hand."""
+        x, y = to_utm.transform(np.asarray(lon), np.asarray(lat))
+        c, r = inv @ (np.asarray(x), np.asarray(y))
+        ci, cj = np.asarray(c) - 0.5, np.asarray(r) - 0.5
+        i0, j0 = np.floor(ci).astype(int), np.floor(cj).astype(int)
+        ti, tj = ci - i0, cj - j0
+        h = heights
+        return ((h[j0, i0] * (1 - ti) + h[j0, i0 + 1] * ti) * (1 - tj)
+                + (h[j0 + 1, i0] * (1 - ti) + h[j0 + 1, i0 + 1] * ti) * tj)
+
+    return {"dir": d, "dem": str(dem), "area": str(area), "keep": str(keep),
+            "ground": ground, "area_en": area_en, "frame": frame}
+
+
+def _legs(mission, home_h):
+    """(lat, lon, absolute height) every ~0.5 m along the straight legs between the
+    positioned items (takeoff at home, then the waypoints), as an autopilot flies them."""
+    items = [it for it in mission.items if it.command in (MAV_CMD_NAV_TAKEOFF,
+                                                          MAV_CMD_NAV_WAYPOINT)]
+
+    def absolute(it):
+        return home_h + it.alt_m if it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT else it.alt_m
+
+    out = []
+    for a, b in itertools.pairwise(items):
+        d = math.hypot((b.lat_deg - a.lat_deg) * 111_000.0, (b.lon_deg - a.lon_deg) * 89_000.0)
+        f = np.linspace(0.0, 1.0, max(2, int(d / 0.5) + 2))
+        out.append(np.column_stack([a.lat_deg + f * (b.lat_deg - a.lat_deg),
+                                    a.lon_deg + f * (b.lon_deg - a.lon_deg),
+                                    absolute(a) + f * (absolute(b) - absolute(a))]))
+    return np.vstack(out)
+
+
+def test_lawnmower_over_a_rough_dem_covers_the_polygon_and_keeps_its_height(site, capsys):
+    out = site["dir"] / "mower.plan"
+    rc = main(["plan", "lawnmower", "--area", site["area"], "--keepout", site["keep"],
+               "--dem", site["dem"], "--agl", str(AGL), "--spacing", "60", "--speed", "8",
+               "-o", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    m = read_mission(out)
+    home_h = m.home[2]
+    assert home_h == pytest.approx(float(site["ground"](m.home[0], m.home[1])), abs=0.01)
+    pts = _legs(m, home_h)
+    agl = pts[:, 2] - site["ground"](pts[:, 0], pts[:, 1])
+    assert agl.min() >= AGL - 2.0 - 0.02 and agl.max() <= AGL + 25.0 + 0.02
+    # items were added where the ground changes: inside straight tracks, not at corners
+    wps = [it for it in m.items if it.command == MAV_CMD_NAV_WAYPOINT]
+    assert all(it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT for it in wps)
+    ll = np.array([[w.lat_deg, w.lon_deg * math.cos(math.radians(LAT0))] for w in wps])
+    d1, d2 = ll[1:-1] - ll[:-2], ll[2:] - ll[1:-1]
+    cross = np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    straight = cross < 1e-3 * np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)
+    assert straight.sum() >= 10
+    # the polygon, not its bounding square: every waypoint inside the area
+    frame = site["frame"]
+    e, n, _ = frame.to_enu(np.array([w.lat_deg for w in wps]),
+                           np.array([w.lon_deg for w in wps]), np.zeros(len(wps)))
+    from estimator.geometry import signed_distance_to_polygon_m
+
+    assert signed_distance_to_polygon_m(site["area_en"], np.column_stack([e, n])).max() < 0
+    # the tower (top 60 m) is avoided; the wires (top 15 m + 10 m < 38 m) flown over
+    le, ln, _ = frame.to_enu(pts[:, 0], pts[:, 1], np.zeros(len(pts)))
+    assert np.hypot(le - TOWER_EN[0], ln - TOWER_EN[1]).min() > TOWER_R
+    over = (ln > -60.0) & (ln < -40.0)
+    assert over.any() and agl[over].min() > 15.0
+    # the summary: the heights above the DEM along the legs and the flight time
+    lo, hi = (float(v) for v in text.split("  ground    ")[1].split(" m above")[0].split(" to "))
+    assert lo == pytest.approx(agl.min(), abs=0.1) and hi == pytest.approx(agl.max(), abs=0.1)
+    assert "1 avoided, 1 flown over" in text and "min home to home" in text
+    # the fence: the area (inclusion), the tower (exclusion circle); the wires are not fenced
+    assert [p.inclusion for p in m.polygons] == [True] and len(m.circles) == 1
+
+
+@pytest.mark.parametrize("frame", ["amsl", "terrain"])
+def test_altitude_frames(site, frame, capsys):
+    out = site["dir"] / f"x-{frame}.plan"
+    rc = main(["plan", "expanding-square", "--area", site["area"], "--dem", site["dem"],
+               "--agl", str(AGL), "--alt-frame", frame, "--spacing", "80",
+               "--home", f"{LAT0},{LON0}", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    m = read_mission(out)
+    wps = [it for it in m.items if it.command == MAV_CMD_NAV_WAYPOINT]
+    g = site["ground"](np.array([w.lat_deg for w in wps]), np.array([w.lon_deg for w in wps]))
+    alt = np.array([w.alt_m for w in wps])
+    if frame == "amsl":  # frame 0: the DEM's datum
+        assert {w.frame for w in wps} == {0}
+        agl = alt - g
+        pts = _legs(m, 0.0)
+        a = pts[:, 2] - site["ground"](pts[:, 0], pts[:, 1])
+        assert a.min() >= AGL - 2.02 and a.max() <= AGL + 25.02
+    else:  # frame 11: above the terrain at the item
+        assert {w.frame for w in wps} == {MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}
+        agl = alt
+    assert np.all(agl >= AGL - 2.02) and np.all(agl <= AGL + 25.02)
+    # the first item is home, at the wanted height above its ground
+    assert (wps[0].lat_deg, wps[0].lon_deg) == pytest.approx((LAT0, LON0), abs=1e-7)
+    assert agl[0] == pytest.approx(AGL, abs=0.01)
+
+
+def test_kml_output_for_google_earth(site, capsys):
+    out = site["dir"] / "mission.kml"
+    rc = main(["plan", "lawnmower", "--area", site["area"], "--keepout", site["keep"],
+               "--dem", site["dem"], "--agl", str(AGL), "--spacing", "80", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    root = ET.parse(out).getroot()
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    line = root.find(".//k:LineString", ns)
+    assert line.find("k:altitudeMode", ns).text == "absolute"
+    coords = [tuple(map(float, c.split(","))) for c in line.find("k:coordinates", ns).text.split()]
+    lon, lat, alt = np.array(coords).T
+    agl = alt - site["ground"](lat, lon)
+    assert agl[1:].min() >= AGL - 2.02 and agl.max() <= AGL + 25.02
+    names = [p.find("k:name", ns).text for p in root.iter(f"{{{ns['k']}}}Placemark")]
+    assert names[:3] == ["mission", "home", "search area"] and {"tower", "wires"} <= set(names)
+    # the KML reads back as a site file: the area and the keep-outs with their tops
+    shapes = read_keepouts(out)
+    tops = sorted(s.top_m for s in shapes if s.top_m is not None)
+    assert tops == [15.0, 60.0]
+    assert len(read_area(site["area"])) == 5
+
+
+@pytest.mark.parametrize(("extra", "needle"), [
+    (["--area", "nowhere.kml"], "nowhere.kml: cannot read"),
+    (["--area", "AREA", "--keepout", "nowhere.geojson"], "nowhere.geojson: cannot read"),
+    (["--area", "AREA", "--dem", "nowhere.tif"], "nowhere.tif: cannot read the DEM"),
+    (["--area", "AREA", "--agl", "40"], "--agl needs --dem"),
+    (["--area", "AREA", "--alt-frame", "amsl"], "--alt-frame amsl needs --dem"),
+    (["--dem", "DEM"], "give --center LAT,LON or --area FILE"),
+    (["--area", "BIG", "--dem", "DEM"], "the area leaves the DEM's extent"),
+])
+def test_site_refusals_are_one_line_and_status_2(site, extra, needle, capsys, tmp_path):
+    big = tmp_path / "big.geojson"
+    big.write_text(json.dumps({"type": "Feature", "properties": {}, "geometry": {
+        "type": "Polygon", "coordinates": [[[-4.50, 36.70], [-4.47, 36.70], [-4.47, 36.72],
+                                            [-4.50, 36.70]]]}}), encoding="utf-8")
+    repl = {"AREA": site["area"], "DEM": site["dem"], "BIG": str(big)}
+    argv = ["plan", "lawnmower", "-o", str(tmp_path / "x.plan"),
+            *[repl.get(a, a) for a in extra]]
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and needle in err, err
+    assert not (tmp_path / "x.plan").exists()
