@@ -250,6 +250,14 @@ def test_responders_beyond_the_cap_are_counted(tmp_path: Path, monkeypatch) -> N
     assert log.counts.rejected == {"too_many_bssids": 4}
 
 
+def test_unknown_record_types_are_counted_under_a_bounded_number_of_names(
+        tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(logio, "MAX_UNKNOWN_TYPES", 2)
+    lines = [HEADER, GNSS % 1] + [f'{{"type":"kind{i}"}}' for i in (1, 2, 3, 4, 1)]
+    log = read_log(_lines(tmp_path / "u.jsonl", lines))
+    assert log.counts.unknown_types == {"kind1": 2, "kind2": 1, "(others)": 2}
+
+
 def test_truth_is_kept_once_per_responder(tmp_path: Path) -> None:
     truth = ('{"type":"truth","bssid":"a4:77:33:0f:1e:02","lat":36.7,"lon":-4.4,'
              '"alt_m":%s}')
