@@ -167,7 +167,7 @@ def _internal_error(command: str, exc: BaseException, argv: Sequence[str]) -> in
             else f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}")
     where = (f"crash report {path} (please attach it to a bug report)" if path is not None
              else "no crash report could be written")
-    print(f"osa {command}: {what}; {where}", file=sys.stderr)
+    print(f"osa{' ' + command if command else ''}: {what}; {where}", file=sys.stderr)
     return EXIT_SOFTWARE
 
 
