@@ -256,12 +256,14 @@ def test_a_tcp_vehicle_dying_mid_upload(plan_file, capsys, reset: bool) -> None:
     assert v.items == 2
 
 
-def test_an_unwritable_output_folder_for_run(unwritable, capsys, tmp_path) -> None:
+@pytest.mark.parametrize(("command", "scenario"), [("run", "paper-apab"),
+                                                   ("search", "search-random-los")])
+def test_an_unwritable_output_folder(unwritable, capsys, command, scenario) -> None:
     folder, extra = unwritable
     before = sorted(p.name for p in folder.iterdir())
-    assert status_of(["run", "paper-apab", "-o", str(folder), "--no-progress", *extra]) == 2
-    line = one_line(capsys)
-    assert line.startswith(f"osa run: cannot write {folder}: ")
+    assert status_of([command, scenario, "-o", str(folder), "--no-progress", *extra]) == 2
+    line = one_line(capsys)  # refused before any flight: no PermissionError at the end
+    assert line.startswith(f"osa {command}: cannot write {folder}: ")
     assert sorted(p.name for p in folder.iterdir()) == before
 
 
