@@ -19,6 +19,12 @@ stops with :class:`EvaluationTimeoutError`.
 
 Rows (one per policy, seed and responder) carry the ``osa search`` report's fields
 (truth errors included: evaluation only) plus a few of our own; see :data:`COLUMNS`.
+
+Nothing finished is lost: each episode, as it finishes, is appended to a journal
+(:class:`EpisodeJournal`, JSON Lines beside the rows file, flushed and synced), so an
+interrupted run (Ctrl-C, SIGTERM, a failed episode, a lost machine) keeps its finished
+episodes and ``evaluate(..., done=journal.episodes)`` runs only the others: the rows of
+an interrupted and resumed run equal those of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import csv
+import json
 import math
 import multiprocessing
 import os
@@ -304,15 +311,19 @@ def evaluate(
     example_seeds: Sequence[int] = (),
     progress: Callable[[int, str], None] | None = None,
     task_timeout_s: float = DEFAULT_TASK_TIMEOUT_S,
+    done: Sequence[EpisodeResult] = (),
+    on_episode: Callable[[EpisodeResult], None] | None = None,
 ) -> Evaluation:
     """Fly every policy on every seed of ``scenario``.
 
     ``client``: a pre-configured ``dask.distributed.Client`` (or any
     ``concurrent.futures.Executor``) to run on; otherwise ``workers`` local processes
-    (1, or a single task: serially, in this process). ``progress(episodes_done, note)`` is called as
-    tasks finish. ``example_seeds`` keep their tracks (trajectory figure). Raises
-    :class:`EpisodeError` if an episode fails, :class:`EvaluationTimeoutError` if no task
-    finishes within ``task_timeout_s``.
+    (1, or a single task: serially, in this process, one episode at a time).
+    ``progress(episodes_done, note)`` is called as tasks finish, ``on_episode(result)``
+    for every finished episode (the journal). ``done``: episodes finished before (a
+    resumed run), not flown again. ``example_seeds`` keep their tracks (trajectory
+    figure). Raises :class:`EpisodeError` if an episode fails,
+    :class:`EvaluationTimeoutError` if no task finishes within ``task_timeout_s``.
     """
     if scenario.search is None:
         raise ValueError(f"scenario {scenario.name} has no [search] table")
@@ -327,23 +338,30 @@ def evaluate(
     if not (task_timeout_s > 0):
         raise ValueError("task_timeout_s must be > 0")
     examples = frozenset(int(s) for s in example_seeds) & frozenset(seeds)
-    todo = episode_list(policies, seeds)
+    every = episode_list(policies, seeds)
+    have = {(e.policy, e.seed) for e in done}
+    if not have <= set(every) or len(have) != len(done):
+        raise ValueError("done episodes must be distinct episodes of these policies and seeds")
+    todo = [ep for ep in every if ep not in have]
     dask = client is not None and _is_dask(client)
     slots = dask_slots(client) if dask else workers
     size = task_size if task_size is not None else auto_task_size(len(todo), slots)
     if size < 1:
         raise ValueError("task_size must be >= 1")
     tasks = chunks(todo, size)
-    done_results: list[EpisodeResult] = []
+    done_results: list[EpisodeResult] = list(done)
 
     def finished(batch: list[EpisodeResult]) -> None:
-        done_results.extend(batch)
+        for e in batch:
+            done_results.append(e)
+            if on_episode is not None:
+                on_episode(e)
         if progress is not None and batch:
             progress(len(done_results), f"{batch[-1].policy} seed {batch[-1].seed}")
 
     if client is None and (workers == 1 or len(tasks) == 1):  # no pool for one task
-        for t in tasks:
-            finished(run_episodes(t, scenario, config, examples))
+        for p, s in todo:  # one at a time: each is kept as soon as it is flown
+            finished([run_episode(scenario, p, s, config, keep_track=s in examples)])
     else:
         own_pool = None
         if client is None:
@@ -391,6 +409,106 @@ def evaluate(
         episodes=done_results, example_seeds=tuple(s for s in seeds if s in examples),
         decision_period_s=config.decision_period_s,
     )
+
+
+# ---------------------------------------------------------------------- journal
+JOURNAL_SUFFIX = ".partial.jsonl"
+JOURNAL_FORMAT = "osa-evaluate-journal"
+
+
+def journal_path(rows_path: str | Path) -> Path:
+    """Where the episodes of a run writing ``rows_path`` are kept as they finish."""
+    p = Path(rows_path)
+    return p.with_name(p.name + JOURNAL_SUFFIX)
+
+
+def episode_to_json(e: EpisodeResult) -> dict:
+    """One journal line: everything the rows and the figures need, exactly (floats
+    are written as their shortest repr, NaN as ``NaN``, and read back as the same)."""
+    return {
+        "policy": e.policy, "seed": e.seed, "rows": e.rows,
+        "series": {b: a.tolist() for b, a in e.series.items()},
+        "track_enu_m": None if e.track_enu_m is None else [t.tolist() for t in e.track_enu_m],
+        "truth_enu_m": {b: list(v) for b, v in e.truth_enu_m.items()},
+        "estimates_enu_m": {b: list(v) for b, v in e.estimates_enu_m.items()},
+    }
+
+
+def episode_from_json(d: dict) -> EpisodeResult:
+    track = d["track_enu_m"]
+    return EpisodeResult(
+        policy=d["policy"], seed=int(d["seed"]), rows=d["rows"],
+        series={b: np.array(a, dtype=float).reshape(-1, 4) for b, a in d["series"].items()},
+        track_enu_m=None if track is None else [np.array(t, dtype=float).reshape(-1, 2)
+                                                for t in track],
+        truth_enu_m={b: tuple(v) for b, v in d["truth_enu_m"].items()},
+        estimates_enu_m={b: tuple(v) for b, v in d["estimates_enu_m"].items()},
+    )
+
+
+class JournalError(ValueError):
+    """A journal that cannot be resumed (another run's, unreadable): one line."""
+
+
+class EpisodeJournal:
+    """The finished episodes of one run, one JSON line each after a header line that
+    names the run (``key``: scenario, policies, seeds, loop settings); appended, flushed
+    and synced as each episode finishes. A run is resumed only with the same key; a
+    last line cut short (the process killed while writing it) is ignored."""
+
+    def __init__(self, path: str | Path, key: dict, *, resume: bool = False) -> None:
+        self.path = Path(path)
+        self.key = json.loads(json.dumps({"format": JOURNAL_FORMAT, **key}))  # as read back
+        self.episodes: list[EpisodeResult] = []
+        if resume:
+            self._read()
+            self._fh = self.path.open("a", encoding="utf-8")
+        else:
+            self._fh = self.path.open("x", encoding="utf-8")  # never over another run's
+            self._write(self.key)
+
+    def _read(self) -> None:
+        try:
+            with self.path.open(encoding="utf-8") as fh:
+                lines = fh.read().split("\n")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise JournalError(f"cannot read {self.path}: {exc}") from None
+        try:
+            head = json.loads(lines[0])
+        except ValueError:
+            head = None
+        if head != self.key:
+            raise JournalError(f"{self.path} belongs to another run (scenario, policies, "
+                               "seeds or loop options differ): resume with the same command, "
+                               "or start again with --force")
+        seen = set()
+        for line in lines[1:]:
+            try:
+                e = episode_from_json(json.loads(line))
+            except (ValueError, KeyError, TypeError):
+                continue  # the line being written when the run stopped
+            if (e.policy, e.seed) not in seen:
+                seen.add((e.policy, e.seed))
+                self.episodes.append(e)
+        if lines[-1]:  # a cut line: end it so the next episode starts on its own line
+            with self.path.open("a", encoding="utf-8") as fh:
+                fh.write("\n")
+
+    def _write(self, obj: dict) -> None:
+        self._fh.write(json.dumps(obj, separators=(",", ":")) + "\n")
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def append(self, e: EpisodeResult) -> None:
+        self.episodes.append(e)
+        self._write(episode_to_json(e))
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def remove(self) -> None:
+        self.close()
+        self.path.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------------- summary

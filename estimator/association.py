@@ -13,15 +13,23 @@ Fixes with ``fix == "none"`` are ignored. The GNSS quality gate then passes only
 with acc_m < 15 m (sec. Hardware and Software). The corrected range is
 d = max(0, d_raw - b0). Records must arrive ordered by time (the log readers do that);
 memory is bounded by the samples waiting for their next fix (at most 2 T_sync).
+
+Suspicious data (docs/log-format.md, "Suspicious data") is handled and counted here,
+for files and live streams alike: a record equal to one already pushed at the same
+``t_ns`` (a duplicated line, a log concatenated with itself) is dropped; a gap of more
+than :data:`CLOCK_JUMP_FORWARD_S` between consecutive records is a forward clock jump
+(or a logging outage): nothing is interpolated or matched across it.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 from estimator.records import GNSS_FIX_TYPES, GnssFix, RangeSample
+
+CLOCK_JUMP_FORWARD_S = 60.0  # no record for this long: a forward clock jump or an outage
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -58,6 +66,14 @@ class AssociationStats:
     gnss_quality: Counter = field(default_factory=Counter)  # acc_m >= 15 m
     associated: Counter = field(default_factory=Counter)  # passed to the estimator
     interpolated: Counter = field(default_factory=Counter)
+    # suspicious data, by record kind ("gnss" or the BSSID) / by kind of jump
+    duplicates: Counter = field(default_factory=Counter)  # dropped: seen at this t_ns
+    clock_jumps: Counter = field(default_factory=Counter)  # "forward" gaps
+
+    def merge(self, other: AssociationStats) -> None:
+        """Add ``other``'s counts (several agents' association into one report)."""
+        for f in fields(self):
+            getattr(self, f.name).update(getattr(other, f.name))
 
 
 class Associator:
@@ -68,10 +84,31 @@ class Associator:
         self.stats = AssociationStats()
         self._last_fix: GnssFix | None = None
         self._pending: list[tuple[RangeSample, GnssFix | None]] = []
+        self._t_ns = -1  # time of the latest record pushed
+        self._at_t: list[GnssFix | RangeSample] = []  # the records pushed at that time
+
+    def _screen(self, rec: GnssFix | RangeSample) -> bool:
+        """Count suspicious data; False for a duplicate (to drop)."""
+        t = rec.t_ns
+        if t == self._t_ns:
+            if rec in self._at_t:
+                self.stats.duplicates[getattr(rec, "bssid", "gnss")] += 1
+                return False
+            self._at_t.append(rec)
+            return True
+        if t > self._t_ns:
+            if self._t_ns >= 0 and t - self._t_ns > CLOCK_JUMP_FORWARD_S * 1e9:
+                self.stats.clock_jumps["forward"] += 1
+                self._last_fix = None  # nothing before the jump is used after it
+            self._t_ns = t
+            self._at_t = [rec]
+        return True
 
     def push(self, rec: GnssFix | RangeSample) -> list[GeoRange]:
         """Feed one record; return the ranges resolved by it (in time order)."""
         out: list[GeoRange] = []
+        if not self._screen(rec):
+            return out
         if isinstance(rec, GnssFix):
             if rec.fix == "none":
                 return out
@@ -92,7 +129,7 @@ class Associator:
     def push_fixes(self, fixes: Sequence[GnssFix]) -> list[GeoRange]:
         """:meth:`push` of consecutive fixes: the first valid one resolves the waiting
         ranges, the last valid one is the latest fix."""
-        valid = [f for f in fixes if f.fix != "none"]
+        valid = [f for f in fixes if self._screen(f) and f.fix != "none"]
         out: list[GeoRange] = []
         if valid:
             for sample, prev in self._pending:

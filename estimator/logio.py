@@ -8,11 +8,21 @@ Streaming: :func:`iter_log` yields records in file order with O(1) memory;
 :func:`iter_log_sorted` yields them ordered by ``t_ns`` (stable) with bounded memory,
 spilling sorted runs of ``chunk_records`` records to temporary files and merging them
 (an external merge sort), so a log of any length is ordered without holding it.
+
+Bounded on any input (docs/log-format.md, "Limits"): every value is checked against
+physical bounds (:data:`BOUNDS`), a line longer than :data:`MAX_LINE_BYTES` is skipped
+without being held, a gzip stream that expands beyond :data:`GZIP_MAX_RATIO` times its
+compressed size is refused, a file whose first :data:`MAX_PREFIX_BYTES` hold no valid
+record is not a log, and at most :data:`MAX_BSSIDS` responders are read. A log is
+opened once and read in one pass, so a pipe, a fifo or ``-`` (standard input) loses
+nothing. Strings from a log never carry terminal control characters (they are
+escaped as they are read).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gzip
 import heapq
 import io
@@ -21,10 +31,11 @@ import math
 import os
 import pickle
 import re
+import sys
 import tempfile
 import warnings
 import zlib
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +55,33 @@ TimedRecord = GnssFix | RangeSample
 
 _BSSID_RE = re.compile(r"^[0-9a-fA-F]{2}(:[0-9a-fA-F]{2}){5}$")
 _GZIP_MAGIC = b"\x1f\x8b"
+STDIN = "-"  # the path that reads standard input
+
+# Limits of the reader (docs/log-format.md, "Limits"): what a phone on a drone can
+# report, with a wide margin; a value outside is a counted skip, never a crash later.
+T_NS_MAX = 2**62  # 146 years of uptime; keeps every sum of times inside int64
+ALT_MIN_M, ALT_MAX_M = -500.0, 10_000.0  # ellipsoidal heights of gnss and truth
+RANGE_MAX_M = 10_000.0  # |range_m|: FTM reaches a few hundred metres
+ACC_MAX_M = 10_000.0  # acc_m, vacc_m, range_std_m
+RSSI_MIN_DBM, RSSI_MAX_DBM = -200.0, 100.0
+COUNT_MAX = 65_535  # sats, attempted, successful
+AGL_MIN_M, AGL_MAX_M = 0.1, 1_000.0  # header config.agl_m: a height above the ground
+RANGE_OFFSET_MAX_M = 100.0  # header config.range_offset_m in [-max, max]
+BOUNDS = {
+    "t_ns": (0, T_NS_MAX),
+    "alt_m": (ALT_MIN_M, ALT_MAX_M),
+    "range_m": (-RANGE_MAX_M, RANGE_MAX_M),
+    "acc_m": (0.0, ACC_MAX_M),
+    "rssi_dbm": (RSSI_MIN_DBM, RSSI_MAX_DBM),
+    "agl_m": (AGL_MIN_M, AGL_MAX_M),
+    "range_offset_m": (-RANGE_OFFSET_MAX_M, RANGE_OFFSET_MAX_M),
+}
+MAX_LINE_BYTES = 1 << 20  # a record is ~200 bytes; a longer line is skipped unread
+MAX_PREFIX_BYTES = 16 << 20  # no valid record in the first 16 MiB: not a flight log
+GZIP_MAX_RATIO = 200  # a flight log compresses ~6x; a decompression bomb ~1000x
+GZIP_RATIO_FLOOR_BYTES = 64 << 20  # the ratio is checked beyond this much output
+MAX_BSSIDS = 4096  # responders per log (rtt and truth); a search sees a handful
+MAX_UNKNOWN_TYPES = 64  # distinct unknown record types counted by name
 
 
 class LogError(Exception):
@@ -75,15 +113,24 @@ class RejectCounts:
     unknown_types: Counter = field(default_factory=Counter)
     unknown_fields: int = 0
     lines: int = 0
+    # suspicious but used: backward jumps of the phone clock (see iter_log_sorted)
+    clock_jumps_back: int = 0
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
+
+    def unknown_type(self, kind: str) -> None:
+        """Count a record of unknown ``type`` (at most MAX_UNKNOWN_TYPES names)."""
+        if kind not in self.unknown_types and len(self.unknown_types) >= MAX_UNKNOWN_TYPES:
+            kind = "(others)"
+        self.unknown_types[kind] += 1
 
     def merge(self, other: RejectCounts) -> None:
         self.rejected.update(other.rejected)
         self.unknown_types.update(other.unknown_types)
         self.unknown_fields += other.unknown_fields
         self.lines += other.lines
+        self.clock_jumps_back += other.clock_jumps_back
 
     @property
     def n_rejected(self) -> int:
@@ -122,6 +169,21 @@ def _reject_constant(name: str) -> float:
     raise _Reject("non_finite")
 
 
+def printable(text: str) -> str:
+    """``text`` with every non-printable character (terminal escapes, other control
+    and format characters) written as a Python escape: safe to print on a terminal."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _bounded(v: float, key: str, reason: str) -> float:
+    lo, hi = BOUNDS[key]
+    if not lo <= v <= hi:
+        raise _Reject(reason)
+    return v
+
+
 def _num(obj: dict, key: str, *, required: bool) -> float | None:
     if key not in obj or obj[key] is None:
         if required:
@@ -156,7 +218,20 @@ def _str(obj: dict, key: str, *, required: bool) -> str | None:
     v = obj[key]
     if not isinstance(v, str):
         raise _Reject("bad_type")
+    return printable(v)
+
+
+def _count(obj: dict, key: str) -> int | None:
+    v = _int(obj, key, required=False)
+    if v is not None and not 0 <= v <= COUNT_MAX:
+        raise _Reject("bad_value")
     return v
+
+
+def _alt(obj: dict) -> float:
+    alt = _num(obj, "alt_m", required=True)
+    assert alt is not None
+    return _bounded(alt, "alt_m", "bad_altitude")
 
 
 def _t_ns(obj: dict) -> int:
@@ -164,6 +239,8 @@ def _t_ns(obj: dict) -> int:
     assert t is not None
     if t < 0:
         raise _Reject("negative_t_ns")
+    if t > T_NS_MAX:
+        raise _Reject("bad_t_ns")
     return t
 
 
@@ -186,7 +263,8 @@ def _bssid(obj: dict) -> str:
     return b.lower()
 
 
-def _parse_header(obj: dict) -> LogHeader:
+def _parse_header(obj: dict) -> tuple[LogHeader, list[str]]:
+    """The header, and what in its config was out of range (dropped: defaults apply)."""
     fmt = obj.get("format", LOG_FORMAT)
     if fmt != LOG_FORMAT:
         raise LogError(f"not an {LOG_FORMAT} file (header format {fmt!r})")
@@ -206,30 +284,39 @@ def _parse_header(obj: dict) -> LogHeader:
         raise _Reject("bad_type")
     agl = _num(config, "agl_m", required=False)
     off = _num(config, "range_offset_m", required=False)
+    bad = []  # out-of-range settings: dropped (the defaults apply), the line counted
+    if agl is not None and not AGL_MIN_M <= agl <= AGL_MAX_M:
+        bad.append(f"config.agl_m {agl:g} outside [{AGL_MIN_M:g}, {AGL_MAX_M:g}] m")
+        agl = None
+    if off is not None and not abs(off) <= RANGE_OFFSET_MAX_M:
+        bad.append(f"config.range_offset_m {off:g} outside [-{RANGE_OFFSET_MAX_M:g}, "
+                   f"{RANGE_OFFSET_MAX_M:g}] m")
+        off = None
     agent = obj.get("agent")
     start = obj.get("start_utc")
     extra = {k: v for k, v in config.items() if k not in ("agl_m", "range_offset_m")}
     return LogHeader(
         version=major,
-        agent=str(agent) if agent is not None else "unknown",
-        start_utc=str(start) if start is not None else None,
+        agent=printable(str(agent)) if agent is not None else "unknown",
+        start_utc=printable(str(start)) if start is not None else None,
         agl_m=agl,
         range_offset_m=off,
         extra=extra,
-    )
+    ), bad
 
 
 def _parse_gnss(obj: dict) -> GnssFix:
     t = _t_ns(obj)
     lat, lon = _latlon(obj)
-    alt = _num(obj, "alt_m", required=True)
+    alt = _alt(obj)
     acc = _num(obj, "acc_m", required=True)
     vacc = _num(obj, "vacc_m", required=False)
-    assert alt is not None and acc is not None
-    if acc < 0 or (vacc is not None and vacc < 0):
-        raise _Reject("bad_value")
+    assert acc is not None
+    _bounded(acc, "acc_m", "bad_value")
+    if vacc is not None:
+        _bounded(vacc, "acc_m", "bad_value")
     fix = _str(obj, "fix", required=False)
-    sats = _int(obj, "sats", required=False)
+    sats = _count(obj, "sats")
     return GnssFix(
         t_ns=t, lat_deg=lat, lon_deg=lon, alt_m=alt, acc_m=acc, vacc_m=vacc, fix=fix, sats=sats
     )
@@ -244,10 +331,14 @@ def _parse_rtt(obj: dict) -> RangeSample:
     rng = _num(obj, "range_m", required=ok)
     rssi = _num(obj, "rssi_dbm", required=ok)
     std = _num(obj, "range_std_m", required=False)
-    if std is not None and std < 0:
-        raise _Reject("bad_value")
-    att = _int(obj, "attempted", required=False)
-    suc = _int(obj, "successful", required=False)
+    if rng is not None:
+        _bounded(rng, "range_m", "bad_range")
+    if rssi is not None:
+        _bounded(rssi, "rssi_dbm", "bad_value")
+    if std is not None:
+        _bounded(std, "acc_m", "bad_value")
+    att = _count(obj, "attempted")
+    suc = _count(obj, "successful")
     return RangeSample(
         t_ns=t,
         bssid=bssid,
@@ -263,8 +354,7 @@ def _parse_rtt(obj: dict) -> RangeSample:
 def _parse_truth(obj: dict) -> TruthRecord:
     bssid = _bssid(obj)
     lat, lon = _latlon(obj)
-    alt = _num(obj, "alt_m", required=True)
-    assert alt is not None
+    alt = _alt(obj)
     conc = _str(obj, "concealment", required=False) or "open"
     return TruthRecord(bssid=bssid, lat_deg=lat, lon_deg=lon, alt_m=alt, concealment=conc)
 
@@ -303,14 +393,18 @@ def parse_line(line: bytes | str, counts: RejectCounts) -> Record | None:
         return None
     if kind == "header":
         try:
-            rec: Record = _parse_header(obj)
+            rec, bad = _parse_header(obj)
         except _Reject as r:
             counts.reject(r.reason)
             return None
+        if bad:
+            counts.reject("bad_config")
+            warnings.warn(f"header {'; '.join(bad)}: ignored (the default applies)",
+                          LogWarning, stacklevel=2)
     else:
         parser = _PARSERS.get(kind)
         if parser is None:
-            counts.unknown_types[kind] += 1
+            counts.unknown_type(printable(kind[:64]))
             return None
         try:
             rec = parser(obj)
@@ -323,31 +417,74 @@ def parse_line(line: bytes | str, counts: RejectCounts) -> Record | None:
     return rec
 
 
-def _open_binary(path: str | os.PathLike) -> IO[bytes]:
+def display_name(path: str | os.PathLike) -> str:
+    """How messages name a log: its path, or ``standard input`` for ``-``."""
+    return "standard input" if str(path) == STDIN else str(path)
+
+
+class _Counted:
+    """A binary stream that counts the bytes read from it (the gzip budget)."""
+
+    mode = "rb"
+
+    def __init__(self, raw: IO[bytes], *, close: bool = True) -> None:
+        self.raw = raw
+        self.n = 0
+        self._close = close
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.raw.read(size)
+        self.n += len(data)
+        return data
+
+    def readline(self, size: int = -1) -> bytes:
+        line = self.raw.readline(size)
+        self.n += len(line)
+        return line
+
+    def peek(self, size: int = 0) -> bytes:
+        return self.raw.peek(size) if hasattr(self.raw, "peek") else b""
+
+    def close(self) -> None:
+        if self._close:
+            self.raw.close()
+
+
+def _open_binary(path: str | os.PathLike) -> tuple[IO[bytes], _Counted]:
+    """The log's bytes (decompressed when it starts with the gzip magic) and the
+    counter of the bytes read from the file. Opened once: a pipe, a fifo or ``-``
+    (standard input) is read in one pass."""
     p = Path(path)
+    if str(path) == STDIN:
+        raw = _Counted(sys.stdin.buffer, close=False)
+    else:
+        try:
+            raw = _Counted(open(p, "rb"))  # noqa: SIM115 - returned to the caller
+        except FileNotFoundError as exc:
+            raise LogError(f"{p}: no such file") from exc
+        except IsADirectoryError as exc:
+            raise LogError(f"{p}: is a directory") from exc
+        except PermissionError as exc:
+            raise LogError(f"{p}: permission denied") from exc
+        except OSError as exc:
+            raise LogError(f"{p}: cannot open ({exc.strerror})") from exc
     try:
-        fh = open(p, "rb")  # noqa: SIM115 - returned to the caller
-    except FileNotFoundError as exc:
-        raise LogError(f"{p}: no such file") from exc
-    except IsADirectoryError as exc:
-        raise LogError(f"{p}: is a directory") from exc
-    except PermissionError as exc:
-        raise LogError(f"{p}: permission denied") from exc
+        head = raw.peek(2)[:2]
     except OSError as exc:
-        raise LogError(f"{p}: cannot open ({exc.strerror})") from exc
-    head = fh.peek(2)[:2] if hasattr(fh, "peek") else b""
+        raw.close()
+        raise LogError(f"{display_name(path)}: cannot read ({exc.strerror or exc})") from exc
     if head == _GZIP_MAGIC:
-        return _GzipReader(fh)
-    return fh
+        return _GzipReader(raw), raw
+    return raw, raw  # type: ignore[return-value]
 
 
 class _GzipReader(gzip.GzipFile):
     """A gzip stream that owns the file under it: closing it closes both (a GzipFile
     given a ``fileobj`` leaves that file open, and it leaks as a ResourceWarning)."""
 
-    def __init__(self, raw: IO[bytes]) -> None:
+    def __init__(self, raw: _Counted) -> None:
         self._raw = raw
-        super().__init__(fileobj=raw, mode="rb")
+        super().__init__(fileobj=raw, mode="rb")  # type: ignore[arg-type]
 
     def close(self) -> None:
         try:
@@ -367,31 +504,85 @@ class LogStream:
     n_gnss: int = 0
     n_rtt: int = 0
     n_header: int = 0  # header lines read (0: none yet; a default header is assumed at EOF)
+    bssids: set[str] = field(default_factory=set, repr=False)  # responders read (capped)
 
     @property
     def n_records(self) -> int:
         """Valid records read so far (header, gnss, rtt, truth)."""
         return self.n_header + self.n_gnss + self.n_rtt + len(self.truth)
 
+    def _new_bssid_refused(self, bssid: str) -> bool:
+        if bssid in self.bssids:
+            return False
+        if len(self.bssids) >= MAX_BSSIDS:
+            self.counts.reject("too_many_bssids")
+            return True
+        self.bssids.add(bssid)
+        return False
+
+
+def _lines(fh: IO[bytes], raw: _Counted, st: LogStream) -> Iterator[bytes | None]:
+    """The lines of ``fh``, bounded: a line longer than MAX_LINE_BYTES is skipped as
+    it is read (``None``, counted ``line_too_long``); a gzip stream expanding beyond
+    GZIP_MAX_RATIO and a file without a valid record in its first MAX_PREFIX_BYTES
+    are refused (:class:`LogError`, :class:`NotALogError`)."""
+    name = display_name(st.path)
+    limit = MAX_LINE_BYTES
+    total = 0
+    gz = fh is not raw
+
+    def check() -> None:
+        if gz and total > GZIP_RATIO_FLOOR_BYTES and total > GZIP_MAX_RATIO * raw.n:
+            raise LogError(f"{name}: refused: its gzip stream expands more than "
+                           f"{GZIP_MAX_RATIO} times ({raw.n} bytes to over {total}); "
+                           "a decompression bomb, not a flight log")
+        if total > MAX_PREFIX_BYTES and st.n_records == 0:
+            raise NotALogError(f"{name}: not a flight log (no valid record in its first "
+                               f"{MAX_PREFIX_BYTES >> 20} MiB)")
+
+    try:
+        while line := fh.readline(limit + 1):
+            total += len(line)
+            if len(line) > limit and not line.endswith(b"\n"):
+                while (more := fh.readline(limit)) and not more.endswith(b"\n"):
+                    total += len(more)
+                    check()
+                total += len(more)
+                st.counts.lines += 1
+                st.counts.reject("line_too_long")
+                check()
+                yield None
+                continue
+            check()
+            yield line
+    except (OSError, EOFError, gzip.BadGzipFile, zlib.error) as exc:
+        raise LogError(f"{name}: corrupt or truncated compressed file ({exc})") from exc
+
 
 def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterator[TimedRecord]:
     """Yield the ``gnss`` and ``rtt`` records of a log in file order, streaming.
 
-    Header and truth records are stored on ``stream`` (truth records are few). Raises
-    :class:`LogError` only for a file that cannot be read as a log at all.
+    Header and truth records are stored on ``stream`` (truth records are few: one per
+    responder, the first one counts). Raises :class:`LogError` only for a file that
+    cannot be read as a log at all.
     """
     st = stream if stream is not None else LogStream(path=str(path))
-    fh = _open_binary(path)
+    name = display_name(path)
+    fh, raw = _open_binary(path)
     first = True
     header_seen = False
+    truth_of: set[str] = {t.bssid for t in st.truth}
     try:
-        for raw in _safe_lines(fh, path):
+        for line in _lines(fh, raw, st):
+            if line is None:  # too long: counted by _lines
+                first = False
+                continue
             try:
-                rec = parse_line(raw, st.counts)
+                rec = parse_line(line, st.counts)
             except LogError as exc:  # a refused header: say which file
-                raise type(exc)(f"{path}: {exc}") from None
+                raise type(exc)(f"{name}: {exc}") from None
             if rec is None:
-                if raw.strip():
+                if line.strip():
                     first = False
                 continue
             if isinstance(rec, LogHeader):
@@ -403,26 +594,43 @@ def iter_log(path: str | os.PathLike, stream: LogStream | None = None) -> Iterat
                     st.n_header = 1
                     if not first:
                         warnings.warn(
-                            f"{path}: header is not the first line", LogWarning, stacklevel=2
+                            f"{name}: header is not the first line", LogWarning, stacklevel=2
                         )
                 first = False
                 continue
             first = False
             if isinstance(rec, TruthRecord):
-                st.truth.append(rec)
+                if rec.bssid in truth_of:
+                    st.counts.reject("duplicate_truth")
+                elif not st._new_bssid_refused(rec.bssid):
+                    truth_of.add(rec.bssid)
+                    st.truth.append(rec)
             elif isinstance(rec, GnssFix):
                 st.n_gnss += 1
                 yield rec
-            else:
+            elif not st._new_bssid_refused(rec.bssid):
                 st.n_rtt += 1
                 yield rec
     finally:
         fh.close()
     if st.header is None:
         warnings.warn(
-            f"{path}: no header line; read as version {LOG_VERSION}", LogWarning, stacklevel=2
+            f"{name}: no header line; read as version {LOG_VERSION}", LogWarning, stacklevel=2
         )
         st.header = LogHeader()
+
+
+def not_a_log(stream: LogStream) -> NotALogError | None:
+    """The error for a log read without a single valid record (None if it had one)."""
+    if stream.n_records:
+        return None
+    c = stream.counts
+    what = [f"{n} {reason}" for reason, n in sorted(c.rejected.items())]
+    what += [f"{n} of unknown type {kind!r}" for kind, n in sorted(c.unknown_types.items())]
+    lines = f"{c.lines} line{'s' if c.lines != 1 else ''}"
+    detail = f"{lines}: " + ", ".join(what) if what else "empty"
+    return NotALogError(f"{display_name(stream.path)}: not a flight log (no valid record; "
+                        f"{detail})")
 
 
 def probe_log(path: str | os.PathLike) -> LogStream:
@@ -431,7 +639,9 @@ def probe_log(path: str | os.PathLike) -> LogStream:
 
     Raises :class:`NotALogError` for a file without a single valid record (an empty
     file, random bytes, a GeoJSON file...), :class:`LogError` for one that cannot be
-    read. Warnings of the reader (no header, ...) are the caller's to show.
+    read. Warnings of the reader (no header, ...) are the caller's to show. (It opens
+    the file: a pipe read by a probe is gone; :func:`estimator.replay.replay_logs`
+    checks the same while it reads.)
     """
     st = LogStream(path=str(path))
     it = iter_log(path, st)
@@ -439,25 +649,27 @@ def probe_log(path: str | os.PathLike) -> LogStream:
         next(it, None)
     finally:
         it.close()
-    if st.n_records == 0:
-        c = st.counts
-        what = [f"{n} {reason}" for reason, n in sorted(c.rejected.items())]
-        what += [f"{n} of unknown type {kind!r}" for kind, n in sorted(c.unknown_types.items())]
-        lines = f"{c.lines} line{'s' if c.lines != 1 else ''}"
-        detail = f"{lines}: " + ", ".join(what) if what else "empty"
-        raise NotALogError(f"{path}: not a flight log (no valid record; {detail})")
+    if (err := not_a_log(st)) is not None:
+        raise err
     return st
-
-
-def _safe_lines(fh: IO[bytes], path: str | os.PathLike) -> Iterator[bytes]:
-    try:
-        yield from fh
-    except (OSError, EOFError, gzip.BadGzipFile, zlib.error) as exc:
-        raise LogError(f"{path}: corrupt or truncated compressed file ({exc})") from exc
 
 
 def _key(rec: TimedRecord) -> int:
     return rec.t_ns
+
+
+# Clock jumps (docs/log-format.md, "Suspicious data"). Lines arrive a little out of
+# time order (late callbacks); a record older than the newest one read by more than
+# CLOCK_JUMP_BACK_S means the phone clock jumped back (a reboot resets it): the records
+# from there on are shifted so that the first of them comes CLOCK_JUMP_GAP_S after the
+# newest one before the jump (the true time across a jump is unknown; the gap keeps
+# even a late record of the new stretch after the old one), so no range is associated
+# across it; unless they repeat earlier records (a log concatenated with itself,
+# overlapping pieces): those keep their times and the association drops them as
+# duplicates.
+CLOCK_JUMP_BACK_S = 10.0
+CLOCK_JUMP_GAP_S = 2 * CLOCK_JUMP_BACK_S
+_RECENT_RECORDS = 4096  # a jump that repeats one of these (or of the first ones) is a copy
 
 
 def iter_log_sorted(
@@ -470,6 +682,10 @@ def iter_log_sorted(
 
     Runs of at most ``chunk_records`` records are sorted in memory; a log longer than
     that is spilled to temporary files and merged, so memory stays O(chunk_records).
+    The spill folder is removed however the iteration ends (closed, an exception,
+    SIGTERM turned into one by the ``osa`` command). A backward clock jump is counted
+    (``stream.counts.clock_jumps_back``) and the records after it re-timed (see
+    :data:`CLOCK_JUMP_BACK_S`).
     """
     st = stream if stream is not None else LogStream(path=str(path))
     it = iter_log(path, st)
@@ -478,11 +694,34 @@ def iter_log_sorted(
     buf: list[TimedRecord] = []
     in_order = True
     last = -1
+    back_ns = int(CLOCK_JUMP_BACK_S * 1e9)
+    gap_ns = int(CLOCK_JUMP_GAP_S * 1e9)
+    offset = 0  # added to t_ns after a backward jump
+    newest = -1  # the newest (re-timed) t_ns read
+    copy_until: int | None = None  # reading a repeat of earlier records, up to this time
+    earliest: list[TimedRecord] = []
+    recent: deque[TimedRecord] = deque(maxlen=_RECENT_RECORDS)
     try:
         for rec in it:
-            if rec.t_ns < last:
+            t = rec.t_ns + offset
+            if t < newest - back_ns and copy_until is None:
+                if rec in recent or rec in earliest:
+                    copy_until = newest
+                else:
+                    st.counts.clock_jumps_back += 1
+                    offset = newest + gap_ns - rec.t_ns
+                    t = rec.t_ns + offset
+            if copy_until is not None and t >= copy_until - back_ns:
+                copy_until = None
+            if len(earliest) < 256:
+                earliest.append(rec)
+            recent.append(rec)
+            if offset:
+                rec = dataclasses.replace(rec, t_ns=t)
+            newest = max(newest, t)
+            if t < last:
                 in_order = False
-            last = rec.t_ns
+            last = t
             buf.append(rec)
             if len(buf) >= chunk_records:
                 if tmpdir is None:
@@ -504,6 +743,7 @@ def iter_log_sorted(
         iters = [_read_run(r) for r in runs] + [iter(buf)]
         yield from heapq.merge(*iters, key=_key)
     finally:
+        it.close()
         if tmpdir is not None:
             tmpdir.cleanup()
 

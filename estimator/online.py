@@ -54,8 +54,6 @@ from estimator.records import (
     RangeSample,
 )
 
-_ASSOCIATION_STATS = ("rtt", "ok", "unassociated", "gnss_quality", "associated", "interpolated")
-
 
 class RangeObserver(Protocol):
     """Told of every associated range as it is released to the tracks (in the order the
@@ -390,8 +388,7 @@ class OnlineEstimator:
         """Association counts summed over the agents."""
         total = AssociationStats()
         for a in self.agents:
-            for name in _ASSOCIATION_STATS:
-                getattr(total, name).update(getattr(a.associator.stats, name))
+            total.merge(a.associator.stats)
         return total
 
     def seen_bssids(self) -> list[str]:

@@ -14,14 +14,27 @@ from __future__ import annotations
 
 import heapq
 import math
+import warnings
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
-from estimator.association import AssociationConfig, AssociationStats
+from estimator.association import (
+    CLOCK_JUMP_FORWARD_S,
+    AssociationConfig,
+    AssociationStats,
+)
 from estimator.evaluation import TruthScorer, errors_m, twm_of_history
 from estimator.geodesy import EnuFrame
-from estimator.logio import LogStream, RejectCounts, iter_log_sorted
+from estimator.logio import (
+    CLOCK_JUMP_GAP_S,
+    LogStream,
+    LogWarning,
+    RejectCounts,
+    display_name,
+    iter_log_sorted,
+    not_a_log,
+)
 from estimator.modes import (  # parse_modes: the command line imports it from here
     parse_modes,  # noqa: F401
     resolve_modes,
@@ -77,6 +90,7 @@ class TrackResult:
     bootstrap_t_s: float | None = None
     estimated: Estimate | None = field(default=None, repr=False)
     has_bias: bool = True  # the mode's filter estimates a range bias (the UKF's has none)
+    flags: tuple[str, ...] = ()  # suspicious data in the logs it was computed from
 
     @property
     def converged(self) -> bool:
@@ -108,6 +122,8 @@ class TrackResult:
         if self.concealment is not None:
             d["concealment"] = self.concealment
         d.update(estimate_extras(self.estimated))
+        if self.flags:
+            d["flags"] = list(self.flags)
         return d
 
 
@@ -136,6 +152,22 @@ class ReplayReport:
     frame: EnuFrame | None
     truth: dict[str, TruthRecord]
 
+    @property
+    def flags(self) -> tuple[str, ...]:
+        """Suspicious data the reader and the association found (docs/log-format.md,
+        "Suspicious data"): ``duplicate_records``, ``clock_jump``."""
+        flags = []
+        if sum(self.association.duplicates.values()):
+            flags.append("duplicate_records")
+        if self.clock_jumps:
+            flags.append("clock_jump")
+        return tuple(flags)
+
+    @property
+    def clock_jumps(self) -> int:
+        """Backward (seen by the reader) and forward (by the association) clock jumps."""
+        return self.rejected.clock_jumps_back + sum(self.association.clock_jumps.values())
+
     def to_json(self) -> dict:
         a = self.association
         return {
@@ -152,7 +184,10 @@ class ReplayReport:
                 "associated": sum(a.associated.values()),
                 "unassociated": sum(a.unassociated.values()),
                 "gnss_quality": sum(a.gnss_quality.values()),
+                "duplicates": sum(a.duplicates.values()),
+                "clock_jumps": self.clock_jumps,
             },
+            "flags": list(self.flags),
             **(
                 {"frame": {"projection": getattr(self.frame, "name", ""),
                            "lat0": self.frame.lat0_deg, "lon0": self.frame.lon0_deg,
@@ -199,12 +234,20 @@ def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> 
     score the estimates through a :class:`estimator.evaluation.TruthScorer`.
     """
     streams, iters, firsts = [], [], []
-    for p in paths:
-        st = LogStream(path=str(p))
-        it = iter_log_sorted(p, st)
-        firsts.append(next(it, None))  # primes the reader: header and truth are known now
-        streams.append(st)
-        iters.append(it)
+    try:
+        for p in paths:  # each log is opened once: a pipe or '-' loses nothing
+            st = LogStream(path=str(p))
+            it = iter_log_sorted(p, st)
+            iters.append(it)
+            firsts.append(next(it, None))  # primes the reader: header and truth are known now
+            streams.append(st)
+            if (err := not_a_log(st)) is not None:
+                raise err
+    except BaseException:
+        for it in iters:
+            it.close()
+        raise
+    _warn_same_agent(streams)
     truth: dict[str, TruthRecord] = {}
     for st in streams:
         for t in st.truth:
@@ -249,12 +292,54 @@ def replay_logs(paths: Sequence[str], opts: ReplayOptions = ReplayOptions()) -> 
     rejected = RejectCounts()
     for st in streams:
         rejected.merge(st.counts)
-    results = [
-        _result(b, mode, est, scorer, truth.get(b))
+    _warn_suspicious(streams, est)
+    report = ReplayReport([], rejected, est.association, len(streams), est.frame, truth)
+    report.tracks = [
+        _result(b, mode, est, scorer, truth.get(b), report.flags)
         for b in est.seen_bssids()
         for mode in est.options.modes
     ]
-    return ReplayReport(results, rejected, est.association, len(streams), est.frame, truth)
+    return report
+
+
+def _warn_same_agent(streams: Sequence[LogStream]) -> None:
+    """Two logs whose headers name the same agent are fused, with a warning: they may
+    be two flights of one drone, or a copy of one flight (every range counted twice)."""
+    agents: dict[str, str] = {}
+    for st in streams:
+        if st.n_header and st.header is not None:
+            agent = st.header.agent
+            if agent in agents:
+                warnings.warn(f"{display_name(st.path)} and {agents[agent]} name the same "
+                              f"agent '{agent}': fused as two logs (if one is a copy of the "
+                              "other, every range counts twice)", LogWarning, stacklevel=3)
+            agents.setdefault(agent, display_name(st.path))
+
+
+def _warn_suspicious(streams: Sequence[LogStream], est: OnlineEstimator) -> None:
+    """One warning per log with duplicates or clock jumps: what was done about them."""
+    for st, agent in zip(streams, est.agents, strict=True):
+        a = agent.associator.stats
+        name = display_name(st.path)
+        n_dup = sum(a.duplicates.values())
+        if n_dup:
+            warnings.warn(f"{name}: {n_dup} duplicate record{'s' if n_dup > 1 else ''} (same "
+                          "t_ns and content) ignored", LogWarning, stacklevel=3)
+        back, fwd = st.counts.clock_jumps_back, sum(a.clock_jumps.values())
+        what = []
+        if back:
+            what.append(f"back {_times(back)} (the records after it were placed "
+                        f"{CLOCK_JUMP_GAP_S:g} s after the ones before it)")
+        if fwd:
+            what.append(f"forward {_times(fwd)} (or the log paused for over "
+                        f"{CLOCK_JUMP_FORWARD_S:g} s)")
+        if what:
+            warnings.warn(f"{name}: the phone clock jumped {' and '.join(what)}; no range was "
+                          "associated across a jump", LogWarning, stacklevel=3)
+
+
+def _times(n: int) -> str:
+    return "once" if n == 1 else f"{n} times"
 
 
 def _result(
@@ -263,6 +348,7 @@ def _result(
     est: OnlineEstimator,
     scorer: TruthScorer,
     truth: TruthRecord | None,
+    flags: tuple[str, ...] = (),
 ) -> TrackResult:
     empty = {k: 0 for k in ("n_meas", "n_bootstrap", "n_acc", "n_gate", "n_mad", "n_nis")}
     mode, has_bias = spec.name, spec.filter.has_bias
@@ -270,7 +356,7 @@ def _result(
     conc = truth.concealment if truth is not None else None
     if tr is None:
         return TrackResult(bssid, mode, "no_data", empty, None, concealment=conc,
-                           has_bias=has_bias)
+                           has_bias=has_bias, flags=flags)
     c = tr.counts
     counts = {
         "n_meas": c.n_meas,
@@ -284,6 +370,7 @@ def _result(
     res = TrackResult(
         bssid, mode, tr.status, counts, tr.reported(), kappa=e.kappa, history=tr.history,
         bootstrap_t_s=tr.bootstrap_t_s, concealment=conc, estimated=e, has_bias=has_bias,
+        flags=flags,
     )
     frame = est.frame
     if frame is not None and truth is not None:
@@ -342,6 +429,12 @@ def format_table(report: ReplayReport) -> str:
         f"associated: {sum(a.associated.values())}  unassociated: "
         f"{sum(a.unassociated.values())}  gnss_quality: {sum(a.gnss_quality.values())}"
     )
+    if report.flags:
+        n_dup, n_jump = sum(a.duplicates.values()), report.clock_jumps
+        lines.append(
+            f"flagged: {n_dup} duplicate record{'s' * (n_dup != 1)} ignored, {n_jump} clock "
+            f"jump{'s' * (n_jump != 1)}; every status above was computed on this flagged data"
+        )
     return "\n".join(lines)
 
 

@@ -133,9 +133,19 @@ def read_mission(path: PathLike) -> Mission:
     )
 
 
+MAX_FILE_BYTES = 64 << 20  # a mission of 65 535 items is ~25 MB of .plan JSON
+MAX_ITEMS = 0xFFFF  # MAVLink's seq is a uint16
+
+
 def _read_text(path: PathLike) -> str:
+    """The file's text, at most MAX_FILE_BYTES (read once: a pipe works too)."""
     try:
-        return Path(path).read_text(encoding="utf-8")
+        with Path(path).open("rb") as fh:
+            data = fh.read(MAX_FILE_BYTES + 1)
+        if len(data) > MAX_FILE_BYTES:
+            raise MissionFileError(f"{path}: larger than {MAX_FILE_BYTES >> 20} MiB: not a "
+                                   "mission file")
+        return data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise MissionFileError(f"{path}: cannot read: {exc}") from exc
 
@@ -449,6 +459,9 @@ def parse_plan(obj: Any, source: str = "<plan>") -> Mission:
         home = tuple(_num(v, "mission.plannedHomePosition") for v in home_raw)
         _check_lat_lon(home[0], home[1], "mission.plannedHomePosition")
         raw_items = _get(mission_obj, "items", list, "mission")
+        if len(raw_items) > MAX_ITEMS:
+            raise MissionFileError(f"mission.items: {len(raw_items)} items, more than "
+                                   f"MAVLink numbers ({MAX_ITEMS})")
         items = _resolve_jumps(tuple(_plan_item(raw, i) for i, raw in enumerate(raw_items)),
                                raw_items)
         firmware_code = _int(mission_obj.get("firmwareType", 0), "mission.firmwareType", 0, 255)
@@ -530,6 +543,8 @@ def read_plan(path: PathLike) -> Mission:
         raise MissionFileError(
             f"{path}: malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}"
         ) from None
+    except RecursionError:  # brackets nested thousands deep: no mission looks like that
+        raise MissionFileError(f"{path}: JSON nested too deeply: not a mission file") from None
     return parse_plan(obj, str(path))
 
 

@@ -32,8 +32,10 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import math
 import os
+import re
 import socket
 import stat
 import threading
@@ -202,10 +204,33 @@ def _check_serial_device(device: str, url: str) -> None:
             f"{url!r} is not a serial device nor a connection URL; use {URL_EXAMPLES}")
 
 
+# a host name (RFC 1123 labels) or an IPv4 address; pymavlink splits on ':' (no IPv6)
+_HOST_RE = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+                      r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+# schemes that listen: the host may be empty (every interface), as MAVSDK's udpin://:14540
+_LISTEN = ("udpin:", "tcpin:", "udpin://", "udp://", "tcpin://")
+_NO_HOST_PORT = ("ws:", "wss:", "wsserver:", "uds:", "unix:")  # URLs, paths: not checked
+
+
+def _check_host_port(url: str, scheme: str, rest: str) -> None:
+    """HOST:PORT of a network URL: a port 1..65535, a host name or an IPv4 address."""
+    host, sep, port = rest.rpartition(":")
+    if not sep:
+        raise InvalidConnectionError(f"{url!r} has no port: use {scheme}HOST:PORT")
+    if not (port.isascii() and port.isdigit() and 1 <= int(port) <= 65535):
+        raise InvalidConnectionError(f"port {port!r} of {url!r} is not a number in 1..65535")
+    if not host and scheme in _LISTEN:
+        return
+    if not _HOST_RE.match(host):
+        raise InvalidConnectionError(f"host {host!r} of {url!r} is not a host name or an "
+                                     "IPv4 address")
+
+
 def check_connection_url(url: str) -> None:
     """Refuse, before any I/O, a URL that cannot reach a vehicle: empty, an unknown
-    scheme, an absent serial device or a plain file (pymavlink would replay a log file
-    or even execute it). Raises :class:`InvalidConnectionError` with one line."""
+    scheme, a port outside 1..65535, a malformed host, an absent serial device or a
+    plain file (pymavlink would replay a log file or even execute it). Raises
+    :class:`InvalidConnectionError` with one line."""
     if not url.strip():
         raise InvalidConnectionError(f"empty connection URL; use {URL_EXAMPLES}")
     if is_mavsdk_url(url):
@@ -216,8 +241,17 @@ def check_connection_url(url: str) -> None:
         if scheme == "serial://":
             device, _, baud = url[len(scheme):].rpartition(":")
             _check_serial_device(device if baud.isdigit() else url[len(scheme):], url)
+        else:
+            _check_host_port(url, scheme, url[len(scheme):])
         return
-    if url.startswith(PYMAVLINK_PREFIXES) or ":" in url:  # ":": pymavlink's legacy UDP
+    if url.startswith(_NO_HOST_PORT):
+        return
+    if url.startswith(PYMAVLINK_PREFIXES):
+        scheme = url[: url.index(":") + 1]
+        _check_host_port(url, scheme, url[len(scheme):])
+        return
+    if ":" in url:  # pymavlink's legacy UDP form HOST:PORT
+        _check_host_port(url, "", url)
         return
     device = url
     if "," in url and not os.path.exists(url):
@@ -262,6 +296,27 @@ def _result_name(code: int) -> str:
     return entry.name if entry is not None else f"MAV_MISSION_RESULT_{code}"
 
 
+def _vehicle_closed() -> None:
+    raise ConnectionAbortedError("the vehicle closed the connection")
+
+
+def _vehicle_reset() -> None:
+    raise ConnectionResetError("the connection was reset (the vehicle is gone)")
+
+
+def _lost_is_no_vehicle(method: Callable) -> Callable:
+    """A link that dies mid-transfer (a TCP vehicle reset or closed the connection, a
+    serial device unplugged) is a lost vehicle: :class:`NoVehicleError`, one line."""
+    @functools.wraps(method)
+    def wrapper(self: PymavlinkLink, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return method(self, *args, **kwargs)
+        except OSError as exc:
+            raise NoVehicleError(f"lost the vehicle on {self.url}: "
+                                 f"{exc.strerror or exc}") from None
+    return wrapper
+
+
 class PymavlinkLink:
     """The mission protocol over a pymavlink connection."""
 
@@ -294,13 +349,18 @@ class PymavlinkLink:
             except OSError as exc:
                 raise NoVehicleError(f"no vehicle at {url}: {exc}") from None
         try:
-            return mavutil.mavlink_connection(
+            conn = mavutil.mavlink_connection(
                 url, source_system=self._src[0], source_component=self._src[1],
                 autoreconnect=False, retries=0, reconnect_delay=0.1)
         except (ValueError, IndexError) as exc:
             raise InvalidConnectionError(f"bad connection URL {url!r}: {exc}") from None
         except OSError as exc:
             raise InvalidConnectionError(f"cannot open {url}: {exc}") from None
+        if hasattr(conn, "handle_eof"):
+            # pymavlink's TCP link prints "EOF on TCP socket" on stdout at every read of a
+            # closed connection and goes on: a closed link is a lost vehicle instead
+            conn.handle_eof, conn.handle_disconnect = _vehicle_closed, _vehicle_reset
+        return conn
 
     @property
     def connection(self) -> Any:
@@ -327,6 +387,7 @@ class PymavlinkLink:
             with contextlib.suppress(OSError):
                 self._conn.mav.heartbeat_send(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0)
 
+    @_lost_is_no_vehicle
     def _wait_vehicle(self, timeout_s: float) -> tuple[int, int]:
         deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
@@ -370,6 +431,7 @@ class PymavlinkLink:
 
     # -- transfers
 
+    @_lost_is_no_vehicle
     def upload(self, items: Sequence[WireItem], mission_type: int) -> None:
         """Send ``items`` (seq 0..n-1 of ``mission_type``); return once ACCEPTED."""
         _check_wire(items, mission_type)
@@ -429,6 +491,7 @@ class PymavlinkLink:
             tries = 0
             deadline = time.monotonic() + cfg.message_timeout_s
 
+    @_lost_is_no_vehicle
     def clear(self, mission_type: int) -> None:
         """MISSION_CLEAR_ALL for ``mission_type``; return once ACCEPTED.
 
@@ -456,6 +519,7 @@ class PymavlinkLink:
             if self._conn.recv_match(blocking=False) is None:
                 return
 
+    @_lost_is_no_vehicle
     def download(self, mission_type: int, expected_items: int = 0) -> list[WireItem]:
         """Read the vehicle's items of ``mission_type`` (MISSION_REQUEST_INT each).
 

@@ -263,6 +263,18 @@ def lawnmower(
     return segments_to_trajectory(segs, flight, "lawnmower", start_enu_m)
 
 
+MAX_TRACKS = 100_000  # tracks of one area pattern: far beyond any flight, refused before
+
+
+def _legs(n: float) -> float:
+    """The number of tracks of an area pattern, refused (ValueError) before anything is
+    built when absurd (a spacing of 1e-9 m would need 3e11 of them)."""
+    if not n <= MAX_TRACKS:
+        raise ValueError(f"the area at this spacing needs {n:.3g} tracks (more than "
+                         f"{MAX_TRACKS}): widen --spacing or reduce --radius")
+    return n
+
+
 def lawnmower_segments(
     center_enu_m: Sequence[float],
     half_width_m: float,
@@ -278,7 +290,7 @@ def lawnmower_segments(
     hw = _positive("half_width_m", half_width_m)
     hl = hw if half_length_m is None else _positive("half_length_m", half_length_m)
     sp = _positive("spacing_m", spacing_m)
-    n_tracks = max(1, math.ceil(2.0 * hw / sp - 1e-9))
+    n_tracks = max(1, math.ceil(_legs(2.0 * hw / sp) - 1e-9))
     along, right = _heading_axes(heading_deg)
     c = np.array([cx, cy])
     z = float(alt_m)
@@ -336,7 +348,7 @@ def expanding_square_segments(
     along, right = _heading_axes(heading_deg)
     turn = right if clockwise else -right
     dirs = [along, turn, -along, -turn]
-    m_max = max(1, math.ceil(2.0 * hw / sp - 1e-9))
+    m_max = max(1, math.ceil(_legs(2.0 * hw / sp) - 1e-9))
     lengths = [sp * (k // 2 + 1) for k in range(2 * m_max)] + [sp * m_max]
     p = np.array([cx, cy])
     z = float(alt_m)

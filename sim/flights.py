@@ -50,8 +50,14 @@ def _check_speed(name: str, v: float | None) -> None:
             raise ValueError(f"{name} {v} m/s is beyond a multirotor")
 
 
+MAX_PATH_VERTICES = 2_000_000  # 4000 km at 2 m spacing; refused before allocating
+
+
 class _PathBuilder:
-    """Accumulates a polyline with a height per vertex and a duration per segment."""
+    """Accumulates a polyline with a height per vertex and a duration per segment.
+
+    At most :data:`MAX_PATH_VERTICES` vertices: a spacing that would need more is
+    refused (``ValueError``) before anything is allocated."""
 
     def __init__(self, e_m: float, n_m: float, h_m: float, spacing_m: float) -> None:
         self.e = [np.array([e_m])]
@@ -59,6 +65,19 @@ class _PathBuilder:
         self.h = [np.array([h_m])]
         self.dt: list[np.ndarray] = []
         self.spacing = spacing_m
+        self.n_vertices = 1
+
+    def _vertices(self, length_m: float, minimum: int) -> int:
+        """Reserve the vertices of ``length_m`` of path (at least ``minimum``);
+        ValueError beyond the budget."""
+        count = length_m / self.spacing
+        if not self.n_vertices + count <= MAX_PATH_VERTICES:
+            raise ValueError(f"the flight would need more than {MAX_PATH_VERTICES} path "
+                             f"points at point_spacing_m {self.spacing:g}: widen the spacing "
+                             "or shorten the flight")
+        k = max(minimum, math.ceil(count))
+        self.n_vertices += k
+        return k
 
     @property
     def last(self) -> tuple[float, float, float]:
@@ -89,7 +108,7 @@ class _PathBuilder:
         length = max(math.hypot(e1 - e0, n1 - n0), abs(h1 - h0))
         if length < 1e-9:
             return
-        k = max(1, math.ceil(length / self.spacing))
+        k = self._vertices(length, 1)
         f = np.arange(1, k + 1) / k
         self.add(e0 + f * (e1 - e0), n0 + f * (n1 - n0), h0 + f * (h1 - h0), speed)
 
@@ -103,7 +122,7 @@ class _PathBuilder:
         h: float,
         speed: float,
     ) -> None:
-        k = max(2, math.ceil(abs(sweep_rad) * r / self.spacing))
+        k = self._vertices(abs(sweep_rad) * r, 2)
         th = theta0 + sweep_rad * np.arange(1, k + 1) / k
         self.add(ce + r * np.cos(th), cn + r * np.sin(th), np.full(k, h), speed)
 
@@ -258,7 +277,7 @@ class PassFlight:
         course = math.radians(self.course_deg)
         d = np.array([math.sin(course), math.cos(course)])
         right = np.array([d[1], -d[0]])
-        k = max(2, math.ceil(self.length_m / self.point_spacing_m))
+        k = b._vertices(self.length_m, 2)
         f = np.arange(1, k + 1) / k
         side = self.bow_m * np.sin(math.pi * f)
         e = self.start_e_m + f * self.length_m * d[0] + side * right[0]

@@ -740,9 +740,29 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
                 raise ConfigError(f"flight: {exc.args[0] if exc.args else exc}") from exc
             if traj.duration_s > 6 * 3600:
                 raise ConfigError(f"flight: {traj.duration_s / 3600:.1f} h is beyond any battery")
+            _check_work(scenario, traj.duration_s, traj.length_m)
+        elif search is not None:
+            _check_work(scenario, search.budget_s, search.budget_s * search.speed_mps)
     except ConfigError as exc:
         raise ScenarioError(f"{source}: {exc}") from exc
     return scenario
+
+
+MAX_VEHICLE_SAMPLES = 3_000_000  # 6 h at the default 20 Hz is 432 000
+
+
+def _check_work(scenario: Scenario, duration: float, length_m: float) -> None:
+    """Refuse, before anything is allocated, a vehicle time step or path step that
+    would need absurd memory and time over ``duration`` seconds and ``length_m`` of
+    flight (ConfigError)."""
+    for a in scenario.agents:
+        v = a.vehicle
+        for n, what in ((duration / v.sample_dt_s, f"sample_dt_s {v.sample_dt_s:g} s"),
+                        (length_m / v.path_step_m, f"path_step_m {v.path_step_m:g} m")):
+            if n > MAX_VEHICLE_SAMPLES:
+                raise ConfigError(f"vehicle.{what} would need {n:.3g} vehicle samples over "
+                                  f"{duration:g} s and {length_m:g} m of flight (more than "
+                                  f"{MAX_VEHICLE_SAMPLES}): widen it")
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:

@@ -43,6 +43,8 @@ from sim._config import check_finite, check_positive
 from sim._random import BlockedGaussMarkov
 from sim.world import World
 
+MIN_POSITIVE = 1e-3  # the smallest speed, step, time... a vehicle setting may take
+
 
 class FlightError(ValueError):
     """A flight that cannot be flown (into the ground, an empty path...)."""
@@ -88,6 +90,8 @@ class VehicleConfig:
             "sample_dt_s",
         ):
             check_positive(name, getattr(self, name))
+            if getattr(self, name) < MIN_POSITIVE:  # 1e-300: no vehicle, and no end to it
+                raise ValueError(f"{name} {getattr(self, name):g} is below {MIN_POSITIVE:g}")
         check_positive("wind_drift_s", self.wind_drift_s, allow_zero=True)
         check_positive("tracking_sigma_m", self.tracking_sigma_m, allow_zero=True)
         for i, w in enumerate(self.wind_enu_mps):

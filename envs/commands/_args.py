@@ -31,6 +31,17 @@ def non_negative_float(text: str) -> float:
     return v
 
 
+def float_in(lo: float, hi: float):
+    """An argparse type: a finite number in [lo, hi]."""
+    def parse(text: str) -> float:
+        v = finite_float(text)
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be in [{lo:g}, {hi:g}]: {text!r}")
+        return v
+
+    return parse
+
+
 def positive_int(text: str) -> int:
     v = non_negative_int(text)
     if v < 1:

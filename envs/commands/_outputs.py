@@ -10,18 +10,44 @@
   written is refused then, not after an hour of simulation.
 
 Problems are :class:`OutputRefusedError` with a one-line message (exit status 2).
+
+JSON that a command prints or writes goes through :func:`json_text`: a non-finite
+number (an error against an absurd truth, a sigma that overflowed) becomes ``null``
+instead of a crash after the work is done.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
+import math
 import os
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 MARKER = ".osa-output"  # in an output folder: the name of the command that wrote it
+
+
+def _finite(obj: object) -> object:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def json_text(obj: object, *, indent: int | None = None) -> str:
+    """``json.dumps`` that never fails on a non-finite float: NaN and infinities are
+    written as ``null`` (JSON has neither)."""
+    try:
+        return json.dumps(obj, indent=indent, allow_nan=False)
+    except ValueError:
+        return json.dumps(_finite(obj), indent=indent, allow_nan=False)
 
 
 class OutputRefusedError(ValueError):
@@ -98,6 +124,7 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     if p.exists() and not p.is_dir():
         raise OutputRefusedError(f"cannot write into {p}: it is a file, not a folder")
     marker = p / MARKER
+    entries = []
     if p.is_dir():
         entries = [e for e in p.iterdir() if e.name != MARKER]
         owner = marker.read_text(errors="replace").strip() if marker.is_file() else None
@@ -105,8 +132,6 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
             who = f"osa {owner}" if owner else "something else"
             raise OutputRefusedError(f"{p} is not empty and was written by {who} "
                                 "(use --force to write into it)")
-        if entries and not quiet:
-            print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
     blocker = next((a for a in (p, *p.parents) if a.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise OutputRefusedError(f"cannot create {p}: {blocker} is not a folder")
@@ -119,4 +144,23 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
         marker.write_text(command + "\n")
     except OSError as exc:
         raise OutputRefusedError(f"cannot write into {p}: {exc.strerror or exc}") from None
+    if entries and not quiet:  # said once the folder is known to be writable
+        print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
     return p
+
+
+@contextlib.contextmanager
+def written_whole(path: str | os.PathLike) -> Iterator[Path]:
+    """``with written_whole(out) as tmp: write(tmp)``: the file appears at ``out`` only
+    once written in full (a temporary name in the same folder, then renamed), so an
+    interrupted or failed write leaves the previous file, or nothing, never half a
+    file. The temporary name ends with the real one (a ``.gz`` stays ``.gz``)."""
+    p = Path(path)
+    tmp = p.with_name(f".osa-tmp-{os.getpid()}-{p.name}")
+    try:
+        yield tmp
+        os.replace(tmp, p)
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+

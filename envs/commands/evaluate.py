@@ -11,12 +11,12 @@ trajectories) into ``--figures DIR``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
 from envs.commands._args import non_negative_int, positive_float, positive_int
+from envs.commands._outputs import add_force_option
 from envs.seeds import SPLITS
 
 DEFAULT_OUT = "osa-evaluate/rows.csv"
@@ -67,6 +67,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true",
                    help="print the rows as a JSON array on stdout instead of the summary")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run of the same command: the episodes kept "
+                   "in FILE.partial.jsonl are not flown again")
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -116,14 +120,14 @@ def _check_policy(spec: str, scenario) -> str | None:
 
 def connect(address: str, timeout_s: float):
     """A Dask client of the scheduler at ``address`` (ValueError if unreachable)."""
+    if "://" not in address:  # a malformed address is said whether Dask is installed or not
+        raise ValueError(f"--scheduler: {address!r} is not an address like "
+                         "tcp://127.0.0.1:8786")
     try:
         from distributed import Client
     except ModuleNotFoundError:
         raise ValueError("--scheduler needs Dask distributed: pip install "
                          "'osa-testbed[dist]'") from None
-    if "://" not in address:
-        raise ValueError(f"--scheduler: {address!r} is not an address like "
-                         "tcp://127.0.0.1:8786")
     try:
         return Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError) as exc:
@@ -134,29 +138,49 @@ def connect(address: str, timeout_s: float):
         raise ValueError(f"--scheduler: {exc}") from None
 
 
-def _output_problem(out: Path) -> str | None:
-    from envs.commands.run import writable_file_problem
+def claim_outputs(args: argparse.Namespace, out: Path, fig_dir: Path, inputs: list[str]) -> None:
+    """Check every file the run will write, before any episode (raises ValueError with
+    one line): the rows (.csv or .parquet), the figures, the journal of a run to resume
+    or to replace (the one output rule: an existing file needs --force)."""
+    from envs.commands._outputs import claim_output_file
+    from envs.evaluate import journal_path
+    from envs.evaluate_plots import FIGURES
 
     if out.suffix.lower() not in (".csv", ".parquet"):
-        return f"-o {out}: write .csv or .parquet, not {out.suffix or 'a name without a suffix'}"
+        raise ValueError(f"-o {out}: write .csv or .parquet, not "
+                         f"{out.suffix or 'a name without a suffix'}")
     if out.suffix.lower() == ".parquet":
         try:
             import pyarrow.parquet  # noqa: F401
         except ModuleNotFoundError:
-            return f"-o {out}: Parquet needs pyarrow (pip install pyarrow), or write .csv"
-    blocker = next((a for a in out.parents if a.exists()), None)
-    if blocker is not None and not blocker.is_dir():
-        return f"cannot write {out}: {blocker} is not a folder"
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return f"cannot write {out}: {exc.strerror or exc}"
-    return writable_file_problem(out)
+            raise ValueError(f"-o {out}: Parquet needs pyarrow (pip install pyarrow), or "
+                             "write .csv") from None
+    journal = journal_path(out)
+    if args.resume and not journal.is_file():
+        raise ValueError(f"--resume: nothing to resume ({journal} does not exist)")
+    if journal.exists() and not args.resume:
+        if not args.force:
+            raise ValueError(f"{journal} holds the episodes of an interrupted run: continue "
+                             "it with --resume, or start again with --force")
+        journal.unlink()
+    claim_output_file(out, force=args.force, inputs=inputs)
+    if not args.no_figures:
+        for name in FIGURES:
+            claim_output_file(fig_dir / name, force=args.force, inputs=inputs)
 
 
 def run(args: argparse.Namespace) -> int:
+    from envs.cli import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated
     from envs.commands._progress import QuantityProgress
-    from envs.evaluate import EpisodeError, EvaluationTimeoutError, evaluate, local_workers
+    from envs.evaluate import (
+        EpisodeError,
+        EpisodeJournal,
+        EvaluationTimeoutError,
+        JournalError,
+        evaluate,
+        journal_path,
+        local_workers,
+    )
     from envs.loop import DEFAULT_MODE, LoopConfig
     from sim.scenario import ScenarioError, search_scenario
 
@@ -181,14 +205,12 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return _fail(f"--mode: {exc}")
     out = Path(args.out)
-    if problem := _output_problem(out):
-        return _fail(problem)
     fig_dir = Path(args.figures) if args.figures else out.parent
-    if not args.no_figures:
-        try:
-            fig_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            return _fail(f"--figures: cannot create {fig_dir}: {exc.strerror or exc}")
+    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    try:
+        claim_outputs(args, out, fig_dir, inputs)
+    except ValueError as exc:  # OutputRefusedError too
+        return _fail(exc)
     train = SPLITS["train"]
     if any(p.startswith("ppo:") for p in policies) and seeds[0] < train[1]:
         print("osa evaluate: note: seeds below 1000000 are training seeds (envs/seeds.py); "
@@ -202,17 +224,38 @@ def run(args: argparse.Namespace) -> int:
             return _fail(exc)
     workers = args.workers if args.workers is not None else local_workers()
     n = len(policies) * len(seeds)
+    key = {"scenario": scenario.name, "source": args.scenario,
+           "scenario_sha256": _file_sha256(args.scenario), "policies": policies,
+           "seeds": [seeds[0], seeds[-1]], "mode": config.mode,
+           "decision_period_s": config.decision_period_s, "examples": args.examples}
+    try:
+        journal = EpisodeJournal(journal_path(out), key, resume=args.resume)
+    except (JournalError, OSError) as exc:
+        if client is not None:
+            client.close(timeout=args.connect_timeout)
+        return _fail(exc)
     bar = QuantityProgress("osa evaluate", n, "episodes", enabled=not args.no_progress,
                            every=max(1.0, n / 10))
+    kept = f"kept in {journal.path}; run the same command with --resume to finish"
     try:
+        bar.update(len(journal.episodes), "resumed" if journal.episodes else "")
         ev = evaluate(scenario, policies, seeds, config=config, workers=workers,
                       client=client, task_size=args.task_size,
                       example_seeds=seeds[:args.examples], task_timeout_s=args.task_timeout,
-                      progress=lambda k, note: bar.update(k, note))
+                      progress=lambda k, note: bar.update(k, note),
+                      done=list(journal.episodes), on_episode=journal.append)
     except (EpisodeError, EvaluationTimeoutError) as exc:
         bar.close("failed")
-        print(f"osa evaluate: {exc}", file=sys.stderr)
+        journal.close()
+        print(f"osa evaluate: {exc} ({len(journal.episodes)} of {n} episodes {kept})",
+              file=sys.stderr)
         return 1
+    except (KeyboardInterrupt, Terminated) as exc:
+        bar.close("interrupted")
+        journal.close()
+        print(f"osa evaluate: interrupted: {len(journal.episodes)} of {n} episodes {kept}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else EXIT_TERMINATED
     finally:
         if client is not None:
             client.close(timeout=args.connect_timeout)
@@ -220,21 +263,34 @@ def run(args: argparse.Namespace) -> int:
     from sim import realise
 
     # the ground under the example worlds (the same terrain for every seed)
-    return _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
+    status = _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
+    journal.remove()  # every row is in FILE now
+    return status
+
+
+def _file_sha256(path: str) -> str | None:
+    """The scenario file's digest (a journal resumes only the same scenario), None for
+    a preset name."""
+    import hashlib
+
+    p = Path(path)
+    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
 
 
 def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None) -> int:
+    from envs.commands._outputs import json_text, written_whole
     from envs.evaluate import format_summary, summarise, write_rows
 
     rows = ev.rows
-    write_rows(rows, out)
+    with written_whole(out) as tmp:
+        write_rows(rows, tmp)
     figures: list[Path] = []
     if not args.no_figures:
         from envs.evaluate_plots import plot_evaluation
 
         figures = plot_evaluation(ev, fig_dir, terrain=terrain)
     if args.json:
-        print(json.dumps(rows, allow_nan=False))
+        print(json_text(rows))
         return 0
     s = ev.seeds
     print(f"{ev.scenario}: {len(ev.policies)} polic{'ies' if len(ev.policies) > 1 else 'y'} "

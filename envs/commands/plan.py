@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from envs.commands._args import finite_float, positive_float
+from envs.commands._outputs import add_force_option
 
 PATTERNS = ("lawnmower", "expanding-square", "helix", "circles", "close-pass", "orbit", "optimal")
 MISSION_SUFFIXES = (".plan", ".waypoints", ".txt", ".kml")
@@ -74,7 +75,10 @@ def _latlon(text: str, n: int = 2) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}")
     vals = tuple(finite_float(p.strip()) for p in parts)
     if not -90.0 <= vals[0] <= 90.0:
-        raise argparse.ArgumentTypeError(f"latitude {vals[0]:g} outside [-90, 90]")
+        from planner.plan_checks import swapped_hint
+
+        raise argparse.ArgumentTypeError(f"latitude {vals[0]:g} outside [-90, 90]"
+                                         + swapped_hint(vals[0], vals[1]))
     if not -180.0 <= vals[1] <= 180.0:
         raise argparse.ArgumentTypeError(f"longitude {vals[1]:g} outside [-180, 180]")
     return vals
@@ -245,6 +249,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                       help="distance kept from the area's edges and the keep-outs (default 10)")
     p.add_argument("--no-rtl", action="store_true", help="no RETURN_TO_LAUNCH item at the end")
     p.add_argument("--geojson", metavar="PATH", help="also write the plan as GeoJSON")
+    add_force_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -335,11 +340,32 @@ def check_mission_size(args: argparse.Namespace, duration_s: float, length_m: fl
     return []
 
 
-def build_plan(args: argparse.Namespace) -> PlanOutput:
-    """Plan from parsed arguments (no file written); raises :class:`PlanError`."""
+def _check_suffix(args: argparse.Namespace) -> None:
     if Path(args.output).suffix.lower() not in MISSION_SUFFIXES:
         raise PlanError(f"{args.output}: unknown mission type (use .plan, .waypoints, .txt "
                         "or .kml)")
+
+
+def claim_outputs(args: argparse.Namespace) -> None:
+    """-o and --geojson may be written (envs/commands/_outputs.py: an existing file needs
+    --force, an input is never written over), checked before any planning; raises
+    :class:`PlanError`."""
+    from envs.commands._outputs import OutputRefusedError, claim_output_file
+
+    _check_suffix(args)
+    if args.geojson and Path(args.geojson).resolve() == Path(args.output).resolve():
+        raise PlanError(f"--geojson {args.geojson} is the mission file -o: name another file")
+    inputs = [f for f in (args.area, *args.keepout, args.dem) if f]
+    try:
+        for path in filter(None, (args.output, args.geojson)):
+            claim_output_file(path, force=args.force, inputs=inputs)
+    except OutputRefusedError as exc:
+        raise PlanError(str(exc)) from None
+
+
+def build_plan(args: argparse.Namespace) -> PlanOutput:
+    """Plan from parsed arguments (no file written); raises :class:`PlanError`."""
+    _check_suffix(args)
     if args.center is None:
         raise PlanError("give --center LAT,LON (or --area FILE)")
     if not 0.0 <= args.overlap < 1.0:
@@ -413,10 +439,17 @@ def build_plan(args: argparse.Namespace) -> PlanOutput:
 
 def run(args: argparse.Namespace) -> int:
     from envs.commands.plan_site import run_site, site_requested
+    from planner.plan_checks import geometry_warnings, site_warnings
 
-    if Path(args.output).suffix.lower() not in MISSION_SUFFIXES:
-        return _fail(f"{args.output}: unknown mission type (use .plan, .waypoints, .txt or "
-                     ".kml)")
+    if args.center is not None:
+        points = [("--home", *args.home[:2])] if args.home else []
+        points += [("--keep-out", lat, lon) for lat, lon, _ in args.keep_out]
+        for w in site_warnings(tuple(args.center), points):
+            print(f"osa plan: warning: {w}", file=sys.stderr)
+    try:
+        claim_outputs(args)
+    except PlanError as exc:
+        return _fail(str(exc), exc.status)
     if site_requested(args):
         return run_site(args)
     try:
@@ -456,6 +489,8 @@ def run(args: argparse.Namespace) -> int:
             return _fail(f"{args.geojson}: cannot write GeoJSON: {exc}")
 
     score = score_trajectory(traj, plan.prior_enu_m, scoring_config())
+    for w in geometry_warnings(score.condition_number):
+        print(f"osa plan: warning: {w}", file=sys.stderr)
     n_wp = sum(1 for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT)
     dt = float(np.median(np.diff(traj.t_s))) if len(traj.t_s) > 1 else 0.0
     print(f"osa plan {args.pattern} -> {out}")

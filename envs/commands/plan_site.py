@@ -464,6 +464,10 @@ def print_site_summary(args, plan: SitePlan, out: Path, fence_note: str) -> None
         s = score_trajectory(traj, plan.prior_enu_m, scoring_config())
         print(f"  geometry  condition number {s.condition_number:.2f}, closest "
               f"{s.min_slant_m:.1f} m slant, {s.expected_measurements:.0f} expected ranges")
+        from planner.plan_checks import geometry_warnings
+
+        for w in geometry_warnings(s.condition_number):
+            print(f"osa plan: warning: {w}", file=sys.stderr)
     if fence_note:
         print(f"  fence     {fence_note}")
     if plan.note:

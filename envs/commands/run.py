@@ -9,13 +9,13 @@ prints the paper-style table against the simulator's truth.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
 from typing import TextIO
 
 from envs.commands._args import non_negative_int
+from envs.commands._outputs import add_force_option
 
 DEFAULT_SCENARIO = "three-aps"
 
@@ -38,6 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rerun", metavar="RRD", default=None,
                    help="also write a rerun recording (.rrd) of the flight and estimates")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -116,21 +117,36 @@ def run(args: argparse.Namespace) -> int:
         return _fail(exc.args[0] if exc.args else exc)
     if scenario.flight is None:
         return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
+    from envs.commands._outputs import (
+        OutputRefusedError,
+        claim_output_dir,
+        claim_output_file,
+        json_text,
+    )
+
+    inputs = [args.scenario] if Path(args.scenario).exists() else []
     if args.rerun and (problem := writable_file_problem(args.rerun)):
-        return _fail(problem)
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return _fail(f"cannot create {out}: {exc.strerror}")
+        return _fail(problem)  # its folder must exist: a typo creates no folder tree
+    try:  # the one output rule (docs/cli.md "Outputs"), before anything is simulated
+        if args.rerun:
+            claim_output_file(args.rerun, force=args.force, inputs=inputs)
+        out = claim_output_dir(args.out, command="run", force=args.force, inputs=inputs)
+    except OutputRefusedError as exc:
+        return _fail(exc)
     log_path = out / "flight.jsonl"
     steps = 3 + bool(args.rerun)
     progress = StepProgress("osa run", steps, enabled=not args.no_progress)
     progress.step(f"simulating {args.scenario} (seed {args.seed})")
-    sim.simulate(scenario, args.seed, log_path)
+    from sim.vehicle import FlightError
+
+    try:
+        sim.simulate(scenario, args.seed, log_path)
+    except FlightError as exc:  # the scenario's path cannot be flown (below the ground...)
+        progress.close()
+        return _fail(f"{args.scenario}: {exc}")
     progress.step(f"replaying {len(modes)} modes")
     report = replay_logs([log_path], ReplayOptions(modes=modes))
-    (out / "report.json").write_text(json.dumps(report.to_json(), indent=1, allow_nan=False))
+    (out / "report.json").write_text(json_text(report.to_json(), indent=1))
     progress.step("drawing figures")
     title = f"{args.scenario}, seed {args.seed}"
     world = sim.realise(scenario, args.seed).world  # the ground under the map

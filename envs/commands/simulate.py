@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+
+from envs.commands._outputs import add_force_option
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -20,6 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("-o", "--output", metavar="LOG", help="log file to write (.jsonl, .jsonl.gz)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
     p.add_argument("--list", action="store_true", help="list the scenario presets and exit")
+    add_force_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -30,6 +34,7 @@ def _fail(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from envs.commands._outputs import OutputRefusedError, claim_output_file, written_whole
     from sim.scenario import ScenarioError, list_scenarios, load_scenario
 
     if args.list:
@@ -49,12 +54,22 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     if scenario.flight is None:
         return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
+    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    try:  # before the simulation: a refused output costs nothing
+        out = claim_output_file(args.output, force=args.force, inputs=inputs)
+    except OutputRefusedError as exc:
+        return _fail(str(exc))
 
     from sim.simulate import run_scenario, write_log
+    from sim.vehicle import FlightError
 
-    result = run_scenario(scenario, args.seed)
     try:
-        out = write_log(result, args.output)
+        result = run_scenario(scenario, args.seed)
+    except FlightError as exc:  # the scenario's path cannot be flown (below the ground...)
+        return _fail(f"{args.scenario}: {exc}")
+    try:
+        with written_whole(out) as tmp:
+            write_log(result, tmp)
     except OSError as exc:
         reason = exc.strerror or str(exc)
         return _fail(f"cannot write {args.output}: {reason}")

@@ -15,6 +15,7 @@ import argparse
 import sys
 
 from envs.commands._args import non_negative_int, positive_int
+from envs.commands._outputs import add_force_option
 
 
 def linear_schedule(start: float):
@@ -58,6 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint-every", type=non_negative_int, default=50_000, metavar="N",
                    help="save a checkpoint every N steps (0: never; default 50000)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -100,11 +102,13 @@ def run(args: argparse.Namespace) -> int:
         except ScenarioError as exc:
             return _fail(f"--scenario: {exc}")
         env_kwargs["scenario"] = args.scenario
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return _fail(f"cannot create {out}: {exc.strerror}")
+    from envs.commands._outputs import OutputRefusedError, claim_output_dir
+
+    inputs = [args.scenario] if args.scenario and Path(args.scenario).exists() else []
+    try:  # the one output rule (docs/cli.md "Outputs"), before any training
+        out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
+    except OutputRefusedError as exc:
+        return _fail(exc)
     settings = TrainSettings(env_id=args.env, env_kwargs=env_kwargs, steps=args.steps,
                              seed=args.seed, algo=args.algo.upper(), n_envs=args.envs,
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,

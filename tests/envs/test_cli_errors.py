@@ -163,7 +163,7 @@ def test_plan_warns_above_the_flight_time_and_writes(tmp_path, capsys):
     assert err.startswith("osa plan: warning: lawnmower --radius 300 is 43 min of flight")
     assert "longer than --warn-flight-time 30 min" in err
     assert len(read_mission(out).items) > 10
-    assert status_of([*argv, "--warn-flight-time", "45"]) == 0
+    assert status_of([*argv, "--warn-flight-time", "45", "--force"]) == 0  # lm.plan exists
     assert capsys.readouterr().err == ""
 
 

@@ -483,5 +483,5 @@ def test_cli_notes_a_trained_policy_on_training_seeds(short_toml, tmp_path, caps
     argv[argv.index("--policies") + 1] = "ppo:model.zip"
     assert status_of(argv) == 0
     assert "training seeds" in one_line(capsys)
-    assert status_of([*argv, "--split", "test"]) == 0
+    assert status_of([*argv, "--split", "test", "--force"]) == 0  # rows.csv exists now
     assert capsys.readouterr().err == ""

@@ -17,6 +17,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from estimator.logio import (
+    ACC_MAX_M,
+    ALT_MAX_M,
+    ALT_MIN_M,
+    COUNT_MAX,
+    RANGE_MAX_M,
+    RSSI_MAX_DBM,
+    RSSI_MIN_DBM,
+    T_NS_MAX,
     LogError,
     LogStream,
     LogVersionError,
@@ -174,6 +182,20 @@ BAD_LINES: list[tuple[str, str | bytes, str]] = [
     ("fix-number", _replace(GOOD_GNSS, "fix", "3"), "bad_type"),
     ("type-number", _replace(GOOD_GNSS, "type", "7"), "bad_type"),
     ("acc-negative", _replace(GOOD_GNSS, "acc_m", "-0.5"), "bad_value"),
+    # physical limits (logio.BOUNDS, docs/log-format.md "Limits")
+    ("t_ns-beyond-2^62", _replace(GOOD_GNSS, "t_ns", str(2**62 + 1)), "bad_t_ns"),
+    ("alt-1e30", _replace(GOOD_GNSS, "alt_m", "1e30"), "bad_altitude"),
+    ("alt-below-500", _replace(GOOD_GNSS, "alt_m", "-500.5"), "bad_altitude"),
+    ("truth-alt-1e300", _replace(TRUTH_LINE, "alt_m", "1e300"), "bad_altitude"),
+    ("range-1e30", _replace(GOOD_RTT, "range_m", "1e30"), "bad_range"),
+    ("range-1e308", _replace(GOOD_RTT, "range_m", "1e308"), "bad_range"),
+    ("range-minus-20km", _replace(GOOD_RTT, "range_m", "-20000"), "bad_range"),
+    ("acc-1e300", _replace(GOOD_GNSS, "acc_m", "1e300"), "bad_value"),
+    ("vacc-1e300", _replace(GOOD_GNSS, "vacc_m", "1e300"), "bad_value"),
+    ("std-1e300", _replace(GOOD_RTT, "range_std_m", "1e300"), "bad_value"),
+    ("rssi-1e30", _replace(GOOD_RTT, "rssi_dbm", "1e30"), "bad_value"),
+    ("sats-negative", _replace(GOOD_GNSS, "sats", "-1"), "bad_value"),
+    ("attempted-huge", _replace(GOOD_RTT, "attempted", "100000"), "bad_value"),
     ("not-utf8", b'{"type":"gnss","t_ns":2000,"lat":36.7,"lon":-4.4,"acc_m":\xff}', "not_utf8"),
     ("latin1", '{"type":"truth","bssid":"a4:77:33:0f:1e:02","lat":1,"lon":2,"alt_m":3,'
      '"concealment":"caf\u00e9"}'.encode("latin-1"), "not_utf8"),
@@ -649,22 +671,25 @@ def test_sorted_stream_memory_is_bounded_1m(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------ properties
 
-_finite = st.floats(allow_nan=False, allow_infinity=False)
-_nonneg = st.floats(min_value=0.0, allow_nan=False, allow_infinity=False)
-_t_ns = st.integers(min_value=0, max_value=2**63 - 1)
+# valid records: every value inside the reader's documented limits (logio.BOUNDS)
+_alt = st.floats(min_value=ALT_MIN_M, max_value=ALT_MAX_M)
+_range = st.floats(min_value=-RANGE_MAX_M, max_value=RANGE_MAX_M)
+_rssi = st.floats(min_value=RSSI_MIN_DBM, max_value=RSSI_MAX_DBM)
+_nonneg = st.floats(min_value=0.0, max_value=ACC_MAX_M)
+_t_ns = st.integers(min_value=0, max_value=T_NS_MAX)
 _bssid = st.lists(st.integers(0, 255), min_size=6, max_size=6).map(
     lambda b: ":".join(f"{x:02x}" for x in b)
 )
 _lat = st.floats(min_value=-90.0, max_value=90.0, allow_nan=False)
 _lon = st.floats(min_value=-180.0, max_value=180.0, allow_nan=False)
-_opt_int = st.none() | st.integers(min_value=0, max_value=2**31)
+_opt_int = st.none() | st.integers(min_value=0, max_value=COUNT_MAX)
 
 _gnss_st = st.builds(
     GnssFix,
     t_ns=_t_ns,
     lat_deg=_lat,
     lon_deg=_lon,
-    alt_m=_finite,
+    alt_m=_alt,
     acc_m=_nonneg,
     vacc_m=st.none() | _nonneg,
     fix=st.none() | st.sampled_from(GNSS_FIX_TYPES),
@@ -675,9 +700,9 @@ _rtt_ok_st = st.builds(
     t_ns=_t_ns,
     bssid=_bssid,
     status=st.just("ok"),
-    range_m=_finite,
+    range_m=_range,
     range_std_m=st.none() | _nonneg,
-    rssi_dbm=_finite,
+    rssi_dbm=_rssi,
     attempted=_opt_int,
     successful=_opt_int,
 )
@@ -685,10 +710,11 @@ _rtt_fail_st = st.builds(
     RangeSample,
     t_ns=_t_ns,
     bssid=_bssid,
-    status=st.sampled_from(["fail", "no_response", "ok?", ""]) | st.text(max_size=8),
-    range_m=st.none() | _finite,
+    status=st.sampled_from(["fail", "no_response", "ok?", ""])
+    | st.text(max_size=8).filter(str.isprintable),
+    range_m=st.none() | _range,
     range_std_m=st.none() | _nonneg,
-    rssi_dbm=st.none() | _finite,
+    rssi_dbm=st.none() | _rssi,
     attempted=_opt_int,
     successful=_opt_int,
 ).filter(lambda r: r.status != "ok")
@@ -697,7 +723,7 @@ _truth_st = st.builds(
     bssid=_bssid,
     lat_deg=_lat,
     lon_deg=_lon,
-    alt_m=_finite,
+    alt_m=_alt,
     concealment=st.sampled_from(["open", "vegetation", "vegetation_debris"]),
 )
 

@@ -7,6 +7,7 @@ with free ports."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -45,7 +46,13 @@ from planner.mission import (
     MissionItem,
     deg_to_e7,
 )
-from tests.planner.conftest import CLI_FAST, FAST, sample_mission, write_mission_file
+from tests.planner.conftest import (
+    ANSWERING,
+    CLI_ANSWERING,
+    SILENT,
+    sample_mission,
+    write_mission_file,
+)
 from tests.planner.peers import ArduPilotLikeVehicle, MavsdkVehiclePeer, VehicleScript
 from tests.vehicles import RunningVehicle
 
@@ -153,9 +160,9 @@ def test_autopilot_choice() -> None:
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_upload_to_ardupilot_auto(ardupilot: ArduPilotLikeVehicle, backend: str) -> None:
     m = sample_mission(20)  # 24 items
-    with connected(url_of(ardupilot, backend), FAST) as link:
+    with connected(url_of(ardupilot, backend), ANSWERING) as link:
         assert link.autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA  # from the heartbeat
-    report = upload_mission(m, url_of(ardupilot, backend), config=FAST)
+    report = upload_mission(m, url_of(ardupilot, backend), config=ANSWERING)
     assert (report.items, report.fence_items, report.rally_items) == (24, 9, 2)
     assert report.autopilot == "ardupilot" and report.vehicle == (1, 1)
     held = ardupilot.held()
@@ -174,7 +181,7 @@ def test_upload_to_ardupilot_auto(ardupilot: ArduPilotLikeVehicle, backend: str)
 
 def test_empty_mission_to_ardupilot(ardupilot: ArduPilotLikeVehicle) -> None:
     """An empty mission is the home item alone (count 1); the report counts 0 items."""
-    with connected(ardupilot.pymavlink_url, FAST) as link:
+    with connected(ardupilot.pymavlink_url, ANSWERING) as link:
         assert upload_on_link(link, sample_mission(3)) == (7, 9, 2)
         assert len(ardupilot.held()) == 8
         before = ardupilot.upload_count()
@@ -190,7 +197,7 @@ def test_ardupilot_mismatch_after_home(scripted_vehicle) -> None:
                               home=VEHICLE_HOME) as v:
         m = sample_mission(4)
         with pytest.raises(VerifyMismatchError) as info:
-            upload_mission(m, v.pymavlink_url, config=FAST, fence=False)
+            upload_mission(m, v.pymavlink_url, config=ANSWERING, fence=False)
         x = m.items[2].x_e7
         assert info.value.differences == [f"item 3: x {x + 5} != sent {x}"]
         assert "rewrote item 0" not in str(info.value)
@@ -201,7 +208,7 @@ def test_ardupilot_silent_mid_upload_is_not_uploaded() -> None:
         result = None
         # counted on the wire: home + 5 of the 25 mission items
         with pytest.raises(UploadTimeoutError, match="after 6 of 26 items"):
-            result = upload_mission(sample_mission(21), v.pymavlink_url, config=FAST,
+            result = upload_mission(sample_mission(21), v.pymavlink_url, config=SILENT,
                                     fence=False)
         assert result is None and v.upload_count() == 0
         assert [w.x for w in v.held()] == [367201234]  # still its home alone
@@ -213,7 +220,7 @@ def test_osa_upload_to_ardupilot(tmp_path: Path, ardupilot: ArduPilotLikeVehicle
                                  backend: str, suffix: str) -> None:
     m, path = write_mission_file(sample_mission(12), tmp_path, suffix)  # 16 items
     status = osa_main(["upload", str(path), "--connection", url_of(ardupilot, backend),
-                       *CLI_FAST])
+                       *CLI_ANSWERING])
     out, err = capsys.readouterr()
     assert (status, err) == (0, "")
     assert "mission items 16," in out and "ArduPilot numbering" in out and backend in out
@@ -229,7 +236,7 @@ def test_forced_px4_on_ardupilot_fails_verify(tmp_path: Path, ardupilot: ArduPil
     path = tmp_path / "m.plan"
     write_plan(m, path)
     status = osa_main(["upload", str(path), "--connection", url_of(ardupilot, backend),
-                       *CLI_FAST, "--no-fence", "--autopilot", "px4"])
+                       *CLI_ANSWERING, "--no-fence", "--autopilot", "px4"])
     out, err = capsys.readouterr()
     assert status == 1 and out == ""
     assert err.count("\n") == 1
@@ -261,7 +268,7 @@ def px4_peer() -> Iterator[MavsdkVehiclePeer]:
 def test_px4_vehicle_is_not_ardupilot(px4_vehicle: RunningVehicle, backend: str) -> None:
     """``osa vehicle`` says autopilot 12 (PX4): "auto" keeps the mission from seq 0."""
     m = sample_mission(3)
-    with connected(url_of(px4_vehicle, backend), FAST) as link:
+    with connected(url_of(px4_vehicle, backend), ANSWERING) as link:
         assert link.autopilot == 12
         assert resolve_autopilot("auto", link) == "px4"
         assert upload_on_link(link, m, fence=False) == (7, 0, 0)
@@ -275,7 +282,7 @@ def test_mavsdk_server_is_not_ardupilot(px4_peer: MavsdkVehiclePeer, backend: st
     too (any autopilot but ArduPilot numbers from seq 0)."""
     m = sample_mission(3)
     before = px4_peer.upload_count()
-    with connected(url_of(px4_peer, backend), FAST) as link:
+    with connected(url_of(px4_peer, backend), ANSWERING) as link:
         assert link.autopilot == 0
         assert resolve_autopilot("auto", link) == "px4"
         assert upload_on_link(link, m, fence=False) == (7, 0, 0)
@@ -288,7 +295,7 @@ def test_forced_ardupilot_on_px4_sends_home_item(px4_vehicle: RunningVehicle) ->
     """Forcing ArduPilot numbering on a PX4 vehicle stores the home item as seq 0:
     a real waypoint there (documented; the verify cannot tell)."""
     m = sample_mission(3)
-    report = upload_mission(m, px4_vehicle.pymavlink_url, config=FAST, fence=False,
+    report = upload_mission(m, px4_vehicle.pymavlink_url, config=ANSWERING, fence=False,
                             autopilot="ardupilot")
     assert report.autopilot == "ardupilot" and report.items == 7
     held = px4_vehicle.held()
@@ -299,8 +306,7 @@ def test_forced_ardupilot_on_px4_sends_home_item(px4_vehicle: RunningVehicle) ->
 
 def test_link_config_autopilot_is_used(ardupilot: ArduPilotLikeVehicle) -> None:
     """``upload_on_link`` without ``autopilot`` takes the link's TransferConfig."""
-    cfg = TransferConfig(connect_timeout_s=3.0, message_timeout_s=0.1, retries=3,
-                         autopilot="px4")
+    cfg = dataclasses.replace(ANSWERING, autopilot="px4")
     with connected(ardupilot.pymavlink_url, cfg) as link:
         with pytest.raises(VerifyMismatchError, match="rewrote item 0"):
             upload_on_link(link, sample_mission(2), fence=False)

@@ -33,7 +33,7 @@ from planner.mission import (
     MissionItem,
     deg_to_e7,
 )
-from tests.planner.conftest import FAST, sample_mission
+from tests.planner.conftest import ANSWERING, sample_mission
 
 
 def assert_same_mission(a: Mission, b: Mission, *, with_fence: bool = True,
@@ -222,7 +222,7 @@ def test_plan_imported_by_mavsdk(tmp_path: Path, mavsdk_peer) -> None:
     m = sample_mission(20)
     path = tmp_path / "m.plan"
     write_plan(m, path)
-    with connected(mavsdk_peer.mavsdk_url, FAST) as link:
+    with connected(mavsdk_peer.mavsdk_url, ANSWERING) as link:
         imported = link.import_qgc_plan(path)
         bad = tmp_path / "bare-nan.plan"
         bad.write_text(path.read_text().replace("null", "NaN"))

@@ -34,7 +34,13 @@ from planner.mission import (
     deg_to_e7,
 )
 from tests.net import free_udp_port
-from tests.planner.conftest import CLI_FAST, FAST, sample_mission, write_mission_file
+from tests.planner.conftest import (
+    ANSWERING,
+    CLI_ANSWERING,
+    SILENT,
+    sample_mission,
+    write_mission_file,
+)
 from tests.planner.peers import MavsdkVehiclePeer, VehicleScript
 from tests.vehicles import RunningVehicle
 
@@ -89,7 +95,7 @@ def test_wire_form() -> None:
 def test_upload_to_vehicle(px4_vehicle: RunningVehicle, backend: str) -> None:
     m = sample_mission(40)
     before = {t: px4_vehicle.upload_count(t) for t in (0, 1, 2)}
-    report = upload_mission(m, url_of(px4_vehicle, backend), config=FAST)
+    report = upload_mission(m, url_of(px4_vehicle, backend), config=ANSWERING)
     assert (report.items, report.fence_items, report.rally_items) == (len(m.items), 9, 2)
     assert report.backend == backend and report.vehicle == (1, 1)
     assert report.autopilot == "px4"  # the heartbeat says MAV_AUTOPILOT_PX4
@@ -106,7 +112,7 @@ def test_upload_to_vehicle(px4_vehicle: RunningVehicle, backend: str) -> None:
             len(fence.inclusion_circles), len(fence.exclusion_circles)) == (1, 1, 1, 1)
     assert len(px4_vehicle.autopilot.rally_enu) == 2
     # an independent read-back equals what was sent
-    got = download_wire(url_of(px4_vehicle, backend), (0, 1, 2), config=FAST)
+    got = download_wire(url_of(px4_vehicle, backend), (0, 1, 2), config=ANSWERING)
     assert compare_wire(mission_to_wire(m), got[0]) == []
     assert compare_wire(fence_to_wire(m), got[1]) == []
     assert compare_wire(rally_to_wire(m), got[2]) == []
@@ -117,14 +123,14 @@ def test_upload_to_vehicle(px4_vehicle: RunningVehicle, backend: str) -> None:
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_link_reuse_and_no_fence(px4_vehicle: RunningVehicle, backend: str) -> None:
     """Several uploads on one link; ``fence=False`` leaves fence and rally untouched."""
-    with connected(url_of(px4_vehicle, backend), FAST) as link:
+    with connected(url_of(px4_vehicle, backend), ANSWERING) as link:
         for n in (1, 7, 100):
             m = sample_mission(n)
             link.upload(mission_to_wire(m), MAV_MISSION_TYPE_MISSION)
             assert compare_wire(mission_to_wire(m), link.download(MAV_MISSION_TYPE_MISSION)) == []
     fence_uploads = px4_vehicle.upload_count(MAV_MISSION_TYPE_FENCE)
     m = sample_mission(3)
-    report = upload_mission(m, url_of(px4_vehicle, backend), config=FAST, fence=False)
+    report = upload_mission(m, url_of(px4_vehicle, backend), config=ANSWERING, fence=False)
     assert (report.items, report.fence_items, report.rally_items) == (len(m.items), 0, 0)
     assert px4_vehicle.upload_count(MAV_MISSION_TYPE_FENCE) == fence_uploads
     assert_holds(px4_vehicle.held(), m)
@@ -136,7 +142,7 @@ def test_empty_mission_clears(mavsdk_peer: MavsdkVehiclePeer, backend: str) -> N
     MAVSDK 4.1's MissionRawServer: this is why the check runs against it); the next
     upload still works."""
     url = url_of(mavsdk_peer, backend)
-    with connected(url, FAST) as link:
+    with connected(url, ANSWERING) as link:
         link.upload(mission_to_wire(sample_mission(2)), MAV_MISSION_TYPE_MISSION)
         assert len(link.download(MAV_MISSION_TYPE_MISSION)) == 6
         report = upload_on_link(link, Mission(items=(), home=(36.7, -4.4, 100.0)))
@@ -155,23 +161,22 @@ def test_empty_mission_clears(mavsdk_peer: MavsdkVehiclePeer, backend: str) -> N
 # ---------------------------------------------------------------- errors
 
 
+@pytest.mark.timeout(60)  # the connect bound holds: no hang (no timed assertion)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_no_vehicle(backend: str) -> None:
     port = free_udp_port()
     url = f"udpout:127.0.0.1:{port}" if backend == "pymavlink" else f"udpout://127.0.0.1:{port}"
     cfg = TransferConfig(connect_timeout_s=1.0)
-    t0 = time.monotonic()
-    with pytest.raises(NoVehicleError, match="no vehicle heartbeat"):
+    with pytest.raises(NoVehicleError, match=r"no vehicle heartbeat on .* within 1 s"):
         upload_mission(sample_mission(2), url, config=cfg)
-    assert time.monotonic() - t0 < 1.0 + 0.5
 
 
 def test_bad_urls() -> None:
     for url in ("udpout:localhost", "bogus://x", "udpin:127.0.0.1:notaport"):
         with pytest.raises(InvalidConnectionError):
-            upload_mission(sample_mission(1), url, config=FAST)
+            upload_mission(sample_mission(1), url, config=ANSWERING)
     with pytest.raises(NoVehicleError, match="Connection refused"):
-        upload_mission(sample_mission(1), f"tcp:127.0.0.1:{free_udp_port()}", config=FAST)
+        upload_mission(sample_mission(1), f"tcp:127.0.0.1:{free_udp_port()}", config=ANSWERING)
 
 
 # MAV_MISSION_RESULT -> (name on the pymavlink path, MissionRawResult name MAVSDK reports)
@@ -190,7 +195,7 @@ NACKS = {
 def test_nack_on_count(scripted_vehicle, backend: str, result: int) -> None:
     v = scripted_vehicle(VehicleScript(nack_on_count=result))
     with pytest.raises(MissionRejectedError) as info:
-        upload_mission(sample_mission(5), url_of(v, backend), config=FAST, fence=False)
+        upload_mission(sample_mission(5), url_of(v, backend), config=ANSWERING, fence=False)
     expected = NACKS[result][0 if backend == "pymavlink" else 1]
     assert info.value.result_name == expected
     assert expected in str(info.value)
@@ -201,31 +206,28 @@ def test_nack_on_count(scripted_vehicle, backend: str, result: int) -> None:
 def test_nack_mid_upload(scripted_vehicle, backend: str) -> None:
     v = scripted_vehicle(VehicleScript(nack_at_seq=3, nack_result=6))  # INVALID_PARAM1
     with pytest.raises(MissionRejectedError) as info:
-        upload_mission(sample_mission(10), url_of(v, backend), config=FAST, fence=False)
+        upload_mission(sample_mission(10), url_of(v, backend), config=ANSWERING, fence=False)
     assert info.value.result_name == ("MAV_MISSION_INVALID_PARAM1" if backend == "pymavlink"
                                       else "INVALID_ARGUMENT")
     assert v.items_received == 4 and v.upload_count() == 0
 
 
+@pytest.mark.timeout(60)  # the transfer bound holds: no hang (no timed assertion)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_vehicle_goes_silent_mid_upload(scripted_vehicle, backend: str) -> None:
     v = scripted_vehicle(VehicleScript(silent_after_items=10))
     m = sample_mission(30)
-    t0 = time.monotonic()
     result = None
     with pytest.raises(UploadTimeoutError, match="the vehicle does not hold"):
-        result = upload_mission(m, url_of(v, backend), config=FAST, fence=False)
-    elapsed = time.monotonic() - t0
+        result = upload_mission(m, url_of(v, backend), config=SILENT, fence=False)
     assert result is None  # nothing reported as uploaded
     assert v.items_received == 10 and v.upload_count() == 0 and v.held() == []
-    # heartbeat wait + (retries + 1) * message timeout, with margin for MAVSDK's own resends
-    assert elapsed < 1.0 + (FAST.retries + 1) * FAST.message_timeout_s + 1.0
 
 
 def test_pymavlink_answers_legacy_mission_request(scripted_vehicle) -> None:
     v = scripted_vehicle(VehicleScript(legacy_requests=True))
     m = sample_mission(25)
-    report = upload_mission(m, v.pymavlink_url, config=FAST)
+    report = upload_mission(m, v.pymavlink_url, config=ANSWERING)
     assert report.items == len(m.items) and report.fence_items == 9
     assert_holds(v.held(), m)
     assert compare_wire(fence_to_wire(m), v.held(MAV_MISSION_TYPE_FENCE)) == []
@@ -236,7 +238,7 @@ def test_read_back_mismatch(scripted_vehicle, backend: str) -> None:
     v = scripted_vehicle(VehicleScript(download_x_offset_e7=1))
     m = sample_mission(4)
     with pytest.raises(VerifyMismatchError) as info:
-        upload_mission(m, url_of(v, backend), config=FAST, fence=False)
+        upload_mission(m, url_of(v, backend), config=ANSWERING, fence=False)
     assert info.value.differences == [f"item 0: x {m.items[0].x_e7 + 1} != sent {m.items[0].x_e7}"]
 
 
@@ -249,7 +251,7 @@ def test_osa_upload_end_to_end(tmp_path: Path, px4_vehicle: RunningVehicle, caps
                                backend: str, suffix: str) -> None:
     m, path = write_mission_file(sample_mission(15), tmp_path, suffix)
     status = osa_main(["upload", str(path), "--connection", url_of(px4_vehicle, backend),
-                       *CLI_FAST])
+                       *CLI_ANSWERING])
     out, err = capsys.readouterr()
     assert (status, err) == (0, "")
     assert f"mission items {len(m.items)}" in out and backend in out

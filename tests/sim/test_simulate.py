@@ -131,13 +131,14 @@ def test_cli_list(capsys):
     "argv, match",
     [
         (["simulate", "nope", "-o", "{tmp}/x.jsonl"], "unknown scenario 'nope'"),
-        (["simulate", "paper-apab", "-o", "{tmp}/missing/dir/x.jsonl"], "cannot write"),
+        (["simulate", "paper-apab", "-o", "{tmp}/a-file/x.jsonl"], "cannot write"),
         (["simulate", "paper-apab"], "-o LOG is required"),
         (["simulate"], "SCENARIO is required"),
         (["simulate", "paper-apab", "-o", "{tmp}/x.jsonl", "--seed", "-3"], "--seed"),
     ],
 )
 def test_cli_errors_are_one_line_exit_2(tmp_path, capsys, argv, match):
+    (tmp_path / "a-file").write_text("in the way of a folder")  # missing folders are created
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     assert osa(argv) == 2
     err = capsys.readouterr().err
