@@ -76,7 +76,7 @@ class TrainedPolicy:
             algo = meta.get("algo", "PPO")
         except (ValueError, KeyError) as exc:
             raise ValueError(f"{meta_p}: unreadable ({exc})") from None
-        if kind not in ("search", "waypoint"):
+        if kind not in ("search", "waypoint", "plan"):
             raise ValueError(f"{meta_p}: unknown env kind {kind!r}")
         try:
             import torch
