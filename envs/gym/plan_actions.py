@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
+from estimator.records import Trajectory
 from planner.adaptive import Manoeuvres
 from planner.area import SearchArea
 from planner.coverage import Sweep, search_spacing_m
@@ -52,8 +53,9 @@ class PlanActions:
     The target (the slot feature ``target`` of the observation) is chosen by the policy
     with ``next``; when there is none and a responder heard is neither localised nor set
     aside, it is the most recently heard such responder. A localised target stays the
-    target until ``next`` or ``done``. A target manoeuvre without a target flies on
-    what is being flown (no new segment). Choosing what is being flown again keeps
+    target until ``next`` or ``done``. A target manoeuvre without a target (and
+    ``done``) flies on what is being flown (no new segment; before the first segment:
+    climb to the search height where the vehicle is and hold). Choosing what is being flown again keeps
     flying it until its segment is done, then starts it anew (a pattern resumes, a
     manoeuvre re-centres on the current estimate).
     """
@@ -127,7 +129,7 @@ class PlanActions:
         for i, b in enumerate(enc.slots[: self.cfg.max_responders]):
             aside[i] = float(b in self.set_aside)
         flying = np.zeros(len(self.names))
-        if self.current is not None:
+        if self.current is not None and self.current[0] >= 0:
             flying[self.current[0]] = 1.0
         f32 = np.float32
         return {"sectors": np.clip(sectors, 0.0, 1.0).astype(f32), "set_aside": aside.astype(f32),
@@ -171,20 +173,33 @@ class PlanActions:
                 self.set_aside.add(self.enc.target)
                 self.enc.target = None
                 self._ensure_target(obs)
-            return Decision(localised=loc)
+            return self._fly_on(a, loc)
         if name == "next":
             self._next(obs)
         target = self.enc.target
         if i < len(self.routes):
             return self._route(i, a, loc)
         if target is None:  # nothing to manoeuvre about: fly on
-            return Decision(localised=loc)
+            return self._fly_on(a, loc)
         key = (i, target)
         if self.current == key and not a.segment_done:
             return Decision(localised=loc)
         self.current = key
         traj = self._build(name, target, obs, a)
         return Decision(plans={self.enc.agent: traj}, localised=loc, note=f"{name} {target}")
+
+    def _fly_on(self, a: AgentView, loc: frozenset[str]) -> Decision:
+        """No new segment; before the first one, climb to the search height where the
+        vehicle is and hold there (the take-off)."""
+        if self.current is not None:
+            return Decision(localised=loc)
+        m = self.mission
+        e, n = (float(x) for x in a.position_enu_m[:2])
+        enu = np.array([[e, n, m.height_m], [e, n, m.height_m]])
+        traj = Trajectory(np.array([0.0, self.cfg.decision_period_s]), enu, m.origin,
+                          "terrain", "hold")
+        self.current = (-1, None)
+        return Decision(plans={self.enc.agent: traj}, localised=loc, note="hold")
 
     def _route(self, i: int, a: AgentView, loc: frozenset[str]) -> Decision:
         route = self.routes[i]
