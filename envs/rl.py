@@ -42,6 +42,15 @@ class TrainSettings:
     progress: bool = True
     algo_kwargs: dict = field(default_factory=dict)
     policy_kwargs: dict = field(default_factory=lambda: {"net_arch": [128, 128]})
+    curriculum: tuple[float, float] | None = None  # osa/Search-v1: level from, to
+
+
+def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
+    """The curriculum level at ``progress`` (0 to 1) of the training: linear from
+    ``curriculum[0]`` to ``curriculum[1]``, rounded to 0.01 (the envs change level in
+    those steps)."""
+    a, b = curriculum
+    return round(a + (b - a) * min(max(progress, 0.0), 1.0), 2)
 
 
 @dataclass(frozen=True)
@@ -156,7 +165,29 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
                 save(self.model, venv, settings, out / "best", s)
             (out / "validation.json").write_text(json.dumps(self.history, indent=1))
 
+    class Curriculum(BaseCallback):
+        """Sets every training env's curriculum level (``set_level``, osa/Search-v1)
+        from the share of the training done; it applies from each env's next episode."""
+
+        def _on_training_start(self) -> None:
+            self.level: float | None = None
+            self._set()
+
+        def _on_step(self) -> bool:
+            self._set()
+            return True
+
+        def _set(self) -> None:
+            assert settings.curriculum is not None
+            level = curriculum_level(settings.curriculum, self.num_timesteps / settings.steps)
+            if level != self.level:
+                self.level = level
+                venv.env_method("set_level", level)
+                self.logger.record("train/curriculum_level", level)
+
     cbs = [Progress()]
+    if settings.curriculum is not None:
+        cbs.append(Curriculum())
     if settings.checkpoint_every:
         cbs.append(CheckpointCallback(max(settings.checkpoint_every // settings.n_envs, 1),
                                       str(out / "checkpoints"), name_prefix="model",
@@ -183,6 +214,7 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
         "scenario": env.scenario.name,
         "seed": settings.seed,
         "steps": int(model.num_timesteps),
+        **({"curriculum": list(settings.curriculum)} if settings.curriculum else {}),
         **({"validation": extra} if extra else {}),
     }
     env.close()

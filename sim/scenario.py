@@ -57,8 +57,8 @@ from sim.clock import ClockConfig
 from sim.dem import DemError, DemTerrain, box_of
 from sim.flights import FLIGHT_KINDS, Flight, TrajectoryFlight
 from sim.ftm import FtmConfig
-from sim.randomise import Randomise
 from sim.gnss import GNSS_PRESETS, GnssConfig
+from sim.randomise import Randomise
 from sim.sitefiles import GeoShape, SiteFileError, read_area, read_keepouts
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
 from sim.vehicle import WALKER, VehicleConfig

@@ -39,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "folder MODEL, which osa search --policy ppo:MODEL and osa evaluate load.",
     )
     p.add_argument("--env", default="osa/Search-v0", metavar="ID",
-                   help="a registered env id: osa/Search-v0 (default) or osa/Waypoint-v0")
+                   help="a registered env id: osa/Search-v0 (default), osa/Search-v1 or "
+                   "osa/Waypoint-v0")
     p.add_argument("--scenario", default=None, metavar="S",
                    help="the env's search scenario (preset or .toml; default the env's)")
     p.add_argument("--steps", type=positive_int, default=200_000, metavar="N",
@@ -58,6 +59,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="validation worlds per evaluation (default 20)")
     p.add_argument("--checkpoint-every", type=non_negative_int, default=50_000, metavar="N",
                    help="save a checkpoint every N steps (0: never; default 50000)")
+    p.add_argument("--curriculum", default=None, metavar="FROM:TO",
+                   help="osa/Search-v1: the curriculum level (the share of the scenario's "
+                   "[randomise] ranges in use, 0 to 1) rising linearly from FROM to TO over "
+                   "the training (default: none, level 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_force_option(p)
     p.set_defaults(func=run)
@@ -93,6 +98,17 @@ def run(args: argparse.Namespace) -> int:
         args.algo.upper() in ("SAC", "TD3") and kind != "waypoint"
     ):
         return _fail(f"--algo {args.algo} does not fit the action space of {args.env}")
+    curriculum = None
+    if args.curriculum is not None:
+        if args.env != "osa/Search-v1":
+            return _fail(f"--curriculum: {args.env} has no curriculum level (osa/Search-v1)")
+        try:
+            lo, hi = (float(x) for x in args.curriculum.split(":"))
+        except ValueError:
+            return _fail(f"--curriculum: expected FROM:TO, got {args.curriculum!r}")
+        if not (0.0 <= lo <= 1.0 and 0.0 <= hi <= 1.0):
+            return _fail(f"--curriculum: levels must be in [0, 1], got {args.curriculum!r}")
+        curriculum = (lo, hi)
     env_kwargs = {}
     if args.scenario is not None:
         from sim.scenario import ScenarioError, search_scenario
@@ -113,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                              seed=args.seed, algo=args.algo.upper(), n_envs=args.envs,
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,
                              checkpoint_every=args.checkpoint_every,
-                             progress=not args.no_progress,
+                             progress=not args.no_progress, curriculum=curriculum,
                              algo_kwargs=PPO_DEFAULTS if args.algo.upper() == "PPO" else {})
     summary = train(settings, out)
     print(summary.text())

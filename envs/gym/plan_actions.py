@@ -55,9 +55,9 @@ class PlanActions:
     aside, it is the most recently heard such responder. A localised target stays the
     target until ``next`` or ``done``. A target manoeuvre without a target (and
     ``done``) flies on what is being flown (no new segment; before the first segment:
-    climb to the search height where the vehicle is and hold). Choosing what is being flown again keeps
-    flying it until its segment is done, then starts it anew (a pattern resumes, a
-    manoeuvre re-centres on the current estimate).
+    climb to the search height where the vehicle is and hold). Choosing what is being
+    flown again keeps flying it until its segment is done, then starts it anew (a
+    pattern resumes, a manoeuvre re-centres on the current estimate).
     """
 
     kind = "plan"

@@ -21,9 +21,9 @@ import pytest
 
 import envs  # noqa: F401  (registers the envs)
 import sim
+from envs.gym.interface import EnvConfig
 from envs.gym.plan import PlanEnv
 from envs.gym.plan_actions import PlanActions, plan_heuristic
-from envs.gym.interface import EnvConfig
 from sim.randomise import Randomise
 
 ID = "osa/Search-v1"
