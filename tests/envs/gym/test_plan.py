@@ -264,3 +264,56 @@ def test_curriculum_level_narrows_the_ranges():
     assert drawn(env.loop.realisation) == got[0.5] and env.level == 0.5
     with pytest.raises(ValueError, match="level"):
         env.set_level(1.5)
+
+
+def test_curriculum_level_of_the_training_progress():
+    from envs.rl import curriculum_level
+
+    assert curriculum_level((0.2, 1.0), 0.0) == 0.2
+    assert curriculum_level((0.2, 1.0), 0.5) == 0.6
+    assert curriculum_level((0.2, 1.0), 2.0) == 1.0
+    assert curriculum_level((1.0, 0.0), 0.25) == 0.75
+
+
+def test_osa_train_trains_search_v1_with_a_curriculum_and_it_flies_osa_search(tmp_path):
+    pytest.importorskip("stable_baselines3")
+    import json
+
+    from envs.cli import main
+    from envs.loop import run_search
+    from envs.policies import load_policy
+    from envs.rl import make_env
+    from envs.rl import rollout as env_rollout
+
+    toml = tmp_path / "r.toml"
+    toml.write_text('extends = "search-five-mixed"\nname = "r"\n[search]\nbudget_s = 200.0\n'
+                    'random_responders = 2\nexpected_responders = 2\n'
+                    '[randomise]\nwind_mps = [0.0, 4.0]\n')
+    out = tmp_path / "m"
+    assert main(["train", "--env", "osa/Search-v1", "--scenario", str(toml), "--steps", "512",
+                 "--envs", "1", "--eval-every", "0", "--checkpoint-every", "0",
+                 "--curriculum", "0:1", "--no-progress", "-o", str(out)]) == 0
+    meta = json.loads((out / "osa-model.json").read_text())
+    assert meta["env_id"] == "osa/Search-v1" and meta["kind"] == "plan"
+    assert meta["curriculum"] == [0.0, 1.0]
+    with open(out / "progress.csv") as f:
+        assert "train/curriculum_level" in f.readline()
+    # the model flies osa search as it flew its env (same world, same end)
+    policy = load_policy(f"ppo:{out}")
+    res = run_search(sim.load_scenario(toml), policy, 2_000_000)
+    env = make_env("osa/Search-v1", {"scenario": str(toml)})
+    ep = env_rollout(env, lambda o: policy.action(o), 2_000_000)
+    assert res.flight_time_s == pytest.approx(ep.flight_time_s, abs=5.0)
+
+
+def test_osa_train_curriculum_errors(tmp_path, capsys):
+    pytest.importorskip("stable_baselines3")
+    from envs.cli import main
+
+    for argv, match in ((["--env", "osa/Search-v0", "--curriculum", "0:1"], "no curriculum"),
+                        (["--env", "osa/Search-v1", "--curriculum", "0-1"], "FROM:TO"),
+                        (["--env", "osa/Search-v1", "--curriculum", "0:2"], r"\[0, 1\]")):
+        assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "osa train: --curriculum" in err and \
+            __import__("re").search(match, err)
