@@ -43,6 +43,8 @@ class TrainSettings:
     algo_kwargs: dict = field(default_factory=dict)
     policy_kwargs: dict = field(default_factory=lambda: {"net_arch": [128, 128]})
     curriculum: tuple[float, float] | None = None  # osa/Search-v1: level from, to
+    imitate_episodes: int = 0  # osa/Search-v1: behaviour cloning of plan_heuristic first
+    imitate_epochs: int = 30
 
 
 def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
@@ -145,6 +147,8 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
             self.seeds = split_seeds("validation", settings.eval_worlds)
             self.best: tuple | None = None
             self.history: list[dict] = []
+            if settings.imitate_episodes and settings.eval_every:
+                self.run()  # the imitation alone, before any PPO update
 
         def _on_step(self) -> bool:
             if settings.eval_every and self.num_timesteps >= self.next:
@@ -221,6 +225,82 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
     (folder / META_FILE).write_text(json.dumps(meta, indent=1))
 
 
+def imitate(model, venv, settings: TrainSettings) -> dict:
+    """Warm start (``osa/Search-v1``): behaviour cloning of the hand-written policy
+    (:func:`envs.gym.plan_actions.plan_heuristic`). It flies ``imitate_episodes``
+    episodes in every training env (train worlds; the ``VecNormalize`` statistics
+    learn from them as from any rollout), then fits the policy's action distribution to
+    its actions (maximum likelihood) and the value head to the discounted normalised
+    returns, ``imitate_epochs`` passes in minibatches of 256. Returns what it did."""
+    import torch
+    from stable_baselines3.common.utils import obs_as_tensor
+
+    from envs.gym.plan_actions import PlanActions, plan_heuristic
+
+    probe = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    if not isinstance(probe.pilot.actions, PlanActions):
+        raise ValueError(f"imitation needs osa/Search-v1's actions, not {settings.env_id}'s")
+    act = plan_heuristic(probe.pilot.actions)
+    probe.close()
+    gamma = float(getattr(model, "gamma", 0.99))
+    n = venv.num_envs
+    raw: list[dict] = []
+    actions: list[int] = []
+    rewards: list[list[float]] = [[] for _ in range(n)]
+    index: list[list[int]] = [[] for _ in range(n)]
+    returns = np.zeros(0)
+    venv.reset()
+    done_eps = np.zeros(n, dtype=int)
+    targets: dict[int, float] = {}
+    while done_eps.min() < settings.imitate_episodes:
+        o = venv.get_original_obs()
+        a = np.array([act({k: v[i] for k, v in o.items()}) for i in range(n)])
+        for i in range(n):
+            index[i].append(len(actions) + i)
+        raw.extend({k: v[i] for k, v in o.items()} for i in range(n))
+        actions.extend(int(x) for x in a)
+        _, r, dones, _ = venv.step(a)
+        for i in range(n):
+            rewards[i].append(float(r[i]))
+            if dones[i]:
+                g = 0.0
+                for j, rr in zip(reversed(index[i]), reversed(rewards[i]), strict=True):
+                    g = rr + gamma * g
+                    targets[j] = g
+                index[i], rewards[i] = [], []
+                done_eps[i] += 1
+    keep = np.array(sorted(targets))
+    obs = venv.normalize_obs({k: np.stack([raw[j][k] for j in keep]) for k in raw[0]})
+    acts = np.array(actions)[keep]
+    returns = np.array([targets[j] for j in keep])
+    policy = model.policy
+    opt = policy.optimizer
+    rng = np.random.default_rng(settings.seed)
+    history = []
+    for _ in range(settings.imitate_epochs):
+        order = rng.permutation(len(keep))
+        losses = []
+        for b in range(0, len(order), 256):
+            mb = order[b:b + 256]
+            o_t = obs_as_tensor({k: v[mb] for k, v in obs.items()}, policy.device)
+            values, log_prob, _ = policy.evaluate_actions(
+                o_t, torch.as_tensor(acts[mb], device=policy.device))
+            ret = torch.as_tensor(returns[mb], dtype=torch.float32, device=policy.device)
+            loss = -log_prob.mean() + 0.5 * torch.nn.functional.mse_loss(values.flatten(), ret)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+            opt.step()
+            losses.append(float(loss.item()))
+        history.append(statistics.fmean(losses))
+    with torch.no_grad():
+        o_t = obs_as_tensor(obs, policy.device)
+        agree = float((policy.predict(obs, deterministic=True)[0] == acts).mean())
+    del o_t
+    return {"episodes": int(done_eps.sum()), "decisions": len(keep), "epochs": len(history),
+            "loss": history, "agreement": agree}
+
+
 @dataclass
 class TrainSummary:
     out: Path
@@ -268,6 +348,9 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     cbs, val = _callbacks(settings, out, venv)
     t0 = time.perf_counter()
     try:
+        if settings.imitate_episodes:
+            imitated = imitate(model, venv, settings)
+            (out / "imitation.json").write_text(json.dumps(imitated, indent=1))
         model.learn(total_timesteps=settings.steps, callback=cbs)
         if settings.eval_every and (not val.history or val.history[-1]["steps"]
                                     < model.num_timesteps - settings.eval_every // 2):

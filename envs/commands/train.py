@@ -63,6 +63,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="osa/Search-v1: the curriculum level (the share of the scenario's "
                    "[randomise] ranges in use, 0 to 1) rising linearly from FROM to TO over "
                    "the training (default: none, level 1)")
+    p.add_argument("--imitate", type=non_negative_int, default=0, metavar="N",
+                   help="osa/Search-v1: warm start by behaviour cloning of the hand-written "
+                   "policy, N episodes per env before the training (default 0: none)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_force_option(p)
     p.set_defaults(func=run)
@@ -109,6 +112,9 @@ def run(args: argparse.Namespace) -> int:
         if not (0.0 <= lo <= 1.0 and 0.0 <= hi <= 1.0):
             return _fail(f"--curriculum: levels must be in [0, 1], got {args.curriculum!r}")
         curriculum = (lo, hi)
+    if args.imitate and args.env != "osa/Search-v1":
+        return _fail(f"--imitate: {args.env} has no hand-written policy to imitate "
+                     "(osa/Search-v1)")
     env_kwargs = {}
     if args.scenario is not None:
         from sim.scenario import ScenarioError, search_scenario
@@ -130,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,
                              checkpoint_every=args.checkpoint_every,
                              progress=not args.no_progress, curriculum=curriculum,
+                             imitate_episodes=args.imitate,
                              algo_kwargs=PPO_DEFAULTS if args.algo.upper() == "PPO" else {})
     summary = train(settings, out)
     print(summary.text())
