@@ -113,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
             return _fail(f"--curriculum: levels must be in [0, 1], got {args.curriculum!r}")
         curriculum = (lo, hi)
     if args.imitate and args.env != "osa/Search-v1":
-        return _fail(f"--imitate: {args.env} has no hand-written policy to imitate "
-                     "(osa/Search-v1)")
+        return _fail(f"--imitate: {args.env} has nothing to imitate (the hand-written "
+                     "policy is osa/Search-v1's)")
     env_kwargs = {}
     if args.scenario is not None:
         from sim.scenario import ScenarioError, search_scenario

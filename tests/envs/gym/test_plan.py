@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pickle
+import re
 import warnings
 
 import gymnasium
@@ -292,7 +293,11 @@ def test_osa_train_trains_search_v1_with_a_curriculum_and_it_flies_osa_search(tm
     out = tmp_path / "m"
     assert main(["train", "--env", "osa/Search-v1", "--scenario", str(toml), "--steps", "512",
                  "--envs", "1", "--eval-every", "0", "--checkpoint-every", "0",
-                 "--curriculum", "0:1", "--no-progress", "-o", str(out)]) == 0
+                 "--curriculum", "0:1", "--imitate", "2", "--no-progress",
+                 "-o", str(out)]) == 0
+    imitated = json.loads((out / "imitation.json").read_text())
+    assert imitated["episodes"] == 2 and imitated["decisions"] == 80  # 2 x 200 s / 5 s
+    assert imitated["loss"][-1] < 0.7 * imitated["loss"][0] and imitated["agreement"] > 0.7
     meta = json.loads((out / "osa-model.json").read_text())
     assert meta["env_id"] == "osa/Search-v1" and meta["kind"] == "plan"
     assert meta["curriculum"] == [0.0, 1.0]
@@ -306,14 +311,14 @@ def test_osa_train_trains_search_v1_with_a_curriculum_and_it_flies_osa_search(tm
     assert res.flight_time_s == pytest.approx(ep.flight_time_s, abs=5.0)
 
 
-def test_osa_train_curriculum_errors(tmp_path, capsys):
+def test_osa_train_curriculum_and_imitate_errors(tmp_path, capsys):
     pytest.importorskip("stable_baselines3")
     from envs.cli import main
 
     for argv, match in ((["--env", "osa/Search-v0", "--curriculum", "0:1"], "no curriculum"),
                         (["--env", "osa/Search-v1", "--curriculum", "0-1"], "FROM:TO"),
-                        (["--env", "osa/Search-v1", "--curriculum", "0:2"], r"\[0, 1\]")):
+                        (["--env", "osa/Search-v1", "--curriculum", "0:2"], r"\[0, 1\]"),
+                        (["--env", "osa/Search-v0", "--imitate", "3"], "nothing to imitate")):
         assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "osa train: --curriculum" in err and \
-            __import__("re").search(match, err)
+        assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
