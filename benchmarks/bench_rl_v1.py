@@ -6,10 +6,12 @@ Every policy flies ``osa search`` (``envs.loop.run_search``) on the same first
 expected responder is localised (the estimator's judgement; censored at the budget),
 the number localised, and the mean horizontal error of the final estimates (the
 truth, for evaluation only). Paired two-sided exact sign tests compare each policy
-with ``adaptive`` on the time (ties dropped). ``--curve MODEL`` draws the learning
+with ``adaptive`` on the time (ties dropped). ``--model`` (repeatable) adds
+``ppo:PATH`` policies. ``--curve MODEL`` draws the learning
 curve of an ``osa train`` folder (``progress.csv`` and ``validation.json``).
 
     python benchmarks/bench_rl_v1.py --model MODEL --seeds 20 --json rows.json
+    python benchmarks/bench_rl_v1.py --table rows.json
     python benchmarks/bench_rl_v1.py --curve MODEL --figure curve.png
 """
 
@@ -56,11 +58,10 @@ class PlanPolicy:
         return self.pilot.act(self.act(enc), obs)
 
 
-def fly(scenario, name: str, seed: int, model: str | None) -> dict:
-    if name in ("heuristic", "random"):
-        policy = PlanPolicy(name)
-    else:
-        policy = load_policy(f"ppo:{model}" if name == "ppo" else name)
+def fly(scenario, name: str, seed: int) -> dict:
+    """One ``osa search`` of policy ``name`` (``heuristic``, ``random``, a named policy
+    or ``ppo:PATH``) on world ``seed``."""
+    policy = PlanPolicy(name) if name in ("heuristic", "random") else load_policy(name)
     res = run_search(scenario, policy, seed)
     budget = scenario.search.budget_s
     times = [r.get("localised_at_s") for r in res.responders]
@@ -85,7 +86,8 @@ def table(rows: list[dict], budget: float) -> str:
     pols = list(dict.fromkeys(r["policy"] for r in rows))
     by = {p: sorted((r for r in rows if r["policy"] == p), key=lambda r: r["seed"])
           for p in pols}
-    out = [f"{'policy':<11}{'all localised':>14}{'responders':>11}{'median t_all':>13}"
+    w0 = max(11, *(len(p) + 1 for p in pols))
+    out = [f"{'policy':<{w0}}{'all localised':>14}{'responders':>11}{'median t_all':>13}"
            f"{'median err':>11}{'vs adaptive (faster/slower/tie, p)':>37}"]
     for p in pols:
         rs = by[p]
@@ -98,7 +100,7 @@ def table(rows: list[dict], budget: float) -> str:
             a = np.array([r["t_all_s"] for r in by["adaptive"]])
             w, lo, ti = int((t < a).sum()), int((t > a).sum()), int((t == a).sum())
             cmp = f"{w}/{lo}/{ti}, p = {sign_test_two_sided(w, lo):.2g}"
-        out.append(f"{p:<11}{100 * done:>13.0f}%{100 * loc:>10.0f}%{np.median(t):>12.0f}s"
+        out.append(f"{p:<{w0}}{100 * done:>13.0f}%{100 * loc:>10.0f}%{np.median(t):>12.0f}s"
                    f"{(f'{np.median(errs):.2f} m' if errs else '-'):>11}{cmp:>37}")
     return "\n".join(out)
 
@@ -118,12 +120,13 @@ def curve(model: str, path: str) -> None:
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     ax[0].plot(steps, ret)
     ax[0].set_xlabel("training steps (decisions)")
-    ax[0].set_ylabel("mean episode return (training)")
+    ax[0].set_ylabel("mean return, last 100 training episodes")
     ax[0].grid(alpha=0.3)
     vs = [v["steps"] for v in val]
     ax[1].plot(vs, [v["median_time_s"] for v in val], "o-", label="median time (s)")
     ax[1].set_xlabel("training steps (decisions)")
     ax[1].set_ylabel("validation: median time to localise all (s)")
+    ax[1].set_ylim(0, 1.05 * max(v["median_time_s"] for v in val))
     ax2 = ax[1].twinx()
     ax2.plot(vs, [100 * v["localised"] for v in val], "s--", color="C1",
              label="worlds all localised (%)")
@@ -140,18 +143,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="search-five-mixed")
     ap.add_argument("--seeds", type=int, default=20)
-    ap.add_argument("--model", default=None, help="an osa train folder (policy ppo)")
-    ap.add_argument("--policies", default="adaptive,heuristic,random,ppo")
+    ap.add_argument("--model", action="append", default=[],
+                    help="an osa train folder, flown as ppo:PATH (repeat for several)")
+    ap.add_argument("--policies", default="adaptive,heuristic,random")
     ap.add_argument("--json", default=None, help="write the rows here")
     ap.add_argument("--curve", default=None, metavar="MODEL", help="draw MODEL's curve")
     ap.add_argument("--figure", default=None)
+    ap.add_argument("--table", default=None, metavar="JSON", help="print the table of rows")
     a = ap.parse_args()
+    if a.table:
+        rows = json.loads(Path(a.table).read_text())
+        print(table(rows, sim.load_scenario(a.scenario).search.budget_s))
+        return
     if a.curve:
         curve(a.curve, a.figure or "curve.png")
         return
     sc = sim.load_scenario(a.scenario)
-    pols = [p for p in a.policies.split(",") if p != "ppo" or a.model]
-    rows = [fly(sc, p, s, a.model) for p in pols for s in split_seeds("test", a.seeds)]
+    pols = [p for p in a.policies.split(",") if p] + [f"ppo:{m}" for m in a.model]
+    rows = [fly(sc, p, s) for p in pols for s in split_seeds("test", a.seeds)]
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     print(f"{a.scenario}: {a.seeds} test worlds, budget {sc.search.budget_s:.0f} s "
