@@ -11,7 +11,9 @@ the truth) and the :class:`planner.observation.SearchMission` (what the operator
   "localised" bookkeeping (:class:`planner.observation.LocalisedRule`) and the information
   potential behind the reward.
 - :class:`ManoeuvreActions` (``osa/Search-v0``) and :class:`WaypointActions`
-  (``osa/Waypoint-v0``): action -> :class:`planner.observation.Decision`.
+  (``osa/Waypoint-v0``): action -> :class:`planner.observation.Decision`;
+  ``osa/Search-v1``'s :class:`envs.gym.plan_actions.PlanActions` (kind ``plan``) also
+  adds observation keys of its own.
 
 Reward of one decision (all terms from the estimator, the vehicle and the link model):
 ``information + detection_bonus * newly detected + coverage_bonus * newly covered
