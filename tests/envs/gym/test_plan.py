@@ -291,7 +291,7 @@ def test_osa_train_trains_search_v1_with_a_curriculum_and_it_flies_osa_search(tm
                     'random_responders = 2\nexpected_responders = 2\n'
                     '[randomise]\nwind_mps = [0.0, 4.0]\n')
     out = tmp_path / "m"
-    assert main(["train", "--env", "osa/Search-v1", "--scenario", str(toml), "--steps", "512",
+    assert main(["train", "--env", "osa/Search-v1", "--scenario", str(toml), "--steps", "256",
                  "--envs", "1", "--eval-every", "0", "--checkpoint-every", "0",
                  "--curriculum", "0:1", "--imitate", "2", "--no-progress",
                  "-o", str(out)]) == 0
