@@ -45,6 +45,7 @@ class TrainSettings:
     curriculum: tuple[float, float] | None = None  # osa/Search-v1: level from, to
     imitate_episodes: int = 0  # osa/Search-v1: behaviour cloning of plan_heuristic first
     imitate_epochs: int = 30
+    imitate_rounds: int = 0  # DAgger rounds after the first fit
 
 
 def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
@@ -225,40 +226,28 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
     (folder / META_FILE).write_text(json.dumps(meta, indent=1))
 
 
-def imitate(model, venv, settings: TrainSettings) -> dict:
-    """Warm start (``osa/Search-v1``): behaviour cloning of the hand-written policy
-    (:func:`envs.gym.plan_actions.plan_heuristic`). It flies ``imitate_episodes``
-    episodes in every training env (train worlds; the ``VecNormalize`` statistics
-    learn from them as from any rollout), then fits the policy's action distribution to
-    its actions (maximum likelihood) and the value head to the discounted normalised
-    returns, ``imitate_epochs`` passes in minibatches of 256. Returns what it did."""
-    import torch
-    from stable_baselines3.common.utils import obs_as_tensor
-
-    from envs.gym.plan_actions import PlanActions, plan_heuristic
-
-    probe = make_env(settings.env_id, settings.env_kwargs).unwrapped
-    if not isinstance(probe.pilot.actions, PlanActions):
-        raise ValueError(f"imitation needs osa/Search-v1's actions, not {settings.env_id}'s")
-    act = plan_heuristic(probe.pilot.actions)
-    probe.close()
-    gamma = float(getattr(model, "gamma", 0.99))
+def _fly_and_label(venv, episodes: int, teacher, actor, gamma: float):
+    """``episodes`` episodes in every env of ``venv`` flown by ``actor`` (raw
+    observations -> actions, batched; None: the teacher flies): the raw observations
+    visited, the teacher's action at each and the discounted normalised return from
+    each (only decisions of finished episodes)."""
     n = venv.num_envs
     raw: list[dict] = []
-    actions: list[int] = []
+    labels: list[int] = []
     rewards: list[list[float]] = [[] for _ in range(n)]
     index: list[list[int]] = [[] for _ in range(n)]
-    returns = np.zeros(0)
+    targets: dict[int, float] = {}
     venv.reset()
     done_eps = np.zeros(n, dtype=int)
-    targets: dict[int, float] = {}
-    while done_eps.min() < settings.imitate_episodes:
+    while done_eps.min() < episodes:
         o = venv.get_original_obs()
-        a = np.array([act({k: v[i] for k, v in o.items()}) for i in range(n)])
+        per = [{k: v[i] for k, v in o.items()} for i in range(n)]
+        want = np.array([teacher(x) for x in per])
+        a = want if actor is None else np.asarray(actor(o))
         for i in range(n):
-            index[i].append(len(actions) + i)
-        raw.extend({k: v[i] for k, v in o.items()} for i in range(n))
-        actions.extend(int(x) for x in a)
+            index[i].append(len(raw) + i)
+        raw.extend(per)
+        labels.extend(int(x) for x in want)
         _, r, dones, _ = venv.step(a)
         for i in range(n):
             rewards[i].append(float(r[i]))
@@ -269,36 +258,82 @@ def imitate(model, venv, settings: TrainSettings) -> dict:
                     targets[j] = g
                 index[i], rewards[i] = [], []
                 done_eps[i] += 1
-    keep = np.array(sorted(targets))
-    obs = venv.normalize_obs({k: np.stack([raw[j][k] for j in keep]) for k in raw[0]})
-    acts = np.array(actions)[keep]
-    returns = np.array([targets[j] for j in keep])
+    keep = sorted(targets)
+    return ([raw[j] for j in keep], [labels[j] for j in keep], [targets[j] for j in keep],
+            int(done_eps.sum()))
+
+
+def imitate(model, venv, settings: TrainSettings) -> dict:
+    """Warm start (``osa/Search-v1``): behaviour cloning of the hand-written policy
+    (:func:`envs.gym.plan_actions.plan_heuristic`) with DAgger rounds. The teacher flies
+    ``imitate_episodes`` episodes in every training env (train worlds; the
+    ``VecNormalize`` statistics learn from them as from any rollout); the network is
+    fitted to its actions (maximum likelihood) and the value head to the discounted
+    normalised returns, ``imitate_epochs`` passes in minibatches of 256. Then, for
+    ``imitate_rounds`` rounds, the clone itself flies as many episodes (its
+    deterministic action), the teacher labels every state it visited, and the network
+    is fitted again on everything gathered: the clone learns what to do in the states
+    its own mistakes lead to (DAgger). Returns what it did."""
+    import torch
+    from stable_baselines3.common.utils import obs_as_tensor
+
+    from envs.gym.plan_actions import PlanActions, plan_heuristic
+
+    probe = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    if not isinstance(probe.pilot.actions, PlanActions):
+        raise ValueError(f"imitation needs osa/Search-v1's actions, not {settings.env_id}'s")
+    teacher = plan_heuristic(probe.pilot.actions)
+    probe.close()
+    gamma = float(getattr(model, "gamma", 0.99))
     policy = model.policy
     opt = policy.optimizer
     rng = np.random.default_rng(settings.seed)
-    history = []
-    for _ in range(settings.imitate_epochs):
-        order = rng.permutation(len(keep))
-        losses = []
-        for b in range(0, len(order), 256):
-            mb = order[b:b + 256]
-            o_t = obs_as_tensor({k: v[mb] for k, v in obs.items()}, policy.device)
-            values, log_prob, _ = policy.evaluate_actions(
-                o_t, torch.as_tensor(acts[mb], device=policy.device))
-            ret = torch.as_tensor(returns[mb], dtype=torch.float32, device=policy.device)
-            loss = -log_prob.mean() + 0.5 * torch.nn.functional.mse_loss(values.flatten(), ret)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
-            opt.step()
-            losses.append(float(loss.item()))
-        history.append(statistics.fmean(losses))
-    with torch.no_grad():
-        o_t = obs_as_tensor(obs, policy.device)
+    raw: list[dict] = []
+    labels: list[int] = []
+    returns: list[float] = []
+    rounds = []
+
+    def clone(o: dict):
+        return policy.predict(venv.normalize_obs(o), deterministic=True)[0]
+
+    for k in range(settings.imitate_rounds + 1):
+        got = _fly_and_label(venv, settings.imitate_episodes, teacher,
+                             None if k == 0 else clone, gamma)
+        if k:  # how the clone flew before this round's fit
+            rounds[-1]["clone_agreement_flying"] = float(
+                np.mean([int(clone({kk: v[None] for kk, v in x.items()})[0]) == y
+                         for x, y in zip(got[0], got[1], strict=True)]))
+        raw += got[0]
+        labels += got[1]
+        returns += got[2]
+        obs = venv.normalize_obs({key: np.stack([x[key] for x in raw]) for key in raw[0]})
+        acts = np.array(labels)
+        rets = np.array(returns)
+        history = []
+        for _ in range(settings.imitate_epochs):
+            order = rng.permutation(len(acts))
+            losses = []
+            for b in range(0, len(order), 256):
+                mb = order[b:b + 256]
+                o_t = obs_as_tensor({key: v[mb] for key, v in obs.items()}, policy.device)
+                values, log_prob, _ = policy.evaluate_actions(
+                    o_t, torch.as_tensor(acts[mb], device=policy.device))
+                ret = torch.as_tensor(rets[mb], dtype=torch.float32, device=policy.device)
+                loss = -log_prob.mean() + 0.5 * torch.nn.functional.mse_loss(
+                    values.flatten(), ret)
+                opt.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+                opt.step()
+                losses.append(float(loss.item()))
+            history.append(statistics.fmean(losses))
         agree = float((policy.predict(obs, deterministic=True)[0] == acts).mean())
-    del o_t
-    return {"episodes": int(done_eps.sum()), "decisions": len(keep), "epochs": len(history),
-            "loss": history, "agreement": agree}
+        rounds.append({"flown_by": "teacher" if k == 0 else "clone", "episodes": got[3],
+                       "decisions": len(got[1]), "loss": history, "agreement": agree})
+    first = rounds[0]
+    return {"episodes": first["episodes"], "decisions": first["decisions"],
+            "epochs": len(first["loss"]), "loss": first["loss"],
+            "agreement": rounds[-1]["agreement"], "rounds": rounds}
 
 
 @dataclass

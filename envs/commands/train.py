@@ -66,6 +66,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--imitate", type=non_negative_int, default=0, metavar="N",
                    help="osa/Search-v1: warm start by behaviour cloning of the hand-written "
                    "policy, N episodes per env before the training (default 0: none)")
+    p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
+                   help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
+                   "policy labels its states, the clone is fitted again; default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_force_option(p)
     p.set_defaults(func=run)
@@ -115,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
     if args.imitate and args.env != "osa/Search-v1":
         return _fail(f"--imitate: {args.env} has nothing to imitate (the hand-written "
                      "policy is osa/Search-v1's)")
+    if args.dagger and not args.imitate:
+        return _fail("--dagger: needs --imitate N (the episodes of each round)")
     env_kwargs = {}
     if args.scenario is not None:
         from sim.scenario import ScenarioError, search_scenario
@@ -136,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,
                              checkpoint_every=args.checkpoint_every,
                              progress=not args.no_progress, curriculum=curriculum,
-                             imitate_episodes=args.imitate,
+                             imitate_episodes=args.imitate, imitate_rounds=args.dagger,
                              algo_kwargs=PPO_DEFAULTS if args.algo.upper() == "PPO" else {})
     summary = train(settings, out)
     print(summary.text())

@@ -293,11 +293,14 @@ def test_osa_train_trains_search_v1_with_a_curriculum_and_it_flies_osa_search(tm
     out = tmp_path / "m"
     assert main(["train", "--env", "osa/Search-v1", "--scenario", str(toml), "--steps", "256",
                  "--envs", "1", "--eval-every", "0", "--checkpoint-every", "0",
-                 "--curriculum", "0:1", "--imitate", "2", "--no-progress",
+                 "--curriculum", "0:1", "--imitate", "2", "--dagger", "1", "--no-progress",
                  "-o", str(out)]) == 0
     imitated = json.loads((out / "imitation.json").read_text())
     assert imitated["episodes"] == 2 and imitated["decisions"] == 80  # 2 x 200 s / 5 s
     assert imitated["loss"][-1] < 0.7 * imitated["loss"][0] and imitated["agreement"] > 0.7
+    teacher, dagger = imitated["rounds"]  # the DAgger round: the clone flew, was labelled
+    assert teacher["flown_by"] == "teacher" and dagger["flown_by"] == "clone"
+    assert dagger["decisions"] == 80 and 0.0 <= teacher["clone_agreement_flying"] <= 1.0
     meta = json.loads((out / "osa-model.json").read_text())
     assert meta["env_id"] == "osa/Search-v1" and meta["kind"] == "plan"
     assert meta["curriculum"] == [0.0, 1.0]
@@ -318,7 +321,8 @@ def test_osa_train_curriculum_and_imitate_errors(tmp_path, capsys):
     for argv, match in ((["--env", "osa/Search-v0", "--curriculum", "0:1"], "no curriculum"),
                         (["--env", "osa/Search-v1", "--curriculum", "0-1"], "FROM:TO"),
                         (["--env", "osa/Search-v1", "--curriculum", "0:2"], r"\[0, 1\]"),
-                        (["--env", "osa/Search-v0", "--imitate", "3"], "nothing to imitate")):
+                        (["--env", "osa/Search-v0", "--imitate", "3"], "nothing to imitate"),
+                        (["--env", "osa/Search-v1", "--dagger", "2"], "needs --imitate")):
         assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
