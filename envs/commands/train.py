@@ -12,6 +12,7 @@ log and TensorBoard logs when TensorBoard is installed. ``MODEL`` is a folder th
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from envs.commands._args import non_negative_int, positive_int
@@ -69,6 +70,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
                    help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
                    "policy labels its states, the clone is fitted again; default 0)")
+    p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
+                   help="PPO: the learning rate at the start, falling linearly to 0 "
+                   "(default 3e-4)")
+    p.add_argument("--ent-coef", type=float, default=None, metavar="X",
+                   help="PPO: the entropy bonus (default 0.01)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_force_option(p)
     p.set_defaults(func=run)
@@ -120,6 +126,16 @@ def run(args: argparse.Namespace) -> int:
                      "policy is osa/Search-v1's)")
     if args.dagger and not args.imitate:
         return _fail("--dagger: needs --imitate N (the episodes of each round)")
+    algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
+    for name, value, key in (("--learning-rate", args.learning_rate, "learning_rate"),
+                             ("--ent-coef", args.ent_coef, "ent_coef")):
+        if value is None:
+            continue
+        if args.algo.upper() != "PPO":
+            return _fail(f"{name}: PPO only")
+        if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+            return _fail(f"{name}: expected a number in [0, 1], got {value!r}")
+        algo_kwargs[key] = linear_schedule(value) if key == "learning_rate" else value
     env_kwargs = {}
     if args.scenario is not None:
         from sim.scenario import ScenarioError, search_scenario
@@ -142,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
                              checkpoint_every=args.checkpoint_every,
                              progress=not args.no_progress, curriculum=curriculum,
                              imitate_episodes=args.imitate, imitate_rounds=args.dagger,
-                             algo_kwargs=PPO_DEFAULTS if args.algo.upper() == "PPO" else {})
+                             algo_kwargs=algo_kwargs)
     summary = train(settings, out)
     print(summary.text())
     return 0

@@ -322,7 +322,9 @@ def test_osa_train_curriculum_and_imitate_errors(tmp_path, capsys):
                         (["--env", "osa/Search-v1", "--curriculum", "0-1"], "FROM:TO"),
                         (["--env", "osa/Search-v1", "--curriculum", "0:2"], r"\[0, 1\]"),
                         (["--env", "osa/Search-v0", "--imitate", "3"], "nothing to imitate"),
-                        (["--env", "osa/Search-v1", "--dagger", "2"], "needs --imitate")):
+                        (["--env", "osa/Search-v1", "--dagger", "2"], "needs --imitate"),
+                        (["--env", "osa/Search-v1", "--ent-coef", "nan"], "in \\[0, 1\\]"),
+                        (["--algo", "A2C", "--learning-rate", "1e-4"], "PPO only")):
         assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
