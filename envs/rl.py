@@ -46,6 +46,7 @@ class TrainSettings:
     imitate_episodes: int = 0  # osa/Search-v1: behaviour cloning of plan_heuristic first
     imitate_epochs: int = 30
     imitate_rounds: int = 0  # DAgger rounds after the first fit
+    imitate_learning_rate: float = 3e-4  # Adam's rate while imitating (whatever PPO's)
 
 
 def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
@@ -269,7 +270,8 @@ def imitate(model, venv, settings: TrainSettings) -> dict:
     ``imitate_episodes`` episodes in every training env (train worlds; the
     ``VecNormalize`` statistics learn from them as from any rollout); the network is
     fitted to its actions (maximum likelihood) and the value head to the discounted
-    normalised returns, ``imitate_epochs`` passes in minibatches of 256. Then, for
+    normalised returns, ``imitate_epochs`` passes in minibatches of 256 (Adam at
+    ``imitate_learning_rate``, whatever PPO's rate is). Then, for
     ``imitate_rounds`` rounds, the clone itself flies as many episodes (its
     deterministic action), the teacher labels every state it visited, and the network
     is fitted again on everything gathered: the clone learns what to do in the states
@@ -287,6 +289,8 @@ def imitate(model, venv, settings: TrainSettings) -> dict:
     gamma = float(getattr(model, "gamma", 0.99))
     policy = model.policy
     opt = policy.optimizer
+    for group in opt.param_groups:  # its own rate (PPO sets its own again when it trains)
+        group["lr"] = settings.imitate_learning_rate
     rng = np.random.default_rng(settings.seed)
     raw: list[dict] = []
     labels: list[int] = []
