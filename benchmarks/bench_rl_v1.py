@@ -133,6 +133,10 @@ def curve(model: str, path: str) -> None:
     ax2.set_ylabel("validation worlds all localised (%)")
     ax2.set_ylim(0, 100)
     ax[1].grid(alpha=0.3)
+    from matplotlib.ticker import MaxNLocator
+
+    for a in ax:
+        a.xaxis.set_major_locator(MaxNLocator(5))
     fig.suptitle(f"osa train osa/Search-v1: {d.name}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
