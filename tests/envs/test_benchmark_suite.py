@@ -197,3 +197,32 @@ def test_random_is_below_adaptive_on_a_tiny_suite_run(tiny):
     assert a.all_localised > r.all_localised
     _, err = compare_pairs(rows, pols, 600.0)
     assert err.losses > err.wins  # adaptive's error is the smaller in most worlds
+
+
+# ------------------------------------------------------------------ the CLI
+def test_osa_evaluate_prints_and_writes_the_challenge_and_the_pairs(tmp_path, capsys):
+    from envs.cli import main
+
+    toml = tmp_path / "s.toml"
+    toml.write_text('name = "s"\nextends = "suite/r1-c0-rtk-u1"\n[search]\nbudget_s = 60\n')
+    out, js = tmp_path / "rows.csv", tmp_path / "summary.json"
+    args = ["evaluate", str(toml), "--policies", "random,lawnmower", "--seeds", "2",
+            "--workers", "1", "--no-figures", "--no-progress", "-o", str(out)]
+    assert main([*args, "--summary-json", str(out)]) == 2  # one file for both: refused
+    assert "same file" in capsys.readouterr().err
+    assert main([*args, "--summary-json", str(js)]) == 0
+    text = capsys.readouterr().out
+    assert "Timed search challenge" in text and "random vs lawnmower" in text
+    summary = json.loads(js.read_text())
+    assert [p["policy"] for p in summary["policies"]] == ["random", "lawnmower"]
+    assert [(c["a"], c["b"], c["metric"], c["seeds"]) for c in summary["paired"]] == [
+        ("random", "lawnmower", "all_localised_at_s", 2), ("random", "lawnmower", "error_m", 2)]
+    out.unlink()  # only the summary exists now: the output rule refuses it
+    assert main([*args, "--summary-json", str(js)]) == 2
+    err = capsys.readouterr().err
+    assert "summary.json exists" in err and "--force" in err
+    assert not out.exists()
+    assert main(["evaluate", "suite/r2-c0-sa-u1", "--policies", "random", "--seeds", "1",
+                 "-o", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "suite/r{1,5,10}" in err
