@@ -548,6 +548,9 @@ class PolicySummary:
     (``localised_at_s`` set). Times are censored at the budget: a responder never
     localised counts as the budget, and a quantile that reaches a censored value is a
     lower bound (``*_censored``). Errors are over the rows that have an estimate.
+    The timed search challenge (added fields): the median error at 3 and 10 minutes
+    (no estimate counting as infinite), the final estimates within 2 m and 5 m, and per
+    episode the time until every responder was judged localised (censored).
     """
 
     policy: str

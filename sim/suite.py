@@ -22,8 +22,8 @@ responders; everything else is fixed by the name:
 The battery: every UAV flies at most :data:`BUDGET_S` (15 minutes, a small
 multirotor's endurance with a landing reserve) at :data:`SPEED_MPS` (8 m/s); the search
 ends when that is spent (``[search] budget_s``). Chosen so that the hand-written
-``adaptive`` localises most of five responders and uniform random actions do not
-(docs/rl.md, "The benchmark suite"); a 20-minute budget let random manoeuvres catch up.
+``adaptive`` localises most of five responders and uniform random actions fewer
+(docs/rl.md, "The benchmark suite"); given more time, random manoeuvres catch up.
 The area is an :data:`AREA_SIDE_M` square (500 m) on the
 presets' hills (``sim.terrain.HillsTerrain`` defaults), the take-off point 10 m inside
 its southern edge; the policies are told how many responders to expect

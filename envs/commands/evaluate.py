@@ -3,8 +3,9 @@ policies (docs/cli.md, docs/evaluate.md).
 
 Every policy flies the same seeds (the same worlds), serially, in local processes or on
 a Dask scheduler; one row per policy, seed and responder goes to ``-o FILE`` (``.csv``
-or ``.parquet``), a summary per policy to stdout (``--json``: the rows instead), and
-the figures (time to localise, error and sigma against flight time, example
+or ``.parquet``), a summary per policy, the timed search challenge and the paired
+comparisons to stdout (``--json``: the rows instead; ``--summary-json FILE``: those
+tables as JSON), and the figures (time to localise, error and sigma against flight time, example
 trajectories) into ``--figures DIR``.
 """
 
