@@ -169,6 +169,9 @@ def test_random_is_seeded_and_deterministic(tiny):
     assert a == flight(2_000_000)  # the same seed, the same search
     assert flight(2_000_000, 1) != flight(2_000_000, 2)  # its draws come from its Generator
     assert isinstance(load_policy("random"), RandomPolicy)
+    assert load_policy("random:waypoint").name == "random:waypoint"
+    with pytest.raises(ValueError, match="random:waypoint"):
+        load_policy("random:bogus")
 
 
 def test_random_flies_every_uav_of_a_team():
