@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 ENVS: dict[str, str] = {
     "osa/Search-v0": "envs.gym.search:SearchEnv",
     "osa/Waypoint-v0": "envs.gym.waypoint:WaypointEnv",
@@ -9,9 +11,13 @@ ENVS: dict[str, str] = {
 
 
 def register_envs() -> None:
-    """Register every id of :data:`ENVS` (again is harmless: nothing changes)."""
+    """Register every id of :data:`ENVS` (again is harmless: nothing changes), each with
+    the batched worlds of :mod:`envs.gym.batched` as its ``vector_entry_point``."""
     import gymnasium
+
+    from envs.gym.batched import make_batched
 
     for env_id, entry in ENVS.items():
         if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point=entry, disable_env_checker=False)
+            gymnasium.register(id=env_id, entry_point=entry, disable_env_checker=False,
+                               vector_entry_point=functools.partial(make_batched, entry))
