@@ -10,7 +10,8 @@ episodes flown (a decision costs more once responders are heard). Each figure is
 median of ``--repeats`` runs; the configurations take turns within each repeat and each
 ratio is the median of the per-repeat ratios (this machine's speed drifts over minutes).
 One BLAS thread; CPU time of this process (``time.process_time``). ``--profile N``
-instead prints where the time of the batched env at N worlds goes (cProfile).
+instead prints where the time of the batched env at N worlds goes (cProfile);
+``--no-gc`` measures with Python's garbage collector off.
 
     python benchmarks/bench_batch.py --steps 1280 --repeats 3
 """
@@ -18,6 +19,7 @@ instead prints where the time of the batched env at N worlds goes (cProfile).
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import statistics
 import time
@@ -121,10 +123,14 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--envs", default=",".join(IDS))
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    ap.add_argument("--no-gc", action="store_true",
+                    help="with Python's cyclic garbage collector off (what it costs)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="profile the batched env at N worlds instead")
     a = ap.parse_args()
     ids = a.envs.split(",")
+    if a.no_gc:
+        gc.disable()
     if a.profile:
         for env_id in ids:
             profile(env_id, a.profile, a.steps)

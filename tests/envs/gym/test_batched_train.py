@@ -83,7 +83,7 @@ def test_osa_train_with_batched_worlds_writes_a_ppo_policy(tmp_path):
     toml.write_text(SCENARIO)
     out = tmp_path / "model"
     status = main(["train", "--env", "osa/Search-v0", "--scenario", str(toml),
-                   "--steps", "256", "--envs", "4", "--vec", "batched", "--eval-every", "256",
+                   "--steps", "256", "--envs", "2", "--vec", "batched", "--eval-every", "256",
                    "--eval-worlds", "1", "--checkpoint-every", "0", "--no-progress",
                    "-o", str(out)])
     assert status == 0
@@ -91,7 +91,7 @@ def test_osa_train_with_batched_worlds_writes_a_ppo_policy(tmp_path):
     assert meta["steps"] >= 256 and meta["kind"] == "search"
     policy = load_policy(f"ppo:{out}")
     assert isinstance(policy, TrainedPolicy)
-    assert policy.model.num_timesteps >= 256 and policy.model.n_envs == 4
+    assert policy.model.num_timesteps >= 256 and policy.model.n_envs == 2
     assert policy.stats.obs_rms["agent"].count > 256  # VecNormalize saw the worlds' steps
     res = run_search(sim.load_scenario(toml), policy, 5)
     assert res.flight_time_s > 0 and res.ended in ("localised", "budget")
