@@ -15,9 +15,15 @@ def register_envs() -> None:
     the batched worlds of :mod:`envs.gym.batched` as its ``vector_entry_point``."""
     import gymnasium
 
-    from envs.gym.batched import make_batched
-
     for env_id, entry in ENVS.items():
         if env_id not in gymnasium.registry:
             gymnasium.register(id=env_id, entry_point=entry, disable_env_checker=False,
-                               vector_entry_point=functools.partial(make_batched, entry))
+                               vector_entry_point=functools.partial(_batched, entry))
+
+
+def _batched(entry_point: str, num_envs: int, **kwargs):
+    """``make_vec(..., vectorization_mode="vector_entry_point")`` of a registered id
+    (imported here, not at registration: ``import envs`` stays light)."""
+    from envs.gym.batched import make_batched
+
+    return make_batched(entry_point, num_envs, **kwargs)
