@@ -136,6 +136,15 @@ def test_partial_reset_and_time_limit_as_single_envs():
         assert_same(vec.step(act), ref.step(act), f"after reset {k}")
 
 
+def test_make_vec_prefers_the_batched_worlds():
+    """Gymnasium uses a registered ``vector_entry_point`` when no mode is given."""
+    vec = gymnasium.make_vec("osa/Waypoint-v0", num_envs=2, scenario=short(budget_s=60.0))
+    assert isinstance(vec, BatchedSearchEnv) and vec.num_envs == 2
+    assert vec.spec is not None and vec.spec.id == "osa/Waypoint-v0"
+    sync = gymnasium.make_vec("osa/Waypoint-v0", num_envs=2, vectorization_mode="sync")
+    assert isinstance(sync, SyncVectorEnv)
+
+
 def test_bad_arguments_are_one_line_errors():
     with pytest.raises(ValueError, match="num_envs"):
         gymnasium.make_vec("osa/Search-v0", num_envs=0, vectorization_mode="vector_entry_point")
