@@ -37,7 +37,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
-from gymnasium.vector.utils import batch_space
+from gymnasium.vector.utils import batch_space, iterate
 
 from envs.gym.base import SearchEnvBase
 
@@ -152,9 +152,9 @@ class BatchedSearchEnv(VectorEnv):
         autoreset."""
         if not self._ready:
             raise RuntimeError("call reset() before step()")
-        acts = np.asarray(actions)
-        if acts.shape[0] != self.num_envs:
-            raise ValueError(f"{acts.shape[0]} actions for {self.num_envs} worlds")
+        acts = list(iterate(self.action_space, actions))  # any action space, as SyncVectorEnv
+        if len(acts) != self.num_envs:
+            raise ValueError(f"{len(acts)} actions for {self.num_envs} worlds")
         obs, rew, term, trunc = self._buffers()
         infos: dict = {}
         same = self.autoreset_mode == AutoresetMode.SAME_STEP
