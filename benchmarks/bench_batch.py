@@ -11,7 +11,8 @@ median of ``--repeats`` runs; the configurations take turns within each repeat a
 ratio is the median of the per-repeat ratios (this machine's speed drifts over minutes).
 One BLAS thread; CPU time of this process (``time.process_time``). ``--profile N``
 instead prints where the time of the batched env at N worlds goes (cProfile);
-``--no-gc`` measures with Python's garbage collector off.
+``--no-gc`` measures with Python's garbage collector off; ``--train STEPS`` measures
+``osa train`` itself (PPO, in this process) with one env against ``--vec batched``.
 
     python benchmarks/bench_batch.py --steps 1280 --repeats 3
 """
@@ -117,6 +118,29 @@ def profile(env_id: str, n: int, steps: int) -> None:
         print(f"  {label:<38}{100 * ct / total:>6.1f} %")
 
 
+def train_cost(env_id: str, steps: int, vec: str, n: int, out: str
+               ) -> tuple[int, float, float]:
+    """(decisions flown, CPU seconds of this process, wall seconds) of ``osa train``'s
+    :func:`envs.rl.train` asked for ``steps`` decisions (PPO, no evaluation or
+    checkpoints; PPO completes its rollout of 256 decisions per env, so with many envs
+    it flies more than asked)."""
+    import resource
+
+    from envs.commands.train import PPO_DEFAULTS
+    from envs.rl import TrainSettings, train
+
+    def cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    settings = TrainSettings(env_id=env_id, steps=steps, seed=0, n_envs=n, vec=vec,
+                             eval_every=0, checkpoint_every=0, progress=False,
+                             algo_kwargs=PPO_DEFAULTS)
+    c0, w0 = cpu(), time.perf_counter()
+    summary = train(settings, __import__("pathlib").Path(out))
+    return summary.steps, cpu() - c0, time.perf_counter() - w0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=1280, help="decisions per measurement")
@@ -125,12 +149,29 @@ def main() -> None:
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
     ap.add_argument("--no-gc", action="store_true",
                     help="with Python's cyclic garbage collector off (what it costs)")
+    ap.add_argument("--train", type=int, default=0, metavar="STEPS",
+                    help="instead: CPU and wall seconds of osa train for STEPS decisions, "
+                    "one env (--envs 1) against --vec batched (each of --sizes)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="profile the batched env at N worlds instead")
     a = ap.parse_args()
     ids = a.envs.split(",")
     if a.no_gc:
         gc.disable()
+    if a.train:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            for env_id in ids:
+                # --envs 1 is a DummyVecEnv in this process: its CPU time is all here
+                # (subprocesses of the forkserver are not this process's children)
+                runs = [("subproc", 1)] + [("batched", int(n)) for n in a.sizes.split(",")]
+                for vec, n in runs:
+                    k, c, w = train_cost(env_id, a.train, vec, n, f"{tmp}/{vec}{n}")
+                    print(f"{env_id:<18}--vec {vec:<8} --envs {n:<3} {k:>6} steps: "
+                          f"{c:7.1f} CPU-s ({k / c:5.0f} steps per CPU-s), "
+                          f"{w:7.1f} wall-s", flush=True)
+        return
     if a.profile:
         for env_id in ids:
             profile(env_id, a.profile, a.steps)
