@@ -22,12 +22,20 @@ def load_policy(spec: str, scenario: Scenario | None = None) -> Policy:
         inner = spec[len("team:"):]
         if inner.startswith("team:"):
             raise ValueError(f"{spec}: a team of teams")
-        load_policy(inner, scenario)  # the error now, not in the first episode
-        return IndependentTeam(functools.partial(load_policy, inner, scenario), spec)
+        one = load_policy(inner)  # the error now, not in the first episode
+        if getattr(one, "team_size", 1) != 1:
+            raise ValueError(f"{spec}: {inner} is a team policy, not a one-UAV policy")
+        return IndependentTeam(functools.partial(load_policy, inner), spec)
     if spec.startswith("ppo:"):
         from envs.gym.trained import TrainedPolicy  # needs the optional 'rl' extra
 
-        return TrainedPolicy.load(spec[len("ppo:"):])
+        policy = TrainedPolicy.load(spec[len("ppo:"):])
+        size = getattr(policy, "team_size", 1)
+        if scenario is not None and len(scenario.agents) != size:
+            what = f"a team of {size}" if size > 1 else "one UAV (team:ppo:PATH: one each)"
+            raise ValueError(f"{spec} flies {what}; scenario {scenario.name} has "
+                             f"{len(scenario.agents)} agents")
+        return policy
     if spec in POLICIES:
         return make_policy(spec)
     raise ValueError(f"unknown policy {spec!r}; choose from {', '.join(POLICIES)}, ppo:PATH "

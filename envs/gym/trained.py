@@ -130,6 +130,10 @@ class TrainedTeamPolicy(TrainedPolicy):
     observation, ends the search when the shared estimate is localised, else gives
     each agent its own waypoint. The mission must have the team's number of agents."""
 
+    @property
+    def team_size(self) -> int:
+        return len(self.meta["agents"])
+
     def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
         from envs.gym.multi import team_pilots
 

@@ -70,6 +70,8 @@ def test_a_trained_team_beats_a_random_team_on_held_out_worlds(team):
     diff = np.array([a.ret - b.ret for a, b in zip(ours, rand, strict=True)])
     wins = int(np.sum(diff > 0))
     p = sign_test_p(wins, len(diff))
+    print(f"trained team wins {wins} of {len(diff)}, p = {p:.2g}, median paired difference "
+          f"{np.median(diff):+.2f}")  # the figure in docs/rl.md (pytest -rP)
     assert p < 0.01 and np.median(diff) > 0, (wins, p, diff.round(2).tolist())
 
 
@@ -93,6 +95,10 @@ def test_the_trained_team_flies_the_loop_as_its_env_episode(team):
     assert (res.ended == "localised") == ep.localised
     moved = [np.ptp(np.asarray(t)[:, 1:3], axis=0).max() for t in res.nav_track]
     assert len(moved) == 2 and min(moved) > 20.0, moved
+    with pytest.raises(ValueError, match="flies a team of 2; scenario rtk-5min has 1 agents"):
+        load_policy(f"ppo:{model}", sim.load_scenario(kwargs["scenario"]))
+    with pytest.raises(ValueError, match="is a team policy, not a one-UAV policy"):
+        load_policy(f"team:ppo:{model}")
     with pytest.raises(ValueError, match="team of 2"):
         policy.reset(dataclasses.replace(ep_mission(scenario), n_agents=3),
                      np.random.default_rng(0))
