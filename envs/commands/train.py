@@ -188,7 +188,8 @@ def run_sweep(args: argparse.Namespace, defaults: dict) -> int:
         except ValueError as exc:
             return _fail(exc)
     where = f"on {args.scheduler}" if client is not None else "here, one after another"
-    print(f"osa train: {len(tasks)} tasks {where} -> {out}", file=sys.stderr)
+    print(f"osa train: {len(tasks)} task{'s' * (len(tasks) != 1)} {where} -> {out}",
+          file=sys.stderr)
 
     def done(r) -> None:
         print(f"  {r.name}: {r.row['steps']} steps in {r.wall_s / 60:.1f} min", file=sys.stderr)
