@@ -179,7 +179,9 @@ def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
 
     f = tmp_path / "sweep.toml"
     f.write_text(SWEEP)
-    tasks = read_sweep(f, {"scenario": "search-random-los", "uavs": 2})
+    short = tmp_path / "rtk-5min.toml"  # validation: 60 decisions a world
+    short.write_text(SCENARIO)
+    tasks = read_sweep(f, {"scenario": str(short), "uavs": 2})
     assert [t["name"] for t in tasks] == ["a", "b"]
     assert tasks[1]["ppo"] == {"n_steps": 64, "batch_size": 64, "n_epochs": 2,
                                "learning_rate": 1e-3}
@@ -194,7 +196,7 @@ def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
         run_sweep(tasks, there, client)
     assert (here / "sweep.csv").read_text() == (there / "sweep.csv").read_text()
     rows = (here / "sweep.csv").read_text().splitlines()
-    assert len(rows) == 3 and rows[1].startswith("a,osa/Team-v0,search-random-los,2,0,256")
+    assert len(rows) == 3 and rows[1].startswith(f"a,osa/Team-v0,{short},2,0,256")
     for name in ("a", "b"):
         a, b = _parameters(here / name), _parameters(there / name)
         assert a.keys() == b.keys()
