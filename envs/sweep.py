@@ -12,7 +12,8 @@ defaults (over the command line's options), each ``[[task]]`` overrides them::
     learning_rate = 3e-4
 
 Keys (:data:`TASK_KEYS`): ``name`` (the task's folder, unique), ``env``, ``scenario``,
-``uavs``, ``steps``, ``seed``, ``algo``, ``envs``, ``eval_every``, ``eval_worlds``, and
+``uavs``, ``steps``, ``seed``, ``algo``, ``envs``, ``vec``, ``eval_every``,
+``eval_worlds``, and
 ``ppo`` (a table of PPO settings over the defaults of ``envs.commands.train``; a
 ``learning_rate`` is the start of the linear schedule).
 
@@ -39,8 +40,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-TASK_KEYS = ("name", "env", "scenario", "uavs", "steps", "seed", "algo", "envs", "eval_every",
-             "eval_worlds", "ppo")
+TASK_KEYS = ("name", "env", "scenario", "uavs", "steps", "seed", "algo", "envs", "vec",
+             "eval_every", "eval_worlds", "ppo")
 PPO_KEYS = ("n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "ent_coef",
             "learning_rate", "clip_range", "vf_coef", "max_grad_norm")
 SUMMARY_COLUMNS = ("name", "env", "scenario", "uavs", "seed", "steps", "algo", "ppo",
@@ -66,6 +67,8 @@ def _check_value(key: str, v, where: str) -> None:
                                  f"{', '.join(PPO_KEYS)}")
             if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
                 raise SweepError(f"{where}: ppo.{k} must be a number, not {x!r}")
+    elif key == "vec" and v not in ("subproc", "batched"):
+        raise SweepError(f"{where}: vec must be 'subproc' or 'batched', not {v!r}")
     elif not isinstance(v, str) or not v:
         raise SweepError(f"{where}: {key} must be a non-empty string, not {v!r}")
 
@@ -129,6 +132,7 @@ def settings_of(task: dict):
             algo_kwargs[k] = linear_schedule(float(v)) if k == "learning_rate" else v
     return TrainSettings(env_id=task["env"], env_kwargs=env_kwargs, steps=task["steps"],
                          seed=task["seed"], algo=algo, n_envs=task.get("envs", 1),
+                         vec=task.get("vec", "subproc"),
                          eval_every=task.get("eval_every", 0),
                          eval_worlds=task.get("eval_worlds", 20), checkpoint_every=0,
                          progress=False, algo_kwargs=algo_kwargs)

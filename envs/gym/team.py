@@ -9,7 +9,9 @@ of a Gymnasium vector env, ``concat_vec_envs_v1`` joins ``copies`` teams. SuperS
 own Stable-Baselines3 adapter (``base_class="stable_baselines3"``) is not used: it has
 no ``seed`` (SB3 >= 2 seeds every vector env before training: AttributeError), and it
 reports a time limit as a termination (PPO would not bootstrap the value at the
-budget). :class:`TeamVecEnv` is that adapter, seeded, with ``TimeLimit.truncated``.
+budget). :class:`TeamVecEnv` is that adapter, seeded, with ``TimeLimit.truncated``
+(not :class:`envs.gym.sb3.SB3VecEnv`: SuperSuit's vector envs give a list of infos,
+one per entry, the last observation already in them, not Gymnasium's batched infos).
 The copies step in this process (SuperSuit's subprocess pool forks, which the
 simulator's compiled loops and CasADi do not survive).
 
@@ -81,7 +83,7 @@ class TeamVecEnv(_vec_base()):
         self.venv.close()
 
     def get_attr(self, attr_name: str, indices=None) -> list:
-        return [getattr(self, attr_name, None)] * len(self._indices(indices))
+        return [getattr(self, attr_name, None)] * len(list(self._get_indices(indices)))
 
     def set_attr(self, attr_name: str, value, indices=None) -> None:
         raise AttributeError(f"TeamVecEnv: cannot set {attr_name}")
@@ -90,12 +92,7 @@ class TeamVecEnv(_vec_base()):
         raise AttributeError(f"TeamVecEnv: no per-entry method {method_name}")
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
-        return [False] * len(self._indices(indices))
-
-    def _indices(self, indices) -> list[int]:
-        if indices is None:
-            return list(range(self.num_envs))
-        return [indices] if isinstance(indices, int) else list(indices)
+        return [False] * len(list(self._get_indices(indices)))
 
 
 def team_rollout(env: SearchParallelEnv, act: Callable[[dict], object], world_seed: int):

@@ -219,6 +219,8 @@ def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
         ("[[task]\n", "not valid TOML"),
         ("[[task]]\nenv = 'osa/Nope-v0'\n", "task task-1: env: unknown env"),
         ("[[task]]\nenv = 'osa/Waypoint-v0'\nuavs = 2\n", "uavs: only for osa/Team-v0"),
+        ("[[task]]\nenv = 'osa/Team-v0'\nvec = 'batched'\n", "vec batched: not for osa/Team"),
+        ("[[task]]\nvec = 'gpu'\n", "vec must be 'subproc' or 'batched'"),
     ],
 )
 def test_osa_train_sweep_refuses_bad_files_in_one_line(tmp_path, capsys, text, match):
