@@ -242,3 +242,18 @@ def test_osa_train_scheduler_needs_a_sweep(tmp_path, capsys):
 
     assert main(["train", "--scheduler", "tcp://127.0.0.1:1", "-o", str(tmp_path / "o")]) == 2
     assert "--scheduler runs the tasks of a --sweep FILE" in capsys.readouterr().err
+
+
+def test_a_team_of_one_flies_as_the_policy_itself():
+    """``team:adaptive`` on a one-UAV scenario: the same rows as ``adaptive`` (the
+    member's view of a one-agent observation is the observation)."""
+    from envs.evaluate import run_episode
+
+    base = sim.load_scenario("search-three-mixed")
+    scenario = dataclasses.replace(base, search=dataclasses.replace(base.search,
+                                                                    budget_s=400.0))
+    plain = run_episode(scenario, "adaptive", 2_000_000).rows
+    team = run_episode(scenario, "team:adaptive", 2_000_000).rows
+    assert [r["policy"] for r in team] == ["team:adaptive"] * 3
+    assert [{**r, "policy": ""} for r in plain] == [{**r, "policy": ""} for r in team]
+    assert any(r["localised_at_s"] is not None for r in team)
