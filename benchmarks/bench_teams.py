@@ -11,7 +11,8 @@ Runs, in this process (one core; CPU time is measured):
     osa evaluate benchmarks/team-r5.toml --policies ppo:OUT/team-ppo,team:adaptive \\
         --split test --seeds K --workers 1 -o OUT/rows.csv
 
-then pairs the policies per world on the time until every responder is localised
+(``--scenario`` another 2-UAV scenario, e.g. ``suite/r5-c30-sa-u2``; ``--model`` an
+existing team model instead of training), then pairs the policies per world on the time until every responder is localised
 (a responder never localised: the budget, censored), and prints a Markdown table:
 responders localised, median and 90th percentile of that time, median final error,
 and the paired sign test (two-sided, exact; ties dropped).
@@ -55,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--out", default="bench-teams")
     ap.add_argument("--model", default=None, help="a trained team model (skip training)")
+    ap.add_argument("--scenario", default=str(SCENARIO),
+                    help="the 2-UAV scenario to train and evaluate on (default team-r5.toml)")
     a = ap.parse_args(argv)
     from envs.cli import main as osa
     from envs.evaluate import read_rows
@@ -64,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     model = Path(a.model) if a.model else out / "team-ppo"
     cpu0 = time.process_time()
     if a.model is None:
-        status = osa(["train", "--env", "osa/Team-v0", "--scenario", str(SCENARIO),
+        status = osa(["train", "--env", "osa/Team-v0", "--scenario", a.scenario,
                       "--steps", str(a.steps), "--seed", "0", "--envs", "1",
                       "--eval-every", str(max(a.steps // 3, 1)), "--eval-worlds", "5",
                       "--no-progress", "--force", "-o", str(model)])
@@ -73,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     cpu_train = time.process_time() - cpu0
     policies = [f"ppo:{model}", "team:adaptive"]
     rows_path = out / "rows.csv"
-    status = osa(["evaluate", str(SCENARIO), "--policies", ",".join(policies), "--split", "test",
+    status = osa(["evaluate", a.scenario, "--policies", ",".join(policies), "--split", "test",
                   "--seeds", str(a.seeds), "--workers", "1", "--no-progress", "--no-figures",
                   "--force", "-o", str(rows_path)])
     if status:
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = read_rows(rows_path)
     budget = float(rows[0]["budget_s"])
     times = {p: all_localised_s([r for r in rows if r["policy"] == p], budget) for p in policies}
-    print(f"\n{a.seeds} test worlds of team-r5 (5 responders each), budget {budget:.0f} s; "
+    print(f"\n{a.seeds} test worlds of {rows[0]['scenario']}, budget {budget:.0f} s; "
           f"CPU: training {cpu_train / 60:.1f} min, evaluation {cpu_eval / 60:.1f} min\n")
     print("| policy | responders localised | all localised (median) | 90th pct | "
           "median error |")
