@@ -17,6 +17,7 @@ the search height above take-off: knife-edge nu > 0) and those in view.
 
     python benchmarks/bench_site.py --seeds 30 --plot docs/figures/site-bench.png
     python benchmarks/bench_site.py --seeds 3 --policies adaptive       # a quick look
+    python benchmarks/bench_site.py --load runs.json --plot fig.png      # re-print, re-plot
 
 CPU time (``time.process_time``) is printed per run group; 30 seeds take about 10-15
 CPU minutes on the 2-core development machine.
@@ -134,15 +135,14 @@ def print_table(results: dict, budget_s: float, hidden_map: dict) -> None:
         print(f"{site:<7}{gnss:<12}{policy:<18}{s['n']:>5}{s['heard']:>7.0%}{s['success']:>7.0%}"
               f"{s['within1']:>7.0%}{_fmt_t(s['t5_s'], budget_s):>10}"
               f"{_fmt_t(s['t1_s'], budget_s):>10}{_fmt_t(s['heard_s'], budget_s):>10}")
-    print("\nthe hilly site split by the responder's view from take-off (hidden: nu > 0)")
+    print("\nsplit by the responder's view from take-off on the hilly site (hidden: nu > 0;"
+          " on the open twin the same responders)")
     for (site, gnss, policy), rows in results.items():
-        if site != "hilly":
-            continue
         for flag, name in ((True, "hidden"), (False, "in view")):
             s = summarise(rows, budget_s, (hidden_map, flag))
             if not s["n"]:
                 continue
-            print(f"{name:<8}{gnss:<11}{policy:<18}{s['n']:>5}{s['heard']:>7.0%}"
+            print(f"{site:<7}{name[:7]:<8}{gnss[:4]:<5}{policy:<17}{s['n']:>5}{s['heard']:>7.0%}"
                   f"{s['success']:>7.0%}{s['within1']:>7.0%}"
                   f"{_fmt_t(s['t5_s'], budget_s):>10}{_fmt_t(s['t1_s'], budget_s):>10}"
                   f"{_fmt_t(s['heard_s'], budget_s):>10}")
@@ -187,6 +187,25 @@ def plot(results: dict, budget_s: float, path: Path, n_seeds: int) -> None:
     plt.close(fig)
 
 
+def _replay(a) -> int:
+    """``--load``: the table and the figure of an earlier run's JSON."""
+    try:
+        d = json.loads(Path(a.load).read_text())
+        results = {tuple(k.split(" ")): v for k, v in d["runs"].items()}
+        hidden_map = {(int(k.split(" ")[0]), k.split(" ")[1]): h for k, h in d["hidden"].items()}
+        budget, seeds = float(d["budget_s"]), d["seeds"]
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        print(f"bench_site: cannot use {a.load}: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    print(f"{SITE}: {d.get('hidden_share', 0):.0%} of the {len(hidden_map)} responders of "
+          f"seeds {seeds[0]}-{seeds[-1]} are hidden from the take-off point (from {a.load})")
+    print_table(results, budget, hidden_map)
+    if a.plot:
+        plot(results, budget, Path(a.plot), len(seeds))
+        print(f"\nwrote {a.plot}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
@@ -204,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plot", default=None, help="write the CDF figure here (PNG)")
     ap.add_argument("--json", default=None, help="write every run's figures here")
     ap.add_argument("--force", action="store_true", help="replace existing outputs")
+    ap.add_argument("--load", default=None, metavar="JSON",
+                    help="print and plot the runs of an earlier --json instead of flying")
     a = ap.parse_args(argv)
     policies = [p for p in a.policies.split(",") if p]
     gnss_list = [g for g in a.gnss.split(",") if g]
@@ -214,11 +235,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_site: unknown {bad[0] if bad else 'seed count'}", file=sys.stderr)
         return 2
     try:
-        outs = [claim_output_file(p, force=a.force) for p in (a.plot, a.json) if p]
+        for p in (a.plot, a.json):
+            if p:
+                claim_output_file(p, force=a.force, inputs=[a.load] if a.load else [])
     except OutputRefusedError as exc:
         print(f"bench_site: {exc}", file=sys.stderr)
         return 2
-    del outs
+    if a.load:
+        return _replay(a)
     seeds = list(range(a.first_seed, a.first_seed + a.seeds))
     scenarios = {}
     for g in gnss_list:
