@@ -1,7 +1,8 @@
 """Training and evaluating policies in the search envs with Stable-Baselines3 (docs/rl.md).
 
-:func:`train` is ``osa train``: vectorised envs in subprocesses (world seeds of the
-train split, each env seeded from ``--seed``), ``VecNormalize``, checkpoints, a
+:func:`train` is ``osa train``: vectorised envs in subprocesses or batched worlds in
+this process (``--vec batched``, :mod:`envs.gym.batched`; world seeds of the train
+split, each env seeded from ``--seed``), ``VecNormalize``, checkpoints, a
 progress bar, evaluation on fixed validation worlds (:class:`ValidationCallback`, the
 best model kept), a CSV log and TensorBoard logs when TensorBoard is installed.
 :func:`rollout` runs one episode of any action function on a given world, the common
@@ -36,6 +37,7 @@ class TrainSettings:
     seed: int = 0
     algo: str = "PPO"
     n_envs: int = 2
+    vec: str = "subproc"  # "subproc": env copies in subprocesses; "batched": envs.gym.batched
     eval_every: int = 20_000
     eval_worlds: int = 20
     checkpoint_every: int = 50_000
@@ -59,6 +61,21 @@ class Episode:
 def make_env(env_id: str, kwargs: dict) -> gymnasium.Env:
     """A registered env (module level: picklable for subprocess vector envs)."""
     return gymnasium.make(env_id, **kwargs)
+
+
+def batched_vec_env(env_id: str, kwargs: dict, n_envs: int, seed: int):
+    """The batched worlds of ``env_id`` (:mod:`envs.gym.batched`) as an SB3 ``VecEnv`` with
+    episode statistics (``VecMonitor``), world i seeded ``seed + i`` as ``make_vec_env``
+    seeds its copies."""
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from envs.gym.sb3 import SB3VecEnv
+
+    vec = gymnasium.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",
+                             autoreset_mode="same_step", **kwargs)
+    venv = VecMonitor(SB3VecEnv(vec))
+    venv.seed(seed)
+    return venv
 
 
 def rollout(env: gymnasium.Env, act: Callable[[dict], object], world_seed: int) -> Episode:
@@ -216,9 +233,14 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     torch.set_num_threads(1)  # small networks: the envs' subprocesses want the cores
     set_random_seed(settings.seed)
     kwargs = {**settings.env_kwargs, "seed_split": "train"}
-    fn = functools.partial(make_env, settings.env_id, kwargs)
-    vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
-    venv = make_vec_env(fn, n_envs=settings.n_envs, seed=settings.seed, vec_env_cls=vec_cls)
+    if settings.vec == "batched":
+        venv = batched_vec_env(settings.env_id, kwargs, settings.n_envs, settings.seed)
+    elif settings.vec == "subproc":
+        fn = functools.partial(make_env, settings.env_id, kwargs)
+        vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
+        venv = make_vec_env(fn, n_envs=settings.n_envs, seed=settings.seed, vec_env_cls=vec_cls)
+    else:
+        raise ValueError(f"unknown vec {settings.vec!r} (subproc, batched)")
     algo_kw = dict(settings.algo_kwargs)
     gamma = algo_kw.get("gamma", 0.99)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, clip_obs=10.0, gamma=gamma)

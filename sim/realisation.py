@@ -29,6 +29,7 @@ from estimator.records import TruthRecord
 from sim._random import Seed, as_seed_sequence, child_rng, child_seed
 from sim.ftm import draw_offsets, draw_shadowing
 from sim.scenario import Scenario
+from sim.suite import concealed_count
 from sim.world import Responder, World
 
 AGENT_GNSS, AGENT_CLOCK, AGENT_WANDER, AGENT_RADIO, AGENT_WRITER = range(5)
@@ -60,7 +61,10 @@ class Realisation:
 
 def random_responders(scenario: Scenario, rng: np.random.Generator) -> tuple[Responder, ...]:
     """The ``[search] random_responders`` responders: uniform in the area polygon,
-    concealment uniform over ``random_concealment``, locally administered BSSIDs."""
+    concealment uniform over ``random_concealment`` (or, with ``concealed_share``, that
+    share concealed: :func:`sim.suite.concealed_count` of them, chosen at random, each
+    of a kind uniform over ``random_concealment``, the others open), locally
+    administered BSSIDs."""
     search = scenario.search
     assert search is not None
     poly = np.asarray(search.area_enu_m, dtype=float)
@@ -78,6 +82,13 @@ def random_responders(scenario: Scenario, rng: np.random.Generator) -> tuple[Res
         used.add(bssid)
         out.append(Responder(name=f"R{len(out) + 1}", bssid=bssid, e_m=round(float(p[0]), 3),
                              n_m=round(float(p[1]), 3), concealment=conc))
+    if search.concealed_share is not None:  # after the places: their draws stay the same
+        k = concealed_count(search.concealed_share, len(out), float(rng.random()))
+        hidden = set(rng.permutation(len(out))[:k].tolist())
+        kinds = search.random_concealment
+        out = [dataclasses.replace(
+            r, concealment=kinds[int(rng.integers(len(kinds)))] if i in hidden else "open")
+            for i, r in enumerate(out)]
     return tuple(out)
 
 

@@ -57,6 +57,7 @@ from sim.flights import FLIGHT_KINDS, Flight, TrajectoryFlight
 from sim.ftm import FtmConfig
 from sim.gnss import GNSS_PRESETS, GnssConfig
 from sim.sitefiles import GeoShape, SiteFileError, read_area, read_keepouts
+from sim.suite import is_suite_name, suite_table
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
 from sim.vehicle import WALKER, VehicleConfig
 from sim.world import MAX_EXTENT_M, Origin, Responder, World
@@ -157,6 +158,9 @@ class SearchSpec:
     random_responders: int = 0
     random_concealment: tuple[str, ...] = ("open",)
     expected_responders: int | None = None  # how many people are sought (None: unknown)
+    # the share of random responders concealed (their kinds: random_concealment, the
+    # others open); None: each responder's concealment uniform over random_concealment
+    concealed_share: float | None = None
     keepouts: tuple[KeepOutZone, ...] = ()  # [[search.keepout]], in ENU
 
     def __post_init__(self) -> None:
@@ -199,6 +203,13 @@ class SearchSpec:
             if c not in CONCEALMENTS:
                 known = ", ".join(CONCEALMENTS)
                 raise ValueError(f"random_concealment: {c!r} is not one of {known}")
+        if self.concealed_share is not None:
+            check_finite("concealed_share", self.concealed_share)
+            if not 0.0 <= self.concealed_share <= 1.0:
+                raise ValueError(f"concealed_share {self.concealed_share:g} is not in [0, 1]")
+            if "open" in self.random_concealment:
+                raise ValueError("with concealed_share, random_concealment lists the concealed "
+                                 "kinds only (the others are open)")
 
     def contains(self, e_m: float, n_m: float, margin_m: float = 0.0) -> bool:
         """Is (e, n) inside the area (and at least ``margin_m`` from its edges)?"""
@@ -321,6 +332,11 @@ def list_scenarios() -> list[str]:
 def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[dict, str, Path]:
     """Read a scenario table (following ``extends``); return (table, source, directory)."""
     text: str
+    if isinstance(name_or_path, str) and is_suite_name(name_or_path):
+        try:
+            return suite_table(name_or_path), f"preset {name_or_path}", Path(str(_scenario_dir()))
+        except ValueError as exc:
+            raise ScenarioError(str(exc)) from None
     p = Path(name_or_path)
     as_path = isinstance(name_or_path, Path) or p.suffix == ".toml" or "/" in str(name_or_path)
     if as_path or p.is_file():

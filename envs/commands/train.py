@@ -1,8 +1,9 @@
 """``osa train [--env ID] [--steps N] [--seed N] -o MODEL``: train a search policy with
 Stable-Baselines3 (docs/cli.md, docs/rl.md).
 
-PPO unless ``--algo`` says otherwise, on ``--envs`` copies of the env in subprocesses
-(world seeds from the train split), observations and rewards normalised by
+PPO unless ``--algo`` says otherwise, on ``--envs`` copies of the env in subprocesses,
+or as many worlds batched in this process with ``--vec batched`` (world seeds from the
+train split), observations and rewards normalised by
 ``VecNormalize`` (saved with the model), checkpoints, a progress bar, evaluation on
 fixed validation worlds during training (the best model kept in ``MODEL/best``), a CSV
 log and TensorBoard logs when TensorBoard is installed. ``MODEL`` is a folder that
@@ -51,7 +52,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="Stable-Baselines3 algorithm: PPO (default), A2C, DQN (Search-v0), "
                    "SAC or TD3 (Waypoint-v0)")
     p.add_argument("--envs", type=positive_int, default=2, metavar="K",
-                   help="env copies in subprocesses (default 2, one per core here)")
+                   help="env copies (default 2, one per core here), or worlds batched in "
+                   "one process with --vec batched")
+    p.add_argument("--vec", choices=("subproc", "batched"), default="subproc",
+                   help="subproc: each copy in its own process (default); batched: K "
+                   "worlds stepped in lockstep in this process (envs.gym.batched)")
     p.add_argument("--eval-every", type=non_negative_int, default=20_000, metavar="N",
                    help="evaluate on validation worlds every N steps (0: never; default 20000)")
     p.add_argument("--eval-worlds", type=positive_int, default=20, metavar="K",
@@ -111,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(exc)
     settings = TrainSettings(env_id=args.env, env_kwargs=env_kwargs, steps=args.steps,
                              seed=args.seed, algo=args.algo.upper(), n_envs=args.envs,
+                             vec=args.vec,
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,
                              checkpoint_every=args.checkpoint_every,
                              progress=not args.no_progress,
