@@ -122,7 +122,9 @@ def _hide_by_terrain(scenario: Scenario, out: list[Responder], rng: np.random.Ge
     k = concealed_count(search.hidden_share, len(out), float(rng.random()))
     want = np.zeros(len(out), dtype=bool)
     want[rng.permutation(len(out))[:k]] = True
-    ant = out[0].antenna_height_m if out else 0.5  # the drawn responders share it
+    if not out:
+        return out, TerrainHiding(0, (), 0, 0)
+    ant = out[0].antenna_height_m  # the drawn responders share it
     place = np.array([(r.e_m, r.n_m) for r in out], dtype=float).reshape(-1, 2)
     nu = takeoff_nu(scenario, place[:, 0], place[:, 1], ant)
     ok = np.where(want, nu >= HIDDEN_NU, nu <= 0.0)
