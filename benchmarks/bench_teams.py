@@ -12,8 +12,9 @@ Runs, in this process (one core; CPU time is measured):
         --split test --seeds K --workers 1 -o OUT/rows.csv
 
 (``--scenario`` another 2-UAV scenario, e.g. ``suite/r5-c30-sa-u2``; ``--model`` an
-existing team model instead of training), then pairs the policies per world on the time until every responder is localised
-(a responder never localised: the budget, censored), and prints a Markdown table:
+existing team model instead of training), then pairs the policies per world on the
+time until every responder is localised (a responder never localised: the budget,
+censored), and prints a Markdown table:
 responders localised, median and 90th percentile of that time, median final error,
 and the paired sign test (two-sided, exact; ties dropped).
 """
