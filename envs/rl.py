@@ -25,6 +25,7 @@ import gymnasium
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
+from envs.gym.team import TEAM_ENV_ID, TeamVecEnv, make_team_env, team_rollout
 from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
 from envs.seeds import split_seeds
 
@@ -114,8 +115,11 @@ def model_actor(model, stats) -> Callable[[dict], object]:
 
 def evaluate(model, stats, env_id: str, env_kwargs: dict, world_seeds: list[int]
              ) -> list[Episode]:
-    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
     act = model_actor(model, stats)
+    if env_id == TEAM_ENV_ID:
+        team = make_team_env({**env_kwargs, "seed_split": "validation"})
+        return [team_rollout(team, act, s) for s in world_seeds]
+    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
     try:
         return [rollout(env, act, s) for s in world_seeds]
     finally:
@@ -175,7 +179,7 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
 
     cbs = [Progress()]
     if settings.checkpoint_every:
-        cbs.append(CheckpointCallback(max(settings.checkpoint_every // settings.n_envs, 1),
+        cbs.append(CheckpointCallback(max(settings.checkpoint_every // venv.num_envs, 1),
                                       str(out / "checkpoints"), name_prefix="model",
                                       save_vecnormalize=True))
     val = ValidationCallback()
@@ -188,12 +192,15 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
     folder.mkdir(parents=True, exist_ok=True)
     model.save(str(folder / MODEL_FILE))
     venv.save(str(folder / STATS_FILE))
-    env = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    team = settings.env_id == TEAM_ENV_ID
+    env = (make_team_env(settings.env_kwargs) if team
+           else make_env(settings.env_id, settings.env_kwargs).unwrapped)
     meta = {
         "format": 1,
         "algo": settings.algo,
         "env_id": settings.env_id,
-        "kind": env.kind,
+        "kind": "team" if team else env.kind,
+        **({"agents": env.roles} if team else {}),
         "env_kwargs": {k: getattr(v, "name", v) if k == "scenario" else v
                        for k, v in settings.env_kwargs.items()},
         "config": env.config.to_json(),
@@ -233,7 +240,12 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     torch.set_num_threads(1)  # small networks: the envs' subprocesses want the cores
     set_random_seed(settings.seed)
     kwargs = {**settings.env_kwargs, "seed_split": "train"}
-    if settings.vec == "batched":
+    if settings.env_id == TEAM_ENV_ID:  # parameter sharing: every UAV an entry
+        from stable_baselines3.common.vec_env import VecMonitor
+
+        venv = VecMonitor(TeamVecEnv(kwargs, copies=settings.n_envs))
+        venv.seed(settings.seed)
+    elif settings.vec == "batched":
         venv = batched_vec_env(settings.env_id, kwargs, settings.n_envs, settings.seed)
     elif settings.vec == "subproc":
         fn = functools.partial(make_env, settings.env_id, kwargs)

@@ -14,6 +14,7 @@ A scenario file has these tables (all but ``world.responders`` and ``flight`` op
     [search]   a search instead of a fixed flight (then [flight] may be absent):
                area_enu_m | area_geo | area_file, start_e_m, start_n_m, budget_s,
                height_m, speed_mps, random_responders, random_concealment,
+               concealed_share, hidden_share, expected_responders,
                [[search.keepout]] (polygon_geo | polygon_enu_m | circle_geo |
                circle_enu_m | file, top_m, name) (docs/scenarios.md)
     [[agents]] optional: several agents in one world: name, kind = "uav" | "ground",
@@ -161,6 +162,9 @@ class SearchSpec:
     # the share of random responders concealed (their kinds: random_concealment, the
     # others open); None: each responder's concealment uniform over random_concealment
     concealed_share: float | None = None
+    # the share of random responders hidden by terrain from the take-off point (the
+    # others in its line of sight): sim.realisation.random_responders; None: no rule
+    hidden_share: float | None = None
     keepouts: tuple[KeepOutZone, ...] = ()  # [[search.keepout]], in ENU
 
     def __post_init__(self) -> None:
@@ -210,6 +214,10 @@ class SearchSpec:
             if "open" in self.random_concealment:
                 raise ValueError("with concealed_share, random_concealment lists the concealed "
                                  "kinds only (the others are open)")
+        if self.hidden_share is not None:
+            check_finite("hidden_share", self.hidden_share)
+            if not 0.0 <= self.hidden_share <= 1.0:
+                raise ValueError(f"hidden_share {self.hidden_share:g} is not in [0, 1]")
 
     def contains(self, e_m: float, n_m: float, margin_m: float = 0.0) -> bool:
         """Is (e, n) inside the area (and at least ``margin_m`` from its edges)?"""
@@ -745,6 +753,9 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
             log=from_table(LogSettings, table.get("log", {}), "log"),
             source=source,
         )
+        if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
+            raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "
+                              "true): with it off the terrain hides nothing")
         if dem is not None:
             dem_terrain = _dem_terrain(*dem, origin, scenario)
             scenario = dataclasses.replace(scenario, world=dataclasses.replace(
