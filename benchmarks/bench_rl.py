@@ -5,8 +5,9 @@
    trained one.
 2. Flies ``osa search`` (``envs.loop.run_search``) on the first ``--seeds`` worlds of
    the test split with the trained policy (``ppo:MODEL``), ``lawnmower``,
-   ``expanding-square``, ``adaptive`` and a uniformly random choice of manoeuvre
-   (the env's actions, seeded): the same worlds for every policy.
+   ``expanding-square``, ``adaptive`` and ``random`` (a uniformly random choice of
+   manoeuvre, the env's actions, seeded: ``envs.policies.RandomPolicy``): the same
+   worlds for every policy.
 3. Prints per policy the share localised within the budget, the median and 90th
    percentile of the time to localise (``localised_at_s``; a world never localised
    counts as the budget: censored), the median horizontal error; and draws the
@@ -27,34 +28,13 @@ from pathlib import Path
 import numpy as np
 
 import sim
-from envs.gym.interface import Pilot
 from envs.loop import run_search
 from envs.policies import load_policy
 from envs.seeds import split_seeds
 
 
-class RandomManoeuvres:
-    """The baseline "random policy": a uniformly random ``osa/Search-v0`` action."""
-
-    name = "random"
-
-    def reset(self, mission, rng):
-        self.rng = rng
-        self.pilot = Pilot("search")
-        self.pilot.reset(mission)
-
-    def decide(self, obs):
-        from planner.observation import Decision
-
-        self.pilot.observe(obs)
-        if self.pilot.done(obs):
-            return Decision(localised=self.pilot.localised, done=True)
-        return self.pilot.act(int(self.rng.integers(7)), obs)
-
-
 def fly(scenario, policy_name: str, seed: int, model: str) -> dict:
-    policy = RandomManoeuvres() if policy_name == "random" else load_policy(
-        f"ppo:{model}" if policy_name == "ppo" else policy_name)
+    policy = load_policy(f"ppo:{model}" if policy_name == "ppo" else policy_name)
     res = run_search(scenario, policy, seed)
     r = res.responders[0]
     t = r.get("localised_at_s")

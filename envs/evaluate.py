@@ -32,6 +32,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import csv
+import dataclasses
 import json
 import math
 import multiprocessing
@@ -44,7 +45,17 @@ from typing import Any
 import numpy as np
 
 from envs.loop import LoopConfig, SearchResult, run_search
-from envs.metrics import median, quantile, time_within_s
+from envs.metrics import (
+    CHALLENGE_TIMES_S,
+    SUCCESS_RADII_M,
+    all_localised_at_s,
+    episode_error_m,
+    error_at_flight_s,
+    median,
+    quantile,
+    time_within_s,
+    within,
+)
 from envs.policies import load_policy
 from envs.seeds import split_of
 from estimator.tables import Column, text_table
@@ -75,6 +86,13 @@ COLUMNS: tuple[tuple[str, type], ...] = (
     ("budget_s", float),
     ("path_length_m", float),
     ("replans", int),
+    # the timed search challenge (envs/metrics.py; truth: evaluation only)
+    ("err_h_3min_m", float),  # horizontal error of the estimate held at 3 min (None: none)
+    ("err_h_10min_m", float),  # ... at 10 min (a search that ended keeps its estimate)
+    ("within_2m", int),  # 1 if the final estimate is within 2 m horizontally, else 0
+    ("within_5m", int),  # ... within 5 m
+    ("all_localised_at_s", float),  # per episode: the last responder judged localised
+    # (None: not every responder was by the end; censored at the budget)
 )
 SPEC_COLUMNS = tuple(name for name, _ in COLUMNS[:11])
 COLUMN_TYPES = dict(COLUMNS)
@@ -133,8 +151,13 @@ def _rounded(v: float | None) -> float | None:
 def rows_of(result: SearchResult, policy: str, seed: int, budget_s: float) -> list[dict]:
     """The table rows of one search (one per responder, the scenario's order)."""
     rows = []
+    t3, t10 = CHALLENGE_TIMES_S
+    r2, r5 = SUCCESS_RADII_M
+    t_all = all_localised_at_s([r.get("localised_at_s") for r in result.responders])
     for r in result.responders:
         b = r["bssid"]
+        series = result.series.get(b, [])
+        err = r.get("err_h_m")
         row = {
             "policy": policy,
             "seed": int(seed),
@@ -156,6 +179,11 @@ def rows_of(result: SearchResult, policy: str, seed: int, budget_s: float) -> li
             "budget_s": float(budget_s),
             "path_length_m": round(float(result.path_length_m), 2),
             "replans": int(result.replans),
+            "err_h_3min_m": error_at_flight_s(series, t3, result.flight_time_s, err),
+            "err_h_10min_m": error_at_flight_s(series, t10, result.flight_time_s, err),
+            "within_2m": within(err, r2),
+            "within_5m": within(err, r5),
+            "all_localised_at_s": t_all,
         }
         rows.append({k: _typed(k, v) for k, v in row.items()})
     return rows
@@ -520,6 +548,9 @@ class PolicySummary:
     (``localised_at_s`` set). Times are censored at the budget: a responder never
     localised counts as the budget, and a quantile that reaches a censored value is a
     lower bound (``*_censored``). Errors are over the rows that have an estimate.
+    The timed search challenge (added fields): the median error at 3 and 10 minutes
+    (no estimate counting as infinite), the final estimates within 2 m and 5 m, and per
+    episode the time until every responder was judged localised (censored).
     """
 
     policy: str
@@ -537,6 +568,16 @@ class PolicySummary:
     within_1m: int
     time_within_1m_s_median: float
     time_within_1m_s_median_censored: bool
+    # the timed search challenge (added; defaults for summaries made before it)
+    err_h_3min_m_median: float = math.nan  # over the rows, no estimate counting as inf
+    err_h_10min_m_median: float = math.nan
+    within_2m: int = 0
+    within_5m: int = 0
+    all_localised: int = 0  # episodes in which every responder was judged localised
+    all_localised_at_s_median: float = math.nan  # censored at the budget
+    all_localised_at_s_median_censored: bool = False
+    all_localised_at_s_p90: float = math.nan
+    all_localised_at_s_p90_censored: bool = False
 
 
 def censored_quantile(values: Sequence[float | None], q: float,
@@ -569,6 +610,9 @@ def summarise(rows: Sequence[dict], policies: Sequence[str] | None = None,
         t1 = [r.get("time_within_1m_s") for r in mine]
         t1m, t1m_c = censored_quantile(t1, 0.5, budget)
         n_loc = sum(x is not None for x in loc)
+        t_all = [e["all_localised_at_s"] for e in _episodes(mine).values()]
+        a_m, a_m_c = censored_quantile(t_all, 0.5, budget)
+        a_90, a_90_c = censored_quantile(t_all, 0.9, budget)
         out.append(PolicySummary(
             policy=p, episodes=len({r["seed"] for r in mine}), responders=len(mine),
             localised=n_loc, success_rate=n_loc / len(mine) if mine else math.nan,
@@ -578,7 +622,105 @@ def summarise(rows: Sequence[dict], policies: Sequence[str] | None = None,
             err_h_m_p90=quantile(errs, 0.9),
             within_1m=sum(x is not None for x in t1),
             time_within_1m_s_median=t1m, time_within_1m_s_median_censored=t1m_c,
+            err_h_3min_m_median=_median_none_inf([r.get("err_h_3min_m") for r in mine]),
+            err_h_10min_m_median=_median_none_inf([r.get("err_h_10min_m") for r in mine]),
+            within_2m=sum(int(r.get("within_2m") or 0) for r in mine),
+            within_5m=sum(int(r.get("within_5m") or 0) for r in mine),
+            all_localised=sum(x is not None for x in t_all),
+            all_localised_at_s_median=a_m, all_localised_at_s_median_censored=a_m_c,
+            all_localised_at_s_p90=a_90, all_localised_at_s_p90_censored=a_90_c,
         ))
+    return out
+
+
+def _median_none_inf(values: Sequence[float | None]) -> float:
+    """The median with None (no estimate) counted as an infinite error."""
+    return median([math.inf if v is None else float(v) for v in values])
+
+
+def _episodes(rows: Sequence[dict]) -> dict[int, dict]:
+    """Per seed of one policy's rows: ``all_localised_at_s`` and ``error_m``
+    (:func:`envs.metrics.episode_error_m` of its responders' final errors)."""
+    by_seed: dict[int, list[dict]] = {}
+    for r in rows:
+        by_seed.setdefault(int(r["seed"]), []).append(r)
+    return {s: {"all_localised_at_s": all_localised_at_s([r["localised_at_s"] for r in rs]),
+                "error_m": episode_error_m([r["err_h_m"] for r in rs])}
+            for s, rs in by_seed.items()}
+
+
+# ---------------------------------------------------------------------- paired
+PAIRED_METRICS = ("all_localised_at_s", "error_m")
+
+
+@dataclass(frozen=True)
+class PairedComparison:
+    """Policy ``a`` against ``b`` on the seeds both flew, one value per episode of
+    ``metric`` (lower is better): ``all_localised_at_s`` (censored at the budget: an
+    episode not localised counts as the budget) or ``error_m`` (the mean capped final
+    error, :func:`envs.metrics.episode_error_m`). ``wins``: episodes where ``a`` is
+    lower; ``losses``: where ``b`` is; ``ties``: equal. ``sign_p``: the two-sided exact
+    sign test on wins against losses (ties dropped); ``wilcoxon_p``: the two-sided
+    Wilcoxon signed-rank test of the differences (zeros dropped; exact for small
+    samples, scipy's choice); NaN when no episode differs."""
+
+    a: str
+    b: str
+    metric: str
+    seeds: int
+    wins: int
+    losses: int
+    ties: int
+    median_a: float
+    median_b: float
+    sign_p: float
+    wilcoxon_p: float
+
+
+def paired_tests(a_values: Sequence[float], b_values: Sequence[float]
+                 ) -> tuple[int, int, int, float, float]:
+    """(wins of a, losses, ties, two-sided sign-test p, two-sided Wilcoxon p) of paired
+    values, lower being better (see :class:`PairedComparison`)."""
+    from scipy import stats
+
+    d = np.asarray(a_values, dtype=float) - np.asarray(b_values, dtype=float)
+    if d.shape != (len(b_values),) or not np.all(np.isfinite(d)):
+        raise ValueError("paired values must be finite and of one length")
+    wins, losses = int(np.sum(d < 0)), int(np.sum(d > 0))
+    ties = len(d) - wins - losses
+    if wins + losses == 0:
+        return wins, losses, ties, math.nan, math.nan
+    sign_p = float(stats.binomtest(wins, wins + losses, 0.5).pvalue)
+    wil_p = float(stats.wilcoxon(d[d != 0], zero_method="wilcox").pvalue)
+    return wins, losses, ties, sign_p, wil_p
+
+
+def _censored(v: float | None, budget_s: float) -> float:
+    return float(budget_s) if v is None else float(v)
+
+
+def compare_pairs(rows: Sequence[dict], policies: Sequence[str] | None = None,
+                  budget_s: float | None = None) -> list[PairedComparison]:
+    """Every pair of ``policies`` (in order: the first against the later ones) on both
+    :data:`PAIRED_METRICS`, over the seeds both flew."""
+    if policies is None:
+        policies = list(dict.fromkeys(r["policy"] for r in rows))
+    per = {p: _episodes([r for r in rows if r["policy"] == p]) for p in policies}
+    if budget_s is None:
+        budget_s = max((r.get("budget_s") or r["flight_time_s"] for r in rows),
+                       default=math.nan)
+    out = []
+    for i, a in enumerate(policies):
+        for b in policies[i + 1:]:
+            seeds = sorted(set(per[a]) & set(per[b]))
+            for metric in PAIRED_METRICS:
+                if not seeds:
+                    continue
+                va = [_censored(per[a][s][metric], budget_s) for s in seeds]
+                vb = [_censored(per[b][s][metric], budget_s) for s in seeds]
+                w, lo, t, sp, wp = paired_tests(va, vb)
+                out.append(PairedComparison(a, b, metric, len(seeds), w, lo, t,
+                                            median(va), median(vb), sp, wp))
     return out
 
 
@@ -610,6 +752,68 @@ def format_summary(summaries: Sequence[PolicySummary]) -> str:
         for s in summaries
     ]
     return "\n".join(text_table(SUMMARY_COLUMNS, rows, rule="-"))
+
+
+CHALLENGE_COLUMNS = (
+    Column("policy", "<", 20), Column("seeds", ">", 6), Column("all loc", ">", 8),
+    Column("t_all med", ">", 10), Column("t_all p90", ">", 10), Column("err@3min", ">", 9),
+    Column("err@10min", ">", 10), Column("<=2 m", ">", 11), Column("<=5 m", ">", 11),
+)
+
+
+def format_challenge(summaries: Sequence[PolicySummary]) -> str:
+    """The timed search challenge per policy: episodes with every responder localised,
+    the time until then (min; censored), the median error at 3 and 10 min (m; "-": more
+    than half without an estimate), the responders whose final estimate is within 2 m
+    and 5 m."""
+    rows = [
+        (s.policy, str(s.episodes), f"{s.all_localised}/{s.episodes}",
+         _minutes(s.all_localised_at_s_median, s.all_localised_at_s_median_censored),
+         _minutes(s.all_localised_at_s_p90, s.all_localised_at_s_p90_censored),
+         _metres(s.err_h_3min_m_median), _metres(s.err_h_10min_m_median),
+         f"{s.within_2m}/{s.responders}", f"{s.within_5m}/{s.responders}")
+        for s in summaries
+    ]
+    return "\n".join(text_table(CHALLENGE_COLUMNS, rows, rule="-"))
+
+
+PAIRED_COLUMNS = (
+    Column("A vs B", "<", 36), Column("metric", "<", 10), Column("seeds", ">", 6),
+    Column("A wins", ">", 7), Column("B wins", ">", 7), Column("ties", ">", 5),
+    Column("med A", ">", 7), Column("med B", ">", 7), Column("sign p", ">", 8),
+    Column("Wilcoxon p", ">", 11),
+)
+_METRIC_LABEL = {"all_localised_at_s": "t_all min", "error_m": "error m"}
+
+
+def _p(v: float) -> str:
+    return "-" if not math.isfinite(v) else (f"{v:.2g}" if v < 0.01 else f"{v:.3f}")
+
+
+def format_paired(comparisons: Sequence[PairedComparison]) -> str:
+    """The paired comparisons (times in minutes, errors in m, two-sided p values)."""
+    rows = []
+    for c in comparisons:
+        scale = 60.0 if c.metric == "all_localised_at_s" else 1.0
+        rows.append((f"{c.a} vs {c.b}", _METRIC_LABEL[c.metric], str(c.seeds), str(c.wins),
+                     str(c.losses), str(c.ties), f"{c.median_a / scale:.2f}",
+                     f"{c.median_b / scale:.2f}", _p(c.sign_p), _p(c.wilcoxon_p)))
+    return "\n".join(text_table(PAIRED_COLUMNS, rows, rule="-"))
+
+
+def summary_json(rows: Sequence[dict], policies: Sequence[str] | None = None,
+                 budget_s: float | None = None) -> dict:
+    """The summary, the timed challenge and the paired comparisons as one JSON object
+    (``osa evaluate --summary-json``); non-finite numbers become None."""
+    def clean(d: dict) -> dict:
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in d.items()}
+
+    return {
+        "policies": [clean(dataclasses.asdict(s)) for s in summarise(rows, policies, budget_s)],
+        "paired": [clean(dataclasses.asdict(c)) for c in compare_pairs(rows, policies,
+                                                                       budget_s)],
+    }
 
 
 # ---------------------------------------------------------------------- files

@@ -1,7 +1,8 @@
 """Training and evaluating policies in the search envs with Stable-Baselines3 (docs/rl.md).
 
-:func:`train` is ``osa train``: vectorised envs in subprocesses (world seeds of the
-train split, each env seeded from ``--seed``), ``VecNormalize``, checkpoints, a
+:func:`train` is ``osa train``: vectorised envs in subprocesses or batched worlds in
+this process (``--vec batched``, :mod:`envs.gym.batched`; world seeds of the train
+split, each env seeded from ``--seed``), ``VecNormalize``, checkpoints, a
 progress bar, evaluation on fixed validation worlds (:class:`ValidationCallback`, the
 best model kept), a CSV log and TensorBoard logs when TensorBoard is installed.
 :func:`rollout` runs one episode of any action function on a given world, the common
@@ -24,6 +25,7 @@ import gymnasium
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
+from envs.gym.team import TEAM_ENV_ID, TeamVecEnv, make_team_env, team_rollout
 from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
 from envs.seeds import split_seeds
 
@@ -36,6 +38,7 @@ class TrainSettings:
     seed: int = 0
     algo: str = "PPO"
     n_envs: int = 2
+    vec: str = "subproc"  # "subproc": env copies in subprocesses; "batched": envs.gym.batched
     eval_every: int = 20_000
     eval_worlds: int = 20
     checkpoint_every: int = 50_000
@@ -74,6 +77,21 @@ def make_env(env_id: str, kwargs: dict) -> gymnasium.Env:
     return gymnasium.make(env_id, **kwargs)
 
 
+def batched_vec_env(env_id: str, kwargs: dict, n_envs: int, seed: int):
+    """The batched worlds of ``env_id`` (:mod:`envs.gym.batched`) as an SB3 ``VecEnv`` with
+    episode statistics (``VecMonitor``), world i seeded ``seed + i`` as ``make_vec_env``
+    seeds its copies."""
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from envs.gym.sb3 import SB3VecEnv
+
+    vec = gymnasium.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",
+                             autoreset_mode="same_step", **kwargs)
+    venv = VecMonitor(SB3VecEnv(vec))
+    venv.seed(seed)
+    return venv
+
+
 def rollout(env: gymnasium.Env, act: Callable[[dict], object], world_seed: int) -> Episode:
     """Run ``act`` (observation -> action) for one episode on world ``world_seed``."""
     obs, info = env.reset(options={"world_seed": world_seed})
@@ -110,8 +128,11 @@ def model_actor(model, stats) -> Callable[[dict], object]:
 
 def evaluate(model, stats, env_id: str, env_kwargs: dict, world_seeds: list[int]
              ) -> list[Episode]:
-    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
     act = model_actor(model, stats)
+    if env_id == TEAM_ENV_ID:
+        team = make_team_env({**env_kwargs, "seed_split": "validation"})
+        return [team_rollout(team, act, s) for s in world_seeds]
+    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
     try:
         return [rollout(env, act, s) for s in world_seeds]
     finally:
@@ -195,7 +216,7 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
     if settings.curriculum is not None:
         cbs.append(Curriculum())
     if settings.checkpoint_every:
-        cbs.append(CheckpointCallback(max(settings.checkpoint_every // settings.n_envs, 1),
+        cbs.append(CheckpointCallback(max(settings.checkpoint_every // venv.num_envs, 1),
                                       str(out / "checkpoints"), name_prefix="model",
                                       save_vecnormalize=True))
     val = ValidationCallback()
@@ -208,12 +229,15 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
     folder.mkdir(parents=True, exist_ok=True)
     model.save(str(folder / MODEL_FILE))
     venv.save(str(folder / STATS_FILE))
-    env = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    team = settings.env_id == TEAM_ENV_ID
+    env = (make_team_env(settings.env_kwargs) if team
+           else make_env(settings.env_id, settings.env_kwargs).unwrapped)
     meta = {
         "format": 1,
         "algo": settings.algo,
         "env_id": settings.env_id,
-        "kind": env.kind,
+        "kind": "team" if team else env.kind,
+        **({"agents": env.roles} if team else {}),
         "env_kwargs": {k: getattr(v, "name", v) if k == "scenario" else v
                        for k, v in settings.env_kwargs.items()},
         "config": env.config.to_json(),
@@ -367,9 +391,19 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     torch.set_num_threads(1)  # small networks: the envs' subprocesses want the cores
     set_random_seed(settings.seed)
     kwargs = {**settings.env_kwargs, "seed_split": "train"}
-    fn = functools.partial(make_env, settings.env_id, kwargs)
-    vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
-    venv = make_vec_env(fn, n_envs=settings.n_envs, seed=settings.seed, vec_env_cls=vec_cls)
+    if settings.env_id == TEAM_ENV_ID:  # parameter sharing: every UAV an entry
+        from stable_baselines3.common.vec_env import VecMonitor
+
+        venv = VecMonitor(TeamVecEnv(kwargs, copies=settings.n_envs))
+        venv.seed(settings.seed)
+    elif settings.vec == "batched":
+        venv = batched_vec_env(settings.env_id, kwargs, settings.n_envs, settings.seed)
+    elif settings.vec == "subproc":
+        fn = functools.partial(make_env, settings.env_id, kwargs)
+        vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
+        venv = make_vec_env(fn, n_envs=settings.n_envs, seed=settings.seed, vec_env_cls=vec_cls)
+    else:
+        raise ValueError(f"unknown vec {settings.vec!r} (subproc, batched)")
     algo_kw = dict(settings.algo_kwargs)
     gamma = algo_kw.get("gamma", 0.99)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, clip_obs=10.0, gamma=gamma)

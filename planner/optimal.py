@@ -529,8 +529,9 @@ class OptimalPlanner:
         plugin = {"expand": True, "print_time": False, "show_eval_warnings": False}
         # the same problem, two Ipopt set-ups: a cold start from the default barrier and
         # a primal-dual warm start with a small one
-        opti.solver("ipopt", plugin, common | cfg.ipopt_options)
-        self._solve_cold = opti.to_function("optimal_plan_cold", args, outs)
+        if not occlusion:  # the problem with the loss is only ever solved warm
+            opti.solver("ipopt", plugin, common | cfg.ipopt_options)
+            self._solve_cold = opti.to_function("optimal_plan_cold", args, outs)
         opti.solver("ipopt", plugin, common | warm | cfg.ipopt_options)
         self._solve_warm = opti.to_function("optimal_plan_warm", args, outs)
         self._opti = opti

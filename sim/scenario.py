@@ -14,6 +14,7 @@ A scenario file has these tables (all but ``world.responders`` and ``flight`` op
     [search]   a search instead of a fixed flight (then [flight] may be absent):
                area_enu_m | area_geo | area_file, start_e_m, start_n_m, budget_s,
                height_m, speed_mps, random_responders, random_concealment,
+               concealed_share, hidden_share, expected_responders,
                [[search.keepout]] (polygon_geo | polygon_enu_m | circle_geo |
                circle_enu_m | file, top_m, name) (docs/scenarios.md)
     [[agents]] optional: several agents in one world: name, kind = "uav" | "ground",
@@ -60,6 +61,7 @@ from sim.ftm import FtmConfig
 from sim.gnss import GNSS_PRESETS, GnssConfig
 from sim.randomise import Randomise
 from sim.sitefiles import GeoShape, SiteFileError, read_area, read_keepouts
+from sim.suite import is_suite_name, suite_table
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
 from sim.vehicle import WALKER, VehicleConfig
 from sim.world import MAX_EXTENT_M, Origin, Responder, World
@@ -160,6 +162,12 @@ class SearchSpec:
     random_responders: int = 0
     random_concealment: tuple[str, ...] = ("open",)
     expected_responders: int | None = None  # how many people are sought (None: unknown)
+    # the share of random responders concealed (their kinds: random_concealment, the
+    # others open); None: each responder's concealment uniform over random_concealment
+    concealed_share: float | None = None
+    # the share of random responders hidden by terrain from the take-off point (the
+    # others in its line of sight): sim.realisation.random_responders; None: no rule
+    hidden_share: float | None = None
     keepouts: tuple[KeepOutZone, ...] = ()  # [[search.keepout]], in ENU
 
     def __post_init__(self) -> None:
@@ -202,6 +210,17 @@ class SearchSpec:
             if c not in CONCEALMENTS:
                 known = ", ".join(CONCEALMENTS)
                 raise ValueError(f"random_concealment: {c!r} is not one of {known}")
+        if self.concealed_share is not None:
+            check_finite("concealed_share", self.concealed_share)
+            if not 0.0 <= self.concealed_share <= 1.0:
+                raise ValueError(f"concealed_share {self.concealed_share:g} is not in [0, 1]")
+            if "open" in self.random_concealment:
+                raise ValueError("with concealed_share, random_concealment lists the concealed "
+                                 "kinds only (the others are open)")
+        if self.hidden_share is not None:
+            check_finite("hidden_share", self.hidden_share)
+            if not 0.0 <= self.hidden_share <= 1.0:
+                raise ValueError(f"hidden_share {self.hidden_share:g} is not in [0, 1]")
 
     def contains(self, e_m: float, n_m: float, margin_m: float = 0.0) -> bool:
         """Is (e, n) inside the area (and at least ``margin_m`` from its edges)?"""
@@ -325,6 +344,11 @@ def list_scenarios() -> list[str]:
 def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[dict, str, Path]:
     """Read a scenario table (following ``extends``); return (table, source, directory)."""
     text: str
+    if isinstance(name_or_path, str) and is_suite_name(name_or_path):
+        try:
+            return suite_table(name_or_path), f"preset {name_or_path}", Path(str(_scenario_dir()))
+        except ValueError as exc:
+            raise ScenarioError(str(exc)) from None
     p = Path(name_or_path)
     as_path = isinstance(name_or_path, Path) or p.suffix == ".toml" or "/" in str(name_or_path)
     if as_path or p.is_file():
@@ -735,6 +759,9 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
             randomise=(from_table(Randomise, table["randomise"], "randomise")
                        if "randomise" in table else None),
         )
+        if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
+            raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "
+                              "true): with it off the terrain hides nothing")
         if dem is not None:
             dem_terrain = _dem_terrain(*dem, origin, scenario)
             scenario = dataclasses.replace(scenario, world=dataclasses.replace(

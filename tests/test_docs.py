@@ -22,7 +22,7 @@ TEXT_SUFFIXES = {".md", ".py", ".toml", ".txt", ".sh", ".cfg", ".ini", ".json", 
 
 def _public_files() -> list[Path]:
     files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*"))]
-    for folder in ("benchmarks", "examples"):
+    for folder in ("benchmarks", "examples", "tools"):
         files += sorted((ROOT / folder).rglob("*"))
     return [f for f in files if f.is_file() and f.suffix in TEXT_SUFFIXES
             and "__pycache__" not in f.parts]

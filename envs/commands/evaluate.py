@@ -3,8 +3,9 @@ policies (docs/cli.md, docs/evaluate.md).
 
 Every policy flies the same seeds (the same worlds), serially, in local processes or on
 a Dask scheduler; one row per policy, seed and responder goes to ``-o FILE`` (``.csv``
-or ``.parquet``), a summary per policy to stdout (``--json``: the rows instead), and
-the figures (time to localise, error and sigma against flight time, example
+or ``.parquet``), a summary per policy, the timed search challenge and the paired
+comparisons to stdout (``--json``: the rows instead; ``--summary-json FILE``: those
+tables as JSON), and the figures (time to localise, error and sigma against flight time, example
 trajectories) into ``--figures DIR``.
 """
 
@@ -32,9 +33,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ".parquet), print a summary per policy and draw figures.",
     )
     p.add_argument("scenario", metavar="SCENARIO",
-                   help="a search preset (osa simulate --list) or a .toml with a [search] table")
+                   help="a search preset (osa simulate --list), a suite preset "
+                   "suite/r{1,5,10}-c{0,30,50}-{sa,rtk}-u{1,2,4}, or a .toml with a [search] "
+                   "table")
     p.add_argument("--policies", required=True, metavar="P[,P...]",
-                   help="comma-separated: lawnmower, expanding-square, adaptive, ppo:PATH")
+                   help="comma-separated: lawnmower, expanding-square, adaptive, random, "
+                   "ppo:PATH")
     p.add_argument("--seeds", required=True, type=positive_int, metavar="N",
                    help="number of seeds (worlds)")
     p.add_argument("--first-seed", type=non_negative_int, default=None, metavar="K",
@@ -66,6 +70,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="seconds of flight between two decisions of the policy (default 5)")
     p.add_argument("--json", action="store_true",
                    help="print the rows as a JSON array on stdout instead of the summary")
+    p.add_argument("--summary-json", default=None, metavar="FILE",
+                   help="also write the summary, the timed challenge and the paired "
+                   "comparisons as one JSON object to FILE")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run of the same command: the episodes kept "
@@ -164,6 +171,10 @@ def claim_outputs(args: argparse.Namespace, out: Path, fig_dir: Path, inputs: li
                              "it with --resume, or start again with --force")
         journal.unlink()
     claim_output_file(out, force=args.force, inputs=inputs)
+    if args.summary_json is not None:
+        if Path(args.summary_json).resolve() == out.resolve():
+            raise ValueError("--summary-json and -o name the same file")
+        claim_output_file(Path(args.summary_json), force=args.force, inputs=inputs)
     if not args.no_figures:
         for name in FIGURES:
             claim_output_file(fig_dir / name, force=args.force, inputs=inputs)
@@ -279,11 +290,23 @@ def _file_sha256(path: str) -> str | None:
 
 def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None) -> int:
     from envs.commands._outputs import json_text, written_whole
-    from envs.evaluate import format_summary, summarise, write_rows
+    from envs.evaluate import (
+        compare_pairs,
+        format_challenge,
+        format_paired,
+        format_summary,
+        summarise,
+        summary_json,
+        write_rows,
+    )
 
     rows = ev.rows
     with written_whole(out) as tmp:
         write_rows(rows, tmp)
+    if args.summary_json is not None:
+        with written_whole(Path(args.summary_json)) as tmp:
+            Path(tmp).write_text(json_text(summary_json(rows, ev.policies, ev.budget_s)) + "\n",
+                                 encoding="utf-8")
     figures: list[Path] = []
     if not args.no_figures:
         from envs.evaluate_plots import plot_evaluation
@@ -296,6 +319,14 @@ def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None
     print(f"{ev.scenario}: {len(ev.policies)} polic{'ies' if len(ev.policies) > 1 else 'y'} "
           f"x {len(s)} seeds ({s[0]}..{s[-1]}), budget {ev.budget_s / 60:.1f} min; times in "
           "min (>= : censored at the budget), errors in m")
-    print(format_summary(summarise(rows, ev.policies, ev.budget_s)))
-    print("wrote " + ", ".join(str(p) for p in (out, *figures)))
+    summaries = summarise(rows, ev.policies, ev.budget_s)
+    print(format_summary(summaries))
+    print("\nTimed search challenge (t_all: every responder judged localised; err@T: the "
+          "median error of the estimate held at T; <=2 m, <=5 m: final estimates)")
+    print(format_challenge(summaries))
+    if len(ev.policies) > 1:
+        print("\nPaired on the same seeds (A wins: A lower; two-sided p)")
+        print(format_paired(compare_pairs(rows, ev.policies, ev.budget_s)))
+    extra = [Path(args.summary_json)] if args.summary_json is not None else []
+    print("wrote " + ", ".join(str(p) for p in (out, *extra, *figures)))
     return 0

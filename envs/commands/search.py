@@ -20,7 +20,8 @@ from envs.commands._outputs import add_force_option
 from estimator.tables import Column, text_table
 
 POLICY_HELP = ("lawnmower (the QGroundControl-style survey), expanding-square, adaptive "
-               "(default: search until heard, then plan around the estimate), or ppo:PATH "
+               "(default: search until heard, then plan around the estimate), random (uniform "
+               "actions of osa/Search-v0: the floor), or ppo:PATH "
                "(a policy trained by osa train)")
 
 
