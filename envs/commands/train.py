@@ -13,6 +13,7 @@ log and TensorBoard logs when TensorBoard is installed. ``MODEL`` is a folder th
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from envs.commands._args import non_negative_int, positive_int
@@ -40,8 +41,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "folder MODEL, which osa search --policy ppo:MODEL and osa evaluate load.",
     )
     p.add_argument("--env", default="osa/Search-v0", metavar="ID",
-                   help="a registered env id: osa/Search-v0 (default) or osa/Waypoint-v0; "
-                   "osa/Team-v0: a team of --uavs UAVs, one shared policy (PettingZoo)")
+                   help="a registered env id: osa/Search-v0 (default), osa/Search-v1 or "
+                   "osa/Waypoint-v0; osa/Team-v0: a team of --uavs UAVs, one shared policy "
+                   "(PettingZoo)")
     p.add_argument("--scenario", default=None, metavar="S",
                    help="the env's search scenario (preset or .toml; default the env's)")
     p.add_argument("--steps", type=positive_int, default=200_000, metavar="N",
@@ -64,6 +66,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="validation worlds per evaluation (default 20)")
     p.add_argument("--checkpoint-every", type=non_negative_int, default=50_000, metavar="N",
                    help="save a checkpoint every N steps (0: never; default 50000)")
+    p.add_argument("--curriculum", default=None, metavar="FROM:TO",
+                   help="osa/Search-v1: the curriculum level (the share of the scenario's "
+                   "[randomise] ranges in use, 0 to 1) rising linearly from FROM to TO over "
+                   "the training (default: none, level 1)")
+    p.add_argument("--imitate", type=non_negative_int, default=0, metavar="N",
+                   help="osa/Search-v1: warm start by behaviour cloning of the hand-written "
+                   "policy, N episodes per env before the training (default 0: none)")
+    p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
+                   help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
+                   "policy labels its states, the clone is fitted again; default 0)")
+    p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
+                   help="PPO: the learning rate at the start, falling linearly to 0 "
+                   "(default 3e-4)")
+    p.add_argument("--ent-coef", type=float, default=None, metavar="X",
+                   help="PPO: the entropy bonus (default 0.01)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--uavs", type=positive_int, default=None, metavar="N",
                    help="UAVs of a team (osa/Team-v0 only; default 2)")
@@ -117,6 +134,41 @@ def check_task(task: dict) -> str | None:
     return None
 
 
+def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
+    """The options of ``osa/Search-v1`` training and PPO's rates checked: (why they
+    cannot be, or None; the TrainSettings keywords they give)."""
+    v1 = args.env == "osa/Search-v1"
+    kw: dict = {}
+    if args.curriculum is not None:
+        if not v1:
+            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1)", kw
+        try:
+            lo, hi = (float(x) for x in args.curriculum.split(":"))
+        except ValueError:
+            return f"--curriculum: expected FROM:TO, got {args.curriculum!r}", kw
+        if not (0.0 <= lo <= 1.0 and 0.0 <= hi <= 1.0):
+            return f"--curriculum: levels must be in [0, 1], got {args.curriculum!r}", kw
+        kw["curriculum"] = (lo, hi)
+    if args.imitate and not v1:
+        return (f"--imitate: {args.env} has nothing to imitate (the hand-written policy is "
+                "osa/Search-v1's)"), kw
+    if args.dagger and not args.imitate:
+        return "--dagger: needs --imitate N (the episodes of each round)", kw
+    kw["imitate_episodes"], kw["imitate_rounds"] = args.imitate, args.dagger
+    algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
+    for name, value, key in (("--learning-rate", args.learning_rate, "learning_rate"),
+                             ("--ent-coef", args.ent_coef, "ent_coef")):
+        if value is None:
+            continue
+        if args.algo.upper() != "PPO":
+            return f"{name}: PPO only", kw
+        if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+            return f"{name}: expected a number in [0, 1], got {value!r}", kw
+        algo_kwargs[key] = linear_schedule(value) if key == "learning_rate" else value
+    kw["algo_kwargs"] = algo_kwargs
+    return None, kw
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -135,8 +187,15 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler is not None and args.sweep is None:
         return _fail("--scheduler runs the tasks of a --sweep FILE")
     if args.sweep is not None:
+        if args.curriculum or args.imitate or args.learning_rate is not None or \
+                args.ent_coef is not None:
+            return _fail("--sweep: --curriculum, --imitate, --dagger, --learning-rate and "
+                         "--ent-coef are for one training, not a sweep")
         return run_sweep(args, task)
     problem = check_task(task)
+    if problem:
+        return _fail(problem)
+    problem, v1_kw = v1_options(args)
     if problem:
         return _fail(problem)
     env_kwargs = {}
@@ -156,8 +215,7 @@ def run(args: argparse.Namespace) -> int:
                              vec=args.vec,
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,
                              checkpoint_every=args.checkpoint_every,
-                             progress=not args.no_progress,
-                             algo_kwargs=PPO_DEFAULTS if args.algo.upper() == "PPO" else {})
+                             progress=not args.no_progress, **v1_kw)
     summary = train(settings, out)
     print(summary.text())
     return 0
