@@ -76,6 +76,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
                    help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
                    "policy labels its states, the clone is fitted again; default 0)")
+    p.add_argument("--init", default=None, metavar="MODEL",
+                   help="start from the weights (policy, value, optimiser) and the "
+                   "normalisation statistics of MODEL, an osa train folder of the same env, "
+                   "settings and algorithm (e.g. a DAgger clone); default: fresh weights")
     p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
                    help="PPO: the learning rate at the start, falling linearly to 0 "
                    "(default 3e-4)")
@@ -188,9 +192,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail("--scheduler runs the tasks of a --sweep FILE")
     if args.sweep is not None:
         if args.curriculum or args.imitate or args.learning_rate is not None or \
-                args.ent_coef is not None:
-            return _fail("--sweep: --curriculum, --imitate, --dagger, --learning-rate and "
-                         "--ent-coef are for one training, not a sweep")
+                args.ent_coef is not None or args.init is not None:
+            return _fail("--sweep: --curriculum, --imitate, --dagger, --init, --learning-rate "
+                         "and --ent-coef are for one training, not a sweep")
         return run_sweep(args, task)
     problem = check_task(task)
     if problem:
@@ -203,9 +207,21 @@ def run(args: argparse.Namespace) -> int:
         env_kwargs["scenario"] = args.scenario
     if args.env == TEAM_ENV_ID:
         env_kwargs["uavs"] = args.uavs or 2
+    init = None
+    if args.init is not None:
+        from envs.gym.trained import model_dir
+        from envs.rl import check_init
+
+        init = model_dir(args.init).resolve()
+        problem = check_init(init, args.env, args.algo.upper(), env_kwargs)
+        if problem:
+            return _fail(f"--init: {problem}")
+        v1_kw["init"] = init
     from envs.commands._outputs import OutputRefusedError, claim_output_dir
 
     inputs = [args.scenario] if args.scenario and Path(args.scenario).exists() else []
+    if init is not None:
+        inputs.append(str(init))
     try:  # the one output rule (docs/cli.md "Outputs"), before any training
         out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
