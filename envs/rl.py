@@ -269,7 +269,9 @@ def check_init(folder: Path, env_id: str, algo: str, env_kwargs: dict) -> str | 
         env = make_env(env_id, env_kwargs).unwrapped
         config = env.config.to_json()
         env.close()
-        if meta.get("config") != config:
+        rewards = ("detection_bonus", "coverage_bonus", "time_cost_per_s", "leave_penalty")
+        if {k: v for k, v in meta.get("config", {}).items() if k not in rewards} != \
+                {k: v for k, v in config.items() if k not in rewards}:
             return (f"{folder} was trained with other env settings (observation and "
                     "actions) than this training's")
     return None

@@ -349,11 +349,15 @@ def test_osa_train_init_starts_from_a_model_s_weights_and_statistics(tmp_path, c
     assert main([*common, "--eval-every", "0", "-o", str(a)]) == 0
     # from a, with another seed (other fresh weights) at learning rate 0: the weights stay
     # a's, and the first validation (before any rollout) flies a's policy
+    # (and other reward weights: the observation and actions are the same)
     assert main([*common, "--init", str(a), "--seed", "1", "--learning-rate", "0",
+                 "--reward", "time_cost_per_s=0.1", "--reward", "localised_bonus=0",
                  "--eval-every", "100000", "--eval-worlds", "1", "-o", str(b)]) == 0
     pa, pb = (PPO.load(str(m / "model.zip"), device="cpu").policy.state_dict() for m in (a, b))
     assert all(torch.equal(pa[k], pb[k]) for k in pa)
-    assert json.loads((b / "osa-model.json").read_text())["init"] == str(a.resolve())
+    meta = json.loads((b / "osa-model.json").read_text())
+    assert meta["init"] == str(a.resolve()) and meta["config"]["time_cost_per_s"] == 0.1
+    assert meta["env_kwargs"]["localised_bonus"] == 0.0
     with open(a / "vecnormalize.pkl", "rb") as f:
         n_a = pickle.load(f).obs_rms["agent"].count
     with open(b / "vecnormalize.pkl", "rb") as f:
@@ -363,7 +367,10 @@ def test_osa_train_init_starts_from_a_model_s_weights_and_statistics(tmp_path, c
     for argv, match in ((["--init", str(tmp_path / "none")], "not a model"),
                         (["--init", str(a), "--env", "osa/Search-v0"], "not PPO in osa/Search-v0"),
                         (["--init", str(a), "--env", "osa/Search-v1", "--algo", "A2C"],
-                         "not A2C in osa/Search-v1")):
+                         "not A2C in osa/Search-v1"),
+                        (["--reward", "speed=1"], "unknown weight"),
+                        (["--reward", "time_cost_per_s=-1"], ">= 0"),
+                        (["--reward", "localised_bonus=1"], "osa/Search-v1's")):
         assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "osa train: --init" in err and re.search(match, err)
+        assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
