@@ -225,8 +225,8 @@ class MavlinkVehicle:
                 # a lockstep vehicle waiting tells its position on request
                 self._send_command(mavlink.MAV_CMD_REQUEST_MESSAGE,
                                    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
-                if ours and self.tunnel.pacing is None:
-                    self._pace(0, again=True)
+                if ours:  # its pacing again: a vehicle says once that it waits, and
+                    self._pace(0, again=True)  # a lost datagram is never repeated
             self._pump(0.1)
         self._pump(0.0)
         self.tunnel.settle(count=False)  # the records of before the search: not fed
@@ -581,8 +581,9 @@ class MavlinkVehicle:
                 # a lockstep vehicle runs on to deliver them
                 self._pace(self._boot_ms(self.t_s))
                 deadline = time.monotonic() + self.link_config.telemetry_timeout_s
+                asked = time.monotonic()
                 try:
-                    while time.monotonic() < deadline:
+                    while (now := time.monotonic()) < deadline:
                         self.feed.pull()
                         got = self.feed.wanted_through_ns()
                         if got is not None and got >= end_ns:
@@ -591,6 +592,10 @@ class MavlinkVehicle:
                         p = self.tunnel.pacing
                         if p is not None and p.waiting and p.now_ms > self._acked_ms:
                             self._pace(p.now_ms)
+                            asked = now
+                        elif now - asked > ACK_AGAIN_S:  # a lost pacing or acknowledgement
+                            asked = now
+                            self._pace(self._acked_ms, again=True)
                 except VehicleLinkError:
                     lost = True
                 self._complete_records()

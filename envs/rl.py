@@ -25,6 +25,7 @@ import gymnasium
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
+from envs.gym.team import TEAM_ENV_ID, TeamVecEnv, make_team_env, team_rollout
 from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
 from envs.seeds import split_seeds
 
@@ -44,6 +45,19 @@ class TrainSettings:
     progress: bool = True
     algo_kwargs: dict = field(default_factory=dict)
     policy_kwargs: dict = field(default_factory=lambda: {"net_arch": [128, 128]})
+    curriculum: tuple[float, float] | None = None  # osa/Search-v1: level from, to
+    imitate_episodes: int = 0  # osa/Search-v1: behaviour cloning of plan_heuristic first
+    imitate_epochs: int = 30
+    imitate_rounds: int = 0  # DAgger rounds after the first fit
+    imitate_learning_rate: float = 3e-4  # Adam's rate while imitating (whatever PPO's)
+
+
+def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
+    """The curriculum level at ``progress`` (0 to 1) of the training: linear from
+    ``curriculum[0]`` to ``curriculum[1]``, rounded to 0.01 (the envs change level in
+    those steps)."""
+    a, b = curriculum
+    return round(a + (b - a) * min(max(progress, 0.0), 1.0), 2)
 
 
 @dataclass(frozen=True)
@@ -114,8 +128,11 @@ def model_actor(model, stats) -> Callable[[dict], object]:
 
 def evaluate(model, stats, env_id: str, env_kwargs: dict, world_seeds: list[int]
              ) -> list[Episode]:
-    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
     act = model_actor(model, stats)
+    if env_id == TEAM_ENV_ID:
+        team = make_team_env({**env_kwargs, "seed_split": "validation"})
+        return [team_rollout(team, act, s) for s in world_seeds]
+    env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
     try:
         return [rollout(env, act, s) for s in world_seeds]
     finally:
@@ -153,6 +170,8 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
             self.seeds = split_seeds("validation", settings.eval_worlds)
             self.best: tuple | None = None
             self.history: list[dict] = []
+            if settings.imitate_episodes and settings.eval_every:
+                self.run()  # the imitation alone, before any PPO update
 
         def _on_step(self) -> bool:
             if settings.eval_every and self.num_timesteps >= self.next:
@@ -173,9 +192,31 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
                 save(self.model, venv, settings, out / "best", s)
             (out / "validation.json").write_text(json.dumps(self.history, indent=1))
 
+    class Curriculum(BaseCallback):
+        """Sets every training env's curriculum level (``set_level``, osa/Search-v1)
+        from the share of the training done; it applies from each env's next episode."""
+
+        def _on_training_start(self) -> None:
+            self.level: float | None = None
+            self._set()
+
+        def _on_step(self) -> bool:
+            self._set()
+            return True
+
+        def _set(self) -> None:
+            assert settings.curriculum is not None
+            level = curriculum_level(settings.curriculum, self.num_timesteps / settings.steps)
+            if level != self.level:
+                self.level = level
+                venv.env_method("set_level", level)
+                self.logger.record("train/curriculum_level", level)
+
     cbs = [Progress()]
+    if settings.curriculum is not None:
+        cbs.append(Curriculum())
     if settings.checkpoint_every:
-        cbs.append(CheckpointCallback(max(settings.checkpoint_every // settings.n_envs, 1),
+        cbs.append(CheckpointCallback(max(settings.checkpoint_every // venv.num_envs, 1),
                                       str(out / "checkpoints"), name_prefix="model",
                                       save_vecnormalize=True))
     val = ValidationCallback()
@@ -188,22 +229,139 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
     folder.mkdir(parents=True, exist_ok=True)
     model.save(str(folder / MODEL_FILE))
     venv.save(str(folder / STATS_FILE))
-    env = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    team = settings.env_id == TEAM_ENV_ID
+    env = (make_team_env(settings.env_kwargs) if team
+           else make_env(settings.env_id, settings.env_kwargs).unwrapped)
     meta = {
         "format": 1,
         "algo": settings.algo,
         "env_id": settings.env_id,
-        "kind": env.kind,
+        "kind": "team" if team else env.kind,
+        **({"agents": env.roles} if team else {}),
         "env_kwargs": {k: getattr(v, "name", v) if k == "scenario" else v
                        for k, v in settings.env_kwargs.items()},
         "config": env.config.to_json(),
         "scenario": env.scenario.name,
         "seed": settings.seed,
         "steps": int(model.num_timesteps),
+        **({"curriculum": list(settings.curriculum)} if settings.curriculum else {}),
         **({"validation": extra} if extra else {}),
     }
     env.close()
     (folder / META_FILE).write_text(json.dumps(meta, indent=1))
+
+
+def _fly_and_label(venv, episodes: int, teacher, actor, gamma: float):
+    """``episodes`` episodes in every env of ``venv`` flown by ``actor`` (raw
+    observations -> actions, batched; None: the teacher flies): the raw observations
+    visited, the teacher's action at each and the discounted normalised return from
+    each (only decisions of finished episodes)."""
+    n = venv.num_envs
+    raw: list[dict] = []
+    labels: list[int] = []
+    rewards: list[list[float]] = [[] for _ in range(n)]
+    index: list[list[int]] = [[] for _ in range(n)]
+    targets: dict[int, float] = {}
+    venv.reset()
+    done_eps = np.zeros(n, dtype=int)
+    while done_eps.min() < episodes:
+        o = venv.get_original_obs()
+        per = [{k: v[i] for k, v in o.items()} for i in range(n)]
+        want = np.array([teacher(x) for x in per])
+        a = want if actor is None else np.asarray(actor(o))
+        for i in range(n):
+            index[i].append(len(raw) + i)
+        raw.extend(per)
+        labels.extend(int(x) for x in want)
+        _, r, dones, _ = venv.step(a)
+        for i in range(n):
+            rewards[i].append(float(r[i]))
+            if dones[i]:
+                g = 0.0
+                for j, rr in zip(reversed(index[i]), reversed(rewards[i]), strict=True):
+                    g = rr + gamma * g
+                    targets[j] = g
+                index[i], rewards[i] = [], []
+                done_eps[i] += 1
+    keep = sorted(targets)
+    return ([raw[j] for j in keep], [labels[j] for j in keep], [targets[j] for j in keep],
+            int(done_eps.sum()))
+
+
+def imitate(model, venv, settings: TrainSettings) -> dict:
+    """Warm start (``osa/Search-v1``): behaviour cloning of the hand-written policy
+    (:func:`envs.gym.plan_actions.plan_heuristic`) with DAgger rounds. The teacher flies
+    ``imitate_episodes`` episodes in every training env (train worlds; the
+    ``VecNormalize`` statistics learn from them as from any rollout); the network is
+    fitted to its actions (maximum likelihood) and the value head to the discounted
+    normalised returns, ``imitate_epochs`` passes in minibatches of 256 (Adam at
+    ``imitate_learning_rate``, whatever PPO's rate is). Then, for
+    ``imitate_rounds`` rounds, the clone itself flies as many episodes (its
+    deterministic action), the teacher labels every state it visited, and the network
+    is fitted again on everything gathered: the clone learns what to do in the states
+    its own mistakes lead to (DAgger). Returns what it did."""
+    import torch
+    from stable_baselines3.common.utils import obs_as_tensor
+
+    from envs.gym.plan_actions import PlanActions, plan_heuristic
+
+    probe = make_env(settings.env_id, settings.env_kwargs).unwrapped
+    if not isinstance(probe.pilot.actions, PlanActions):
+        raise ValueError(f"imitation needs osa/Search-v1's actions, not {settings.env_id}'s")
+    teacher = plan_heuristic(probe.pilot.actions)
+    probe.close()
+    gamma = float(getattr(model, "gamma", 0.99))
+    policy = model.policy
+    opt = policy.optimizer
+    for group in opt.param_groups:  # its own rate (PPO sets its own again when it trains)
+        group["lr"] = settings.imitate_learning_rate
+    rng = np.random.default_rng(settings.seed)
+    raw: list[dict] = []
+    labels: list[int] = []
+    returns: list[float] = []
+    rounds = []
+
+    def clone(o: dict):
+        return policy.predict(venv.normalize_obs(o), deterministic=True)[0]
+
+    for k in range(settings.imitate_rounds + 1):
+        got = _fly_and_label(venv, settings.imitate_episodes, teacher,
+                             None if k == 0 else clone, gamma)
+        if k:  # how the clone flew before this round's fit
+            rounds[-1]["clone_agreement_flying"] = float(
+                np.mean([int(clone({kk: v[None] for kk, v in x.items()})[0]) == y
+                         for x, y in zip(got[0], got[1], strict=True)]))
+        raw += got[0]
+        labels += got[1]
+        returns += got[2]
+        obs = venv.normalize_obs({key: np.stack([x[key] for x in raw]) for key in raw[0]})
+        acts = np.array(labels)
+        rets = np.array(returns)
+        history = []
+        for _ in range(settings.imitate_epochs):
+            order = rng.permutation(len(acts))
+            losses = []
+            for b in range(0, len(order), 256):
+                mb = order[b:b + 256]
+                o_t = obs_as_tensor({key: v[mb] for key, v in obs.items()}, policy.device)
+                values, log_prob, _ = policy.evaluate_actions(
+                    o_t, torch.as_tensor(acts[mb], device=policy.device))
+                ret = torch.as_tensor(rets[mb], dtype=torch.float32, device=policy.device)
+                loss = -log_prob.mean() + 0.5 * torch.nn.functional.mse_loss(
+                    values.flatten(), ret)
+                opt.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+                opt.step()
+                losses.append(float(loss.item()))
+            history.append(statistics.fmean(losses))
+        agree = float((policy.predict(obs, deterministic=True)[0] == acts).mean())
+        rounds.append({"flown_by": "teacher" if k == 0 else "clone", "episodes": got[3],
+                       "decisions": len(got[1]), "loss": history, "agreement": agree})
+    first = rounds[0]
+    return {"episodes": first["episodes"], "decisions": first["decisions"],
+            "epochs": len(first["loss"]), "loss": first["loss"],
+            "agreement": rounds[-1]["agreement"], "rounds": rounds}
 
 
 @dataclass
@@ -233,7 +391,12 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     torch.set_num_threads(1)  # small networks: the envs' subprocesses want the cores
     set_random_seed(settings.seed)
     kwargs = {**settings.env_kwargs, "seed_split": "train"}
-    if settings.vec == "batched":
+    if settings.env_id == TEAM_ENV_ID:  # parameter sharing: every UAV an entry
+        from stable_baselines3.common.vec_env import VecMonitor
+
+        venv = VecMonitor(TeamVecEnv(kwargs, copies=settings.n_envs))
+        venv.seed(settings.seed)
+    elif settings.vec == "batched":
         venv = batched_vec_env(settings.env_id, kwargs, settings.n_envs, settings.seed)
     elif settings.vec == "subproc":
         fn = functools.partial(make_env, settings.env_id, kwargs)
@@ -258,6 +421,9 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     cbs, val = _callbacks(settings, out, venv)
     t0 = time.perf_counter()
     try:
+        if settings.imitate_episodes:
+            imitated = imitate(model, venv, settings)
+            (out / "imitation.json").write_text(json.dumps(imitated, indent=1))
         model.learn(total_timesteps=settings.steps, callback=cbs)
         if settings.eval_every and (not val.history or val.history[-1]["steps"]
                                     < model.num_timesteps - settings.eval_every // 2):

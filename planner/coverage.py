@@ -158,6 +158,17 @@ class Sweep:
         self.next = 0  # next waypoint to fly to
         self.passes = 0  # sweeps flown to their end
 
+    @classmethod
+    def through(cls, mission: SearchMission, waypoints: Sequence[XY]) -> Sweep:
+        """A resumable sweep through given ``waypoints`` (e.g. a sector's lawnmower or an
+        expanding square) instead of the lawnmower over the whole area."""
+        sweep = cls.__new__(cls)
+        sweep.mission = mission
+        sweep.waypoints = [(float(x), float(y)) for x, y in waypoints]
+        sweep.next = 0
+        sweep.passes = 0
+        return sweep
+
     @property
     def at_end(self) -> bool:
         return self.next >= len(self.waypoints)

@@ -15,6 +15,7 @@ by count, so adding an agent does not change the others' draws::
     seed / 1        hardware range offsets
     seed / 2        shadowing fields
     seed / 3 / i    agent i: / 0 GNSS, / 1 clock, / 2 wander, / 3 radio, / 4 log writer
+    seed / 4        the scenario's [randomise] draw (sim.randomise), applied first
 """
 
 from __future__ import annotations
@@ -196,6 +197,8 @@ def draw_responders(scenario: Scenario, rng: np.random.Generator
 def realise(scenario: Scenario, seed: Seed = 0) -> Realisation:
     """Draw the world of ``scenario`` for ``seed`` (see the module docstring)."""
     seq = as_seed_sequence(seed)
+    if scenario.randomise is not None:  # this world's GNSS, concealment, offsets, wind
+        scenario = scenario.randomise.apply(scenario, child_rng(seq, 4))
     world = scenario.world
     hiding = None
     if scenario.search is not None and scenario.search.random_responders > 0:

@@ -23,6 +23,8 @@ A scenario file has these tables (all but ``world.responders`` and ``flight`` op
     [gnss]     preset = "standalone" | "rtk", then GnssConfig fields overriding it
     [ftm]      FtmConfig fields, sub-tables [ftm.noise], [ftm.open], [ftm.vegetation], ...
     [clock]    ClockConfig fields
+    [randomise] ranges drawn per world (sim.randomise.Randomise): gnss_bias_scale,
+               concealed_share, range_offset_m, gnss_drop_prob, wind_mps, level
 
 Every key is checked (unknown keys, wrong types, NaN or out-of-range values raise
 :class:`ScenarioError` naming the file and key).
@@ -57,6 +59,7 @@ from sim.dem import DemError, DemTerrain, box_of
 from sim.flights import FLIGHT_KINDS, Flight, TrajectoryFlight
 from sim.ftm import FtmConfig
 from sim.gnss import GNSS_PRESETS, GnssConfig
+from sim.randomise import Randomise
 from sim.sitefiles import GeoShape, SiteFileError, read_area, read_keepouts
 from sim.suite import is_suite_name, suite_table
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
@@ -269,6 +272,7 @@ class Scenario:
     clock: ClockConfig = field(default_factory=ClockConfig)
     log: LogSettings = field(default_factory=LogSettings)
     source: str = ""
+    randomise: Randomise | None = None  # [randomise]: drawn per world by sim.realise
 
     def trajectory(self) -> Trajectory:
         """The reference path the vehicle flies."""
@@ -644,7 +648,7 @@ def _gnss(table: dict) -> GnssConfig:
 
 _TOP_KEYS = {
     "name", "description", "log", "world", "flight", "search", "agents", "vehicle", "gnss",
-    "ftm", "clock",
+    "ftm", "clock", "randomise",
 }  # fmt: skip
 
 
@@ -752,6 +756,8 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
             clock=from_table(ClockConfig, table.get("clock", {}), "clock"),
             log=from_table(LogSettings, table.get("log", {}), "log"),
             source=source,
+            randomise=(from_table(Randomise, table["randomise"], "randomise")
+                       if "randomise" in table else None),
         )
         if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
             raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "

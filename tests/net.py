@@ -6,6 +6,7 @@ import contextlib
 import select
 import socket
 import threading
+from collections.abc import Callable
 
 import numpy as np
 
@@ -27,12 +28,15 @@ class LossyUdpProxy:
     socket and relays the answers back to the last ground-station address. Each
     direction draws its drops from its own stream of ``seed`` (``drop`` in [0, 1));
     setting :attr:`cut` drops everything from then on, :attr:`cut_after_up` = N does so
-    once N more datagrams went up.
+    once N more datagrams went up. ``drop_if(data, up)`` True drops that datagram too
+    (a chosen loss, whatever the timing).
     """
 
-    def __init__(self, target_port: int, drop: float = 0.0, seed: int = 0) -> None:
+    def __init__(self, target_port: int, drop: float = 0.0, seed: int = 0,
+                 drop_if: Callable[[bytes, bool], bool] | None = None) -> None:
         self.target = (LOOPBACK, target_port)
         self.drop = drop
+        self.drop_if = drop_if
         self.cut = False  # True: drop everything from now on (a link that dies)
         self.cut_after_up: int | None = None  # cut once this many more go up
         rng = np.random.default_rng(seed)
@@ -62,7 +66,8 @@ class LossyUdpProxy:
                     self._gcs = addr
                 rng = self._rng_up if up else self._rng_down
                 k = 0 if up else 1
-                if self.cut or rng.random() < self.drop:
+                if self.cut or rng.random() < self.drop or (
+                        self.drop_if is not None and self.drop_if(data, up)):
                     self.dropped[k] += 1
                     continue
                 self.passed[k] += 1

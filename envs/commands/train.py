@@ -13,6 +13,7 @@ log and TensorBoard logs when TensorBoard is installed. ``MODEL`` is a folder th
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from envs.commands._args import non_negative_int, positive_int
@@ -40,7 +41,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "folder MODEL, which osa search --policy ppo:MODEL and osa evaluate load.",
     )
     p.add_argument("--env", default="osa/Search-v0", metavar="ID",
-                   help="a registered env id: osa/Search-v0 (default) or osa/Waypoint-v0")
+                   help="a registered env id: osa/Search-v0 (default), osa/Search-v1 or "
+                   "osa/Waypoint-v0; osa/Team-v0: a team of --uavs UAVs, one shared policy "
+                   "(PettingZoo)")
     p.add_argument("--scenario", default=None, metavar="S",
                    help="the env's search scenario (preset or .toml; default the env's)")
     p.add_argument("--steps", type=positive_int, default=200_000, metavar="N",
@@ -63,7 +66,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="validation worlds per evaluation (default 20)")
     p.add_argument("--checkpoint-every", type=non_negative_int, default=50_000, metavar="N",
                    help="save a checkpoint every N steps (0: never; default 50000)")
+    p.add_argument("--curriculum", default=None, metavar="FROM:TO",
+                   help="osa/Search-v1: the curriculum level (the share of the scenario's "
+                   "[randomise] ranges in use, 0 to 1) rising linearly from FROM to TO over "
+                   "the training (default: none, level 1)")
+    p.add_argument("--imitate", type=non_negative_int, default=0, metavar="N",
+                   help="osa/Search-v1: warm start by behaviour cloning of the hand-written "
+                   "policy, N episodes per env before the training (default 0: none)")
+    p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
+                   help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
+                   "policy labels its states, the clone is fitted again; default 0)")
+    p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
+                   help="PPO: the learning rate at the start, falling linearly to 0 "
+                   "(default 3e-4)")
+    p.add_argument("--ent-coef", type=float, default=None, metavar="X",
+                   help="PPO: the entropy bonus (default 0.01)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--uavs", type=positive_int, default=None, metavar="N",
+                   help="UAVs of a team (osa/Team-v0 only; default 2)")
+    p.add_argument("--sweep", default=None, metavar="FILE",
+                   help="train every task of a sweep file (TOML or JSON; docs/rl.md) into "
+                   "MODEL/NAME, with MODEL/sweep.csv; the other options are the tasks' "
+                   "defaults")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the --sweep tasks on this Dask scheduler "
+                   "(e.g. tcp://10.0.0.5:8786); default: here, one after another")
     add_force_option(p)
     p.set_defaults(func=run)
 
@@ -71,6 +98,75 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _fail(message: object) -> int:
     print(f"osa train: {message}", file=sys.stderr)
     return 2
+
+
+def check_task(task: dict) -> str | None:
+    """Why a training task (the command line's or a sweep's) cannot run, or None."""
+    import gymnasium
+
+    import envs  # noqa: F401  (registers the envs)
+    from envs.gym.team import TEAM_ENV_ID
+    from envs.gym.trained import ALGOS
+
+    env, algo = task["env"], task.get("algo", "PPO").upper()
+    if env != TEAM_ENV_ID and env not in gymnasium.registry:
+        known = sorted(k for k in gymnasium.registry if k.startswith("osa/"))
+        return f"--env: unknown env {env!r}; choose from {', '.join([*known, TEAM_ENV_ID])}"
+    if algo not in ALGOS:
+        return f"--algo: unknown algorithm {task.get('algo')!r}; choose from {', '.join(ALGOS)}"
+    kind = "search" if env.startswith("osa/Search") else "waypoint"
+    if (algo == "DQN" and kind != "search") or (algo in ("SAC", "TD3") and kind != "waypoint"):
+        return f"--algo {task.get('algo')} does not fit the action space of {env}"
+    if env == TEAM_ENV_ID and algo != "PPO":
+        return f"--algo {task.get('algo')}: {TEAM_ENV_ID} trains with PPO (parameter sharing)"
+    if env == TEAM_ENV_ID and task.get("vec", "subproc") != "subproc":
+        return (f"--vec {task['vec']}: not for {TEAM_ENV_ID} (its team copies step in "
+                "this process through SuperSuit)")
+    if env != TEAM_ENV_ID and task.get("uavs") not in (None, 1):
+        return f"--uavs: only for {TEAM_ENV_ID} ({env} flies one UAV)"
+    if task.get("scenario") is not None:
+        from sim.scenario import ScenarioError, search_scenario
+
+        try:
+            search_scenario(task["scenario"])
+        except ScenarioError as exc:
+            return f"--scenario: {exc}"
+    return None
+
+
+def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
+    """The options of ``osa/Search-v1`` training and PPO's rates checked: (why they
+    cannot be, or None; the TrainSettings keywords they give)."""
+    v1 = args.env == "osa/Search-v1"
+    kw: dict = {}
+    if args.curriculum is not None:
+        if not v1:
+            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1)", kw
+        try:
+            lo, hi = (float(x) for x in args.curriculum.split(":"))
+        except ValueError:
+            return f"--curriculum: expected FROM:TO, got {args.curriculum!r}", kw
+        if not (0.0 <= lo <= 1.0 and 0.0 <= hi <= 1.0):
+            return f"--curriculum: levels must be in [0, 1], got {args.curriculum!r}", kw
+        kw["curriculum"] = (lo, hi)
+    if args.imitate and not v1:
+        return (f"--imitate: {args.env} has nothing to imitate (the hand-written policy is "
+                "osa/Search-v1's)"), kw
+    if args.dagger and not args.imitate:
+        return "--dagger: needs --imitate N (the episodes of each round)", kw
+    kw["imitate_episodes"], kw["imitate_rounds"] = args.imitate, args.dagger
+    algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
+    for name, value, key in (("--learning-rate", args.learning_rate, "learning_rate"),
+                             ("--ent-coef", args.ent_coef, "ent_coef")):
+        if value is None:
+            continue
+        if args.algo.upper() != "PPO":
+            return f"{name}: PPO only", kw
+        if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+            return f"{name}: expected a number in [0, 1], got {value!r}", kw
+        algo_kwargs[key] = linear_schedule(value) if key == "learning_rate" else value
+    kw["algo_kwargs"] = algo_kwargs
+    return None, kw
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,31 +178,31 @@ def run(args: argparse.Namespace) -> int:
         return _fail("needs the optional 'rl' extra: pip install torch==2.13.0 (or the CPU "
                      "wheel: pip install torch --index-url "
                      "https://download.pytorch.org/whl/cpu), then pip install -e '.[rl]'")
-    import gymnasium
-
-    import envs  # noqa: F401  (registers the envs)
-    from envs.gym.trained import ALGOS
+    from envs.gym.team import TEAM_ENV_ID
     from envs.rl import TrainSettings, train
 
-    if args.env not in gymnasium.registry:
-        known = sorted(k for k in gymnasium.registry if k.startswith("osa/"))
-        return _fail(f"--env: unknown env {args.env!r}; choose from {', '.join(known)}")
-    if args.algo.upper() not in ALGOS:
-        return _fail(f"--algo: unknown algorithm {args.algo!r}; choose from {', '.join(ALGOS)}")
-    kind = "search" if args.env.startswith("osa/Search") else "waypoint"
-    if (args.algo.upper() == "DQN" and kind != "search") or (
-        args.algo.upper() in ("SAC", "TD3") and kind != "waypoint"
-    ):
-        return _fail(f"--algo {args.algo} does not fit the action space of {args.env}")
+    task = {"env": args.env, "scenario": args.scenario, "uavs": args.uavs, "steps": args.steps,
+            "seed": args.seed, "algo": args.algo, "envs": args.envs, "vec": args.vec,
+            "eval_every": args.eval_every, "eval_worlds": args.eval_worlds, "ppo": {}}
+    if args.scheduler is not None and args.sweep is None:
+        return _fail("--scheduler runs the tasks of a --sweep FILE")
+    if args.sweep is not None:
+        if args.curriculum or args.imitate or args.learning_rate is not None or \
+                args.ent_coef is not None:
+            return _fail("--sweep: --curriculum, --imitate, --dagger, --learning-rate and "
+                         "--ent-coef are for one training, not a sweep")
+        return run_sweep(args, task)
+    problem = check_task(task)
+    if problem:
+        return _fail(problem)
+    problem, v1_kw = v1_options(args)
+    if problem:
+        return _fail(problem)
     env_kwargs = {}
     if args.scenario is not None:
-        from sim.scenario import ScenarioError, search_scenario
-
-        try:
-            search_scenario(args.scenario)
-        except ScenarioError as exc:
-            return _fail(f"--scenario: {exc}")
         env_kwargs["scenario"] = args.scenario
+    if args.env == TEAM_ENV_ID:
+        env_kwargs["uavs"] = args.uavs or 2
     from envs.commands._outputs import OutputRefusedError, claim_output_dir
 
     inputs = [args.scenario] if args.scenario and Path(args.scenario).exists() else []
@@ -119,8 +215,64 @@ def run(args: argparse.Namespace) -> int:
                              vec=args.vec,
                              eval_every=args.eval_every, eval_worlds=args.eval_worlds,
                              checkpoint_every=args.checkpoint_every,
-                             progress=not args.no_progress,
-                             algo_kwargs=PPO_DEFAULTS if args.algo.upper() == "PPO" else {})
+                             progress=not args.no_progress, **v1_kw)
     summary = train(settings, out)
     print(summary.text())
+    return 0
+
+
+def run_sweep(args: argparse.Namespace, defaults: dict) -> int:
+    """``--sweep FILE``: every task of the file, here or on ``--scheduler``'s workers."""
+    from pathlib import Path
+
+    from envs.commands._outputs import OutputRefusedError, claim_output_dir, claim_output_file
+    from envs.sweep import SweepError, read_sweep
+    from envs.sweep import run_sweep as sweep
+
+    try:
+        tasks = read_sweep(args.sweep, {k: v for k, v in defaults.items() if v is not None})
+    except SweepError as exc:
+        return _fail(exc)
+    for t in tasks:
+        problem = check_task(t)
+        if problem:
+            return _fail(f"--sweep {args.sweep}: task {t['name']}: {problem.lstrip('-')}")
+    inputs = [args.sweep, *{t["scenario"] for t in tasks
+                            if t.get("scenario") and Path(t["scenario"]).exists()}]
+    try:
+        out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
+        claim_output_file(out / "sweep.csv", force=True, inputs=inputs)
+        for t in tasks:
+            claim_output_dir(out / t["name"], command="train", force=args.force, inputs=inputs)
+    except OutputRefusedError as exc:
+        return _fail(exc)
+    client = None
+    if args.scheduler is not None:
+        from envs.commands.evaluate import connect
+
+        try:
+            client = connect(args.scheduler, 30.0)
+        except ValueError as exc:
+            return _fail(exc)
+    where = f"on {args.scheduler}" if client is not None else "here, one after another"
+    print(f"osa train: {len(tasks)} task{'s' * (len(tasks) != 1)} {where} -> {out}",
+          file=sys.stderr)
+
+    def done(r) -> None:
+        print(f"  {r.name}: {r.row['steps']} steps in {r.wall_s / 60:.1f} min", file=sys.stderr)
+
+    try:
+        results = sweep(tasks, out, client, done)
+    finally:
+        if client is not None:
+            client.close()
+    print(f"{'task':<20} {'seed':>6} {'steps':>8} {'localised':>9} {'median time':>11} "
+          f"{'return':>8}")
+    for r in results:
+        v = r.row
+        loc = "" if v["localised"] is None else f"{100 * v['localised']:.0f} %"
+        med = "" if v["median_time_s"] is None else f"{v['median_time_s']:.0f} s"
+        ret = "" if v["mean_return"] is None else f"{v['mean_return']:.2f}"
+        print(f"{r.name:<20} {v['seed']:>6} {v['steps']:>8} {loc:>9} {med:>11} {ret:>8}")
+    print(f"summary: {out / 'sweep.csv'}")
     return 0

@@ -4,6 +4,9 @@
   manoeuvre per decision;
 - ``osa/Waypoint-v0`` (:class:`envs.gym.waypoint.WaypointEnv`): a continuous
   ``Box(-1, 1)`` next waypoint;
+- ``osa/Search-v1`` (:class:`envs.gym.plan.PlanEnv`): the whole search as the
+  policy's choice (:class:`envs.gym.plan_actions.PlanActions`), domain randomisation
+  from ``[randomise]`` and a curriculum level;
 - :class:`envs.gym.multi.SearchParallelEnv`: N agents (UAVs, optionally a ground
   agent) sharing one fused estimate (PettingZoo ``ParallelEnv``);
 - :class:`envs.gym.trained.TrainedPolicy`: a model trained by ``osa train`` as a

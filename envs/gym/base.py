@@ -101,7 +101,7 @@ class SearchEnvBase(gym.Env):
                              "use envs.gym.multi.SearchParallelEnv")
         self.render_mode = render_mode
         self.seed_split = seed_split
-        self.pilot = Pilot(self.kind, self.config)
+        self.pilot = self._make_pilot()
         self.observation_space = self.pilot.observation_space
         self.action_space = self.pilot.action_space
         self.rerun_path = rerun_path
@@ -113,7 +113,8 @@ class SearchEnvBase(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.world_seed = draw_world_seed(options, self.np_random, self.seed_split)
-        self.loop = ClosedLoop(self.scenario, self.world_seed, config=self.loop_config)
+        self.loop = ClosedLoop(self._episode_scenario(options), self.world_seed,
+                               config=self.loop_config)
         self.pilot.reset(self.loop.mission)
         self._obs = self.loop.observe()
         enc, _ = self.pilot.observe(self._obs)
@@ -143,6 +144,14 @@ class SearchEnvBase(gym.Env):
         return enc, reward, terminated, truncated, self._info()
 
     # ------------------------------------------------------------------ hooks
+    def _make_pilot(self) -> Pilot:
+        """The observation and action mapping (``osa/Search-v1`` passes its own actions)."""
+        return Pilot(self.kind, self.config)
+
+    def _episode_scenario(self, options: dict | None) -> Scenario:
+        """The scenario of the next episode (``osa/Search-v1`` sets its curriculum level)."""
+        return self.scenario
+
     def _compute_reward(self, changes: dict) -> float:
         c = self.config
         terms = {

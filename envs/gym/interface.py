@@ -11,7 +11,9 @@ the truth) and the :class:`planner.observation.SearchMission` (what the operator
   "localised" bookkeeping (:class:`planner.observation.LocalisedRule`) and the information
   potential behind the reward.
 - :class:`ManoeuvreActions` (``osa/Search-v0``) and :class:`WaypointActions`
-  (``osa/Waypoint-v0``): action -> :class:`planner.observation.Decision`.
+  (``osa/Waypoint-v0``): action -> :class:`planner.observation.Decision`;
+  ``osa/Search-v1``'s :class:`envs.gym.plan_actions.PlanActions` (kind ``plan``) also
+  adds observation keys of its own.
 
 Reward of one decision (all terms from the estimator, the vehicle and the link model):
 ``information + detection_bonus * newly detected + coverage_bonus * newly covered
@@ -522,15 +524,26 @@ class Pilot:
     an env wraps around the closed loop and a trained policy around its network."""
 
     def __init__(self, kind: str, config: EnvConfig = EnvConfig(), *, n_others: int = 0,
-                 speed_mps: float | None = None, ground: bool = False) -> None:
-        if kind not in ("search", "waypoint"):
-            raise ValueError(f"unknown action kind {kind!r} (search, waypoint)")
+                 speed_mps: float | None = None, ground: bool = False,
+                 actions: object | None = None) -> None:
+        if kind not in ("search", "waypoint", "plan"):
+            raise ValueError(f"unknown action kind {kind!r} (search, waypoint, plan)")
         self.kind = kind
         self.cfg = config
         self.encoder = Encoder(config, n_others)
-        self.actions = (ManoeuvreActions(config) if kind == "search"
-                        else WaypointActions(config, speed_mps, ground))
-        self.observation_space = self.encoder.space
+        if actions is not None:  # an action mapping object (e.g. PlanActions(sectors=4))
+            self.actions = actions
+        elif kind == "plan":
+            from envs.gym.plan_actions import PlanActions
+
+            self.actions = PlanActions(config)
+        else:
+            self.actions = (ManoeuvreActions(config) if kind == "search"
+                            else WaypointActions(config, speed_mps, ground))
+        # an action mapping may add observation keys of its own (PlanActions.obs_space)
+        self._extra = getattr(self.actions, "obs_space", None)
+        self.observation_space = (spaces.Dict({**self.encoder.space.spaces, **self._extra})
+                                  if self._extra else self.encoder.space)
         self.action_space = self.actions.space
 
     def reset(self, mission: SearchMission, agent: int = 0) -> None:
@@ -541,7 +554,10 @@ class Pilot:
                 ) -> tuple[dict, dict]:
         """(encoded observation, reward changes) of a new observation; call once each."""
         changes = self.encoder.update(obs)
-        return self.encoder.encode(obs, others), changes
+        enc = self.encoder.encode(obs, others)
+        if self._extra:
+            enc.update(self.actions.observe(obs))
+        return enc, changes
 
     def act(self, action, obs: Observation) -> Decision:
         return self.actions.decide(action, obs)

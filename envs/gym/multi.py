@@ -23,7 +23,7 @@ from envs.gym.base import (
     loop_eval,
     outside_area,
 )
-from envs.gym.interface import Pilot
+from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop
 from planner.observation import Decision
 from sim.scenario import AgentSpec, Scenario, search_scenario
@@ -47,6 +47,22 @@ def with_agents(scenario: Scenario, uavs: int, ground: int = 0) -> Scenario:
                                gnss=scenario.gnss, start_e_m=s.start_e_m,
                                start_n_m=s.start_n_m))
     return dataclasses.replace(scenario, agents_=tuple(specs))
+
+
+def agent_roles(scenario: Scenario) -> list[dict]:
+    """What a pilot needs of each agent (and a trained team model records):
+    ``name``, ``ground`` and, for a ground agent, its walking ``speed_mps``."""
+    return [{"name": a.name, "ground": a.kind == "ground",
+             "speed_mps": a.vehicle.max_speed_mps if a.kind == "ground" else None}
+            for a in scenario.agents]
+
+
+def team_pilots(roles: list[dict], config: EnvConfig) -> list[Pilot]:
+    """One waypoint :class:`Pilot` per agent, each seeing the ``others``: the env's and
+    a trained team policy's (one definition)."""
+    n = len(roles)
+    return [Pilot("waypoint", config, n_others=n - 1, speed_mps=r["speed_mps"],
+                  ground=r["ground"]) for r in roles]
 
 
 class SearchParallelEnv(ParallelEnv):
@@ -99,13 +115,9 @@ class SearchParallelEnv(ParallelEnv):
         self.render_mode = render_mode
         self.seed_split = seed_split
         self.possible_agents = [a.name for a in sc.agents]
-        n = len(self.possible_agents)
-        self.pilots = {
-            a.name: Pilot("waypoint", self.config, n_others=n - 1,
-                          speed_mps=a.vehicle.max_speed_mps if a.kind == "ground" else None,
-                          ground=a.kind == "ground")
-            for a in sc.agents
-        }
+        self.roles = agent_roles(sc)
+        self.pilots = dict(zip(self.possible_agents, team_pilots(self.roles, self.config),
+                               strict=True))
         self.agents: list[str] = []
         self.loop: ClosedLoop | None = None
         self.world_seed: int | None = None

@@ -7,6 +7,7 @@ import functools
 ENVS: dict[str, str] = {
     "osa/Search-v0": "envs.gym.search:SearchEnv",
     "osa/Waypoint-v0": "envs.gym.waypoint:WaypointEnv",
+    "osa/Search-v1": "envs.gym.plan:PlanEnv",
 }
 
 

@@ -50,7 +50,8 @@ def algo_class(name: str):
 
 
 class TrainedPolicy:
-    """A policy trained in ``osa/Search-v0`` or ``osa/Waypoint-v0`` (see the module)."""
+    """A policy trained in ``osa/Search-v0`` or ``osa/Waypoint-v0`` (see the module);
+    :meth:`load` gives a :class:`TrainedTeamPolicy` for a model of ``osa/Team-v0``."""
 
     def __init__(self, model, stats, meta: dict, path: Path) -> None:
         self.model = model
@@ -76,7 +77,7 @@ class TrainedPolicy:
             algo = meta.get("algo", "PPO")
         except (ValueError, KeyError) as exc:
             raise ValueError(f"{meta_p}: unreadable ({exc})") from None
-        if kind not in ("search", "waypoint"):
+        if kind not in ("search", "waypoint", "plan", "team"):
             raise ValueError(f"{meta_p}: unknown env kind {kind!r}")
         try:
             import torch
@@ -93,6 +94,8 @@ class TrainedPolicy:
             with open(d / STATS_FILE, "rb") as f:
                 stats = pickle.load(f)  # a VecNormalize without its env
             stats.training = False
+        if kind == "team":
+            cls = TrainedTeamPolicy
         return cls(model, stats, meta, d)
 
     def __reduce__(self):  # pickles as its path (to worker processes): loaded there again
@@ -117,3 +120,40 @@ class TrainedPolicy:
         x = self.stats.normalize_obs(encoded) if self.stats is not None else encoded
         action, _ = self.model.predict(x, deterministic=True)
         return action
+
+
+class TrainedTeamPolicy(TrainedPolicy):
+    """A team policy trained in ``osa/Team-v0`` (``osa train --env osa/Team-v0``): every
+    agent of the team runs the one shared network on its own observation (its own
+    position first, the others' in ``others``), as in the env
+    (:class:`envs.gym.multi.SearchParallelEnv`): each decision encodes every agent's
+    observation, ends the search when the shared estimate is localised, else gives
+    each agent its own waypoint. The mission must have the team's number of agents."""
+
+    @property
+    def team_size(self) -> int:
+        return len(self.meta["agents"])
+
+    def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
+        from envs.gym.multi import team_pilots
+
+        roles = self.meta["agents"]
+        if mission.n_agents != len(roles):
+            raise ValueError(f"{self.name} flies a team of {len(roles)}; the mission has "
+                             f"{mission.n_agents} agents")
+        self.pilots = team_pilots(roles, self.config)
+        for i, p in enumerate(self.pilots):
+            p.reset(mission, agent=i)
+
+    def decide(self, obs: Observation) -> Decision:
+        n = len(self.pilots)
+        encoded = [p.observe(obs, tuple(a for j, a in enumerate(obs.agents) if j != i))[0]
+                   for i, p in enumerate(self.pilots)]
+        first = self.pilots[0]
+        if first.done(obs):
+            return Decision(localised=first.localised, done=True,
+                            note="every detected responder localised")
+        plans = {}
+        for i in range(n):
+            plans.update(self.pilots[i].act(self.action(encoded[i]), obs).plans)
+        return Decision(plans=plans, localised=first.localised)

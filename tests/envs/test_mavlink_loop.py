@@ -29,6 +29,7 @@ from envs.loop import ClosedLoop, LoopConfig, fly, run_search
 from envs.mavlink_vehicle import LinkConfig, MavlinkVehicle, VehicleLinkError
 from envs.phone import (
     PAYLOAD_PACE,
+    PAYLOAD_RECORDS,
     FileRecords,
     PhoneFeed,
     TunnelRecords,
@@ -430,6 +431,50 @@ def test_loop_over_a_lossy_link() -> None:
     # asked again, nearly all arrive
     assert ph["asked_again"] > 0.1 * ph["released"], ph
     assert ph["lost"] <= 0.01 * ph["released"] and ph["released"] <= relayed
+
+
+def _says_it_waits(data: bytes, up: bool) -> bool:
+    """A datagram from the vehicle with its pacing at its lockstep limit."""
+    if up:
+        return False
+    msgs = mavutil.mavlink.MAVLink(None).parse_buffer(data) or []
+    for m in msgs:
+        if m.get_type() == "TUNNEL" and m.payload_type == PAYLOAD_RECORDS:
+            pacing = TunnelRecords(keep_records=False)
+            pacing.take(bytes(m.payload[: m.payload_length]))
+            if pacing.pacing is not None and pacing.pacing.waiting:
+                return True
+    return False
+
+
+def test_a_lost_pacing_at_the_start_is_asked_again() -> None:
+    """The vehicle says once that it waits at its lockstep limit; that datagram lost,
+    the loop asks for the pacing again instead of waiting for it until the timeout.
+    (The vehicle takes 2 s of wall time to reach its limit, so the loop's first
+    question is answered before it waits, and its one "waiting" is dropped.)"""
+    from tests.net import LossyUdpProxy
+
+    sc = load_scenario(SEARCH_SCENARIO)
+    dropped: list[int] = []
+
+    def drop_first_wait(data: bytes, up: bool) -> bool:
+        if not dropped and _says_it_waits(data, up):
+            dropped.append(1)
+            return True
+        return False
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=0.5, lockstep_s=1.0) as rv, \
+            LossyUdpProxy(rv.port, drop_if=drop_first_wait) as proxy:
+        v = MavlinkVehicle(sc, sim.realise(sc, 0), f"udpout:{LOOPBACK}:{proxy.port}",
+                           link=LinkConfig(connect_timeout_s=6.0))
+        try:
+            v.start()
+            # the search starts where the vehicle waits, at its limit (1 s)
+            assert v._boot0_s == pytest.approx(1.0, abs=1e-9)
+            assert rv.autopilot.armed  # start() armed it
+        finally:
+            v.close()
+        assert dropped == [1] and proxy.dropped[1] == 1
 
 
 def _phone_app(log: Path, port: int, stop: threading.Event) -> None:

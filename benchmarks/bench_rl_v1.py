@@ -1,0 +1,176 @@
+"""``osa/Search-v1`` on held-out test worlds: a trained policy, the hand-written policy
+in v1's actions, a uniformly random v1 policy and ``adaptive`` (docs/rl.md).
+
+Every policy flies ``osa search`` (``envs.loop.run_search``) on the same first
+``--seeds`` test worlds (common random numbers). Per world: the time until every
+expected responder is localised (the estimator's judgement; censored at the budget),
+the number localised, and the mean horizontal error of the final estimates (the
+truth, for evaluation only). Paired two-sided exact sign tests compare each policy
+with ``adaptive`` on the time (ties dropped). ``--model`` (repeatable) adds
+``ppo:PATH`` policies. ``--curve MODEL`` draws the learning
+curve of an ``osa train`` folder (``progress.csv`` and ``validation.json``).
+
+    python benchmarks/bench_rl_v1.py --model MODEL --seeds 20 --json rows.json
+    python benchmarks/bench_rl_v1.py --table rows.json
+    python benchmarks/bench_rl_v1.py --curve MODEL --figure curve.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+import sim
+from envs.gym.interface import EnvConfig, Pilot
+from envs.gym.plan_actions import PlanActions, plan_heuristic
+from envs.loop import run_search
+from envs.policies import load_policy
+from envs.seeds import split_seeds
+from planner.observation import Decision
+
+
+class PlanPolicy:
+    """A policy in ``osa/Search-v1``'s actions flying ``osa search``: ``heuristic``
+    (:func:`plan_heuristic`) or ``random`` (uniform actions from the loop's generator)."""
+
+    def __init__(self, name: str, config: EnvConfig = EnvConfig(max_responders=5,
+                                                                 coverage_cells=6)) -> None:
+        self.name = name
+        self.config = config
+
+    def reset(self, mission, rng) -> None:
+        self.rng = rng
+        self.pilot = Pilot("plan", self.config, actions=PlanActions(self.config))
+        self.pilot.reset(mission)
+        n = self.pilot.action_space.n
+        self.act = (plan_heuristic(self.pilot.actions) if self.name == "heuristic"
+                    else (lambda enc: int(self.rng.integers(n))))
+
+    def decide(self, obs) -> Decision:
+        enc, _ = self.pilot.observe(obs)
+        if self.pilot.done(obs):
+            return Decision(localised=self.pilot.localised, done=True)
+        return self.pilot.act(self.act(enc), obs)
+
+
+def fly(scenario, name: str, seed: int) -> dict:
+    """One ``osa search`` of policy ``name`` (``heuristic``, ``random``, a named policy
+    or ``ppo:PATH``) on world ``seed``."""
+    policy = PlanPolicy(name) if name in ("heuristic", "random") else load_policy(name)
+    res = run_search(scenario, policy, seed)
+    budget = scenario.search.budget_s
+    times = [r.get("localised_at_s") for r in res.responders]
+    n_loc = sum(t is not None for t in times)
+    want = scenario.search.expected_responders or len(times)
+    t_all = max(t for t in times if t is not None) if times and n_loc >= want else budget
+    errs = [r["err_h_m"] for r in res.responders if r.get("err_h_m") is not None]
+    return {"policy": name, "seed": seed, "t_all_s": float(t_all), "localised": n_loc,
+            "responders": len(times), "err_h_m": float(np.mean(errs)) if errs else None,
+            "flight_time_s": res.flight_time_s, "ended": res.ended}
+
+
+def sign_test_two_sided(wins: int, losses: int) -> float:
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    k = min(wins, losses)
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n)
+
+
+def table(rows: list[dict], budget: float) -> str:
+    pols = list(dict.fromkeys(r["policy"] for r in rows))
+    by = {p: sorted((r for r in rows if r["policy"] == p), key=lambda r: r["seed"])
+          for p in pols}
+    w0 = max(11, *(len(p) + 1 for p in pols))
+    out = [f"{'policy':<{w0}}{'all localised':>14}{'responders':>11}{'median t_all':>13}"
+           f"{'median err':>11}{'vs adaptive (faster/slower/tie, p)':>37}"]
+    for p in pols:
+        rs = by[p]
+        t = np.array([r["t_all_s"] for r in rs])
+        done = np.mean([r["t_all_s"] < budget for r in rs])
+        loc = sum(r["localised"] for r in rs) / max(sum(r["responders"] for r in rs), 1)
+        errs = [r["err_h_m"] for r in rs if r["err_h_m"] is not None]
+        cmp = ""
+        if "adaptive" in by and p != "adaptive":
+            a = np.array([r["t_all_s"] for r in by["adaptive"]])
+            w, lo, ti = int((t < a).sum()), int((t > a).sum()), int((t == a).sum())
+            cmp = f"{w}/{lo}/{ti}, p = {sign_test_two_sided(w, lo):.2g}"
+        out.append(f"{p:<{w0}}{100 * done:>13.0f}%{100 * loc:>10.0f}%{np.median(t):>12.0f}s"
+                   f"{(f'{np.median(errs):.2f} m' if errs else '-'):>11}{cmp:>37}")
+    return "\n".join(out)
+
+
+def curve(model: str, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = Path(model)
+    with open(d / "progress.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("rollout/ep_rew_mean")]
+    steps = [float(r["time/total_timesteps"]) for r in rows]
+    ret = [float(r["rollout/ep_rew_mean"]) for r in rows]
+    val = json.loads((d / "validation.json").read_text())
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax[0].plot(steps, ret)
+    ax[0].set_xlabel("training steps (decisions)")
+    ax[0].set_ylabel("mean return, last 100 training episodes")
+    ax[0].grid(alpha=0.3)
+    vs = [v["steps"] for v in val]
+    ax[1].plot(vs, [v["median_time_s"] for v in val], "o-", label="median time (s)")
+    ax[1].set_xlabel("training steps (decisions)")
+    ax[1].set_ylabel("validation: median time to localise all (s)")
+    ax[1].set_ylim(0, 1.05 * max(v["median_time_s"] for v in val))
+    ax2 = ax[1].twinx()
+    ax2.plot(vs, [100 * v["localised"] for v in val], "s--", color="C1",
+             label="worlds all localised (%)")
+    ax2.set_ylabel("validation worlds all localised (%)")
+    ax2.set_ylim(0, 100)
+    ax[1].grid(alpha=0.3)
+    from matplotlib.ticker import MaxNLocator
+
+    for a in ax:
+        a.xaxis.set_major_locator(MaxNLocator(5))
+    fig.suptitle(f"osa train osa/Search-v1: {d.name}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="search-five-mixed")
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--model", action="append", default=[],
+                    help="an osa train folder, flown as ppo:PATH (repeat for several)")
+    ap.add_argument("--policies", default="adaptive,heuristic,random")
+    ap.add_argument("--json", default=None, help="write the rows here")
+    ap.add_argument("--curve", default=None, metavar="MODEL", help="draw MODEL's curve")
+    ap.add_argument("--figure", default=None)
+    ap.add_argument("--table", default=None, metavar="JSON", help="print the table of rows")
+    a = ap.parse_args()
+    if a.table:
+        rows = json.loads(Path(a.table).read_text())
+        print(table(rows, sim.load_scenario(a.scenario).search.budget_s))
+        return
+    if a.curve:
+        curve(a.curve, a.figure or "curve.png")
+        return
+    sc = sim.load_scenario(a.scenario)
+    pols = [p for p in a.policies.split(",") if p] + [f"ppo:{m}" for m in a.model]
+    rows = [fly(sc, p, s) for p in pols for s in split_seeds("test", a.seeds)]
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    print(f"{a.scenario}: {a.seeds} test worlds, budget {sc.search.budget_s:.0f} s "
+          "(t_all: every expected responder localised, censored at the budget)")
+    print(table(rows, sc.search.budget_s))
+
+
+if __name__ == "__main__":
+    main()
