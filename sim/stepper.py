@@ -53,8 +53,10 @@ from sim.realisation import (
 )
 from sim.scenario import AgentSpec
 from sim.vehicle import (
+    LANDED_AGL_M,
     Guidance,
     HoldGuidance,
+    LandedGuidance,
     Multirotor,
     PathGuidance,
     VehicleState,
@@ -232,9 +234,17 @@ class Stepper:
         a.vehicle.set_guidance(g)
         return g
 
-    def hold(self, agent: int | str) -> HoldGuidance:
-        """Brake and hold where the autopilot believes the vehicle is."""
+    def hold(self, agent: int | str) -> HoldGuidance | LandedGuidance:
+        """Brake and hold where the autopilot believes the vehicle is; a vehicle still on
+        the ground (within ``LANDED_AGL_M``) stays landed instead (holding its believed
+        height there would fly it into the ground as its navigation error drifts)."""
         a = self.agent(agent)
+        p = a.vehicle._p
+        if (a.spec.vehicle.ground_height_m is None
+                and p[2] - float(self.world.ground_m(p[0], p[1])) <= LANDED_AGL_M):
+            g = LandedGuidance()
+            a.vehicle.set_guidance(g)
+            return g
         g = HoldGuidance(self.navigation_position_m(agent), a.spec.vehicle)
         a.vehicle.set_guidance(g)
         return g

@@ -299,7 +299,21 @@ class HoldGuidance:
         return _kernels.hold_command(self._point, self.cfg.position_gain_per_s, px, py, pz)
 
 
-Guidance = PathGuidance | HoldGuidance
+class LandedGuidance:
+    """Stay on the ground: a landed multirotor does not steer its believed height into
+    the terrain (its navigation error moves the estimate, not the vehicle)."""
+
+    def __init__(self) -> None:
+        self.done = False
+        self.name = "landed"
+
+    def command(self, px: float, py: float, pz: float, dt: float) -> tuple[float, float, float]:
+        return 0.0, 0.0, 0.0
+
+
+LANDED_AGL_M = 0.5  # at most this high above the ground, a vehicle told to hold stays landed
+
+Guidance = PathGuidance | HoldGuidance | LandedGuidance
 
 
 def absolute_path(
@@ -426,6 +440,8 @@ class Multirotor:
         x, y, z = (float(v) for v in start.position_m)
         if cfg.ground_height_m is not None:
             z = float(world.ground_m(x, y)) + cfg.ground_height_m
+        elif z - float(world.ground_m(x, y)) <= LANDED_AGL_M:  # starts landed: stays so
+            self.guidance = LandedGuidance()
         self._p = [x, y, z]
         self._v = [float(v) for v in start.velocity_mps]
         self._yaw = float(start.yaw_rad)
