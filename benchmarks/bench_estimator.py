@@ -5,7 +5,8 @@
 Prints medians measured in this run and the ratios to the targets of issue 2:
 IEKF update <= 0.2 x filterpy's ExtendedKalmanFilter, UKF update <= 0.2 x filterpy's
 UnscentedKalmanFilter (same state, same measurement, same Joseph / Merwe maths), and
-a 455-measurement replay in all six modes < 50 ms, and the same replay in mode
+a replay of up to 455 measurements (a paper-ap1f flight's: 426 on seed 1) in all six
+modes < 50 ms, and the same replay in mode
 ``refined`` (``best``: front, periodic and final batch refinement) < 50 ms (the
 pipeline from associated ranges; log parsing and association are timed separately).
 """

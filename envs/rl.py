@@ -25,7 +25,7 @@ import gymnasium
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
-from envs.gym.team import TEAM_ENV_ID, TeamVecEnv, make_team_env, team_rollout
+from envs.gym.registration import TEAM_ENV_ID
 from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
 from envs.seeds import split_seeds
 
@@ -131,6 +131,8 @@ def evaluate(model, stats, env_id: str, env_kwargs: dict, world_seeds: list[int]
              ) -> list[Episode]:
     act = model_actor(model, stats)
     if env_id == TEAM_ENV_ID:
+        from envs.gym.team import make_team_env, team_rollout  # PettingZoo: the 'rl' extra
+
         team = make_team_env({**env_kwargs, "seed_split": "validation"})
         return [team_rollout(team, act, s) for s in world_seeds]
     env = make_env(env_id, {**env_kwargs, "seed_split": "validation"})
@@ -231,8 +233,12 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
     model.save(str(folder / MODEL_FILE))
     venv.save(str(folder / STATS_FILE))
     team = settings.env_id == TEAM_ENV_ID
-    env = (make_team_env(settings.env_kwargs) if team
-           else make_env(settings.env_id, settings.env_kwargs).unwrapped)
+    if team:
+        from envs.gym.team import make_team_env
+
+        env = make_team_env(settings.env_kwargs)
+    else:
+        env = make_env(settings.env_id, settings.env_kwargs).unwrapped
     meta = {
         "format": 1,
         "algo": settings.algo,
@@ -433,6 +439,8 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     kwargs = {**settings.env_kwargs, "seed_split": "train"}
     if settings.env_id == TEAM_ENV_ID:  # parameter sharing: every UAV an entry
         from stable_baselines3.common.vec_env import VecMonitor
+
+        from envs.gym.team import TeamVecEnv
 
         venv = VecMonitor(TeamVecEnv(kwargs, copies=settings.n_envs))
         venv.seed(settings.seed)

@@ -116,7 +116,7 @@ def settings_of(task: dict):
     """The :class:`envs.rl.TrainSettings` of a task (its PPO settings over the
     command's defaults, the learning rate falling linearly from its value)."""
     from envs.commands.train import PPO_DEFAULTS, linear_schedule
-    from envs.gym.team import TEAM_ENV_ID
+    from envs.gym.registration import TEAM_ENV_ID
     from envs.rl import TrainSettings
 
     env_kwargs: dict = {}

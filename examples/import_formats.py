@@ -9,6 +9,7 @@ Then ``osa import`` joins each GNSS file with the CSV (GnssLogger also with the
 SensorReadout file) and prints one summary line per import. Run from the repository:
 
     python examples/import_formats.py --out import-examples
+    python examples/import_formats.py --out import-examples --files-only   # no imports
 """
 
 from __future__ import annotations
@@ -46,10 +47,14 @@ def write_all(out: Path) -> dict[str, tuple[Path, Path]]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="import-examples", help="folder to write (new)")
+    ap.add_argument("--files-only", action="store_true",
+                    help="write the recorder files, import nothing")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=False)
     pairs = write_all(out)
+    if a.files_only:
+        return
     for name, (gnss, ranges) in pairs.items():
         log = out / f"imported_{name}.jsonl"
         report = out / f"imported_{name}.json"

@@ -57,6 +57,11 @@ def test_the_checker_sees_a_changed_figure(tmp_path, monkeypatch):
     assert "-c" in doc_outputs.check(stale) and "+b" in doc_outputs.check(stale)
     masked = doc_outputs.blocks(_doc(tmp_path, "took 99 ms\na\nb", "; mask: [0-9]+ ms"))[0]
     assert doc_outputs.check(masked) is None
+    # the mask is the text after "mask:", without the spaces around it
+    tight = doc_outputs.blocks(_doc(tmp_path, "took 99 ms\na\nb", "; mask: k [0-9]+ ",
+                                    name="tight.md"))[0]
+    assert tight.masks[0].pattern == "k [0-9]+"
+    assert doc_outputs.check(tight) is None
     kept = doc_outputs.blocks(_doc(tmp_path, "a", "; keep: ^a"))[0]
     assert doc_outputs.check(kept) is None
     assert doc_outputs.write(stale) is True

@@ -174,7 +174,7 @@ def blocks(path: Path) -> list[Block]:
 
 
 def _split_masks(text: str) -> list[tuple[str, str]]:
-    return [(k, v) for k, v in (p.strip().partition(":")[::2] for p in text.split(";"))
+    return [(k, v.strip()) for k, v in (p.strip().partition(":")[::2] for p in text.split(";"))
             if k.strip() == "mask"]
 
 

@@ -141,7 +141,7 @@ def check_task(task: dict) -> str | None:
     import gymnasium
 
     import envs  # noqa: F401  (registers the envs)
-    from envs.gym.team import TEAM_ENV_ID
+    from envs.gym.registration import TEAM_ENV_ID
     from envs.gym.trained import ALGOS
 
     env, algo = task["env"], task.get("algo", "PPO").upper()
@@ -214,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail("needs the optional 'rl' extra: pip install torch==2.13.0 (or the CPU "
                      "wheel: pip install torch --index-url "
                      "https://download.pytorch.org/whl/cpu), then pip install -e '.[rl]'")
-    from envs.gym.team import TEAM_ENV_ID
+    from envs.gym.registration import TEAM_ENV_ID
     from envs.rl import TrainSettings, train
 
     task = {"env": args.env, "scenario": args.scenario, "uavs": args.uavs, "steps": args.steps,

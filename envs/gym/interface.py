@@ -327,6 +327,27 @@ MANOEUVRES = ("sweep", "orbit-near", "orbit-far", "helix", "close-pass", "next-r
               "return")
 
 
+def responder_manoeuvre(man, adaptive, name: str, target: str, obs: Observation,
+                        a: AgentView, goto_note: str):
+    """The path segment of a manoeuvre about responder ``target`` (the adaptive policy's
+    own building blocks, ``man``: :class:`planner.adaptive.Manoeuvres`): about its
+    estimate once the estimator tracks it, else about where it was heard. ``name`` is
+    ``orbit-near``, ``orbit-far``, ``helix``, ``close-pass``; anything else flies to it
+    (noted ``goto_note``)."""
+    r = next(v for v in obs.responders if v.bssid == target)
+    est = r.mean_enu_m is not None and r.status in ("converged", "tracking")
+    center = r.mean_enu_m[:2] if est else man.heard_center(r)[0]
+    if name == "orbit-near":
+        return man.orbit(center, adaptive.probe_radius_m[0], a)
+    if name == "orbit-far":
+        return man.orbit(center, adaptive.probe_radius_m[1], a)
+    if name == "helix":
+        return man.close_helix(r, a) if est else man.probe(r, a)
+    if name == "close-pass":
+        return man.close_pass(center, r.cov_m2 if est else None, a)
+    return man.goto(center, a, goto_note)
+
+
 class ManoeuvreActions:
     """``osa/Search-v0``: a choice of manoeuvre per decision (:data:`MANOEUVRES`).
 
@@ -401,21 +422,10 @@ class ManoeuvreActions:
         return Decision(plans={self.enc.agent: traj}, localised=loc, note=f"{name} {target}")
 
     def _build(self, name: str, target: str | None, obs: Observation, a: AgentView):
-        m, man, c = self.mission, self.man, self.cfg.adaptive
         if name == "return":
-            return man.goto(m.start_enu_m, a, "return")
-        r = next(v for v in obs.responders if v.bssid == target)
-        est = r.mean_enu_m is not None and r.status in ("converged", "tracking")
-        center = r.mean_enu_m[:2] if est else man.heard_center(r)[0]
-        if name == "orbit-near":
-            return man.orbit(center, c.probe_radius_m[0], a)
-        if name == "orbit-far":
-            return man.orbit(center, c.probe_radius_m[1], a)
-        if name == "helix":
-            return man.close_helix(r, a) if est else man.probe(r, a)
-        if name == "close-pass":
-            return man.close_pass(center, r.cov_m2 if est else None, a)
-        return man.goto(center, a, "next-responder")  # next-responder
+            return self.man.goto(self.mission.start_enu_m, a, "return")
+        return responder_manoeuvre(self.man, self.cfg.adaptive, name, target, obs, a,
+                                   "next-responder")
 
 
 class WaypointActions:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
+from envs.gym.interface import responder_manoeuvre
 from estimator.records import Trajectory
 from planner.adaptive import Manoeuvres
 from planner.area import SearchArea
@@ -217,19 +218,7 @@ class PlanActions:
                         note=self.names[i])
 
     def _build(self, name: str, target: str, obs: Observation, a: AgentView):
-        man, c = self.man, self.cfg.adaptive
-        r = next(v for v in obs.responders if v.bssid == target)
-        est = r.mean_enu_m is not None and r.status in ("converged", "tracking")
-        center = r.mean_enu_m[:2] if est else man.heard_center(r)[0]
-        if name == "next":
-            return man.goto(center, a, "next")
-        if name == "orbit-near":
-            return man.orbit(center, c.probe_radius_m[0], a)
-        if name == "orbit-far":
-            return man.orbit(center, c.probe_radius_m[1], a)
-        if name == "helix":
-            return man.close_helix(r, a) if est else man.probe(r, a)
-        return man.close_pass(center, r.cov_m2 if est else None, a)  # close-pass
+        return responder_manoeuvre(self.man, self.cfg.adaptive, name, target, obs, a, "next")
 
 
 def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0):

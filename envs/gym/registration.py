@@ -9,6 +9,8 @@ ENVS: dict[str, str] = {
     "osa/Waypoint-v0": "envs.gym.waypoint:WaypointEnv",
     "osa/Search-v1": "envs.gym.plan:PlanEnv",
 }
+# the PettingZoo team env's name at the CLI (not a Gymnasium id: envs/gym/team.py)
+TEAM_ENV_ID = "osa/Team-v0"
 
 
 def register_envs() -> None:

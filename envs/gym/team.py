@@ -27,8 +27,7 @@ from typing import Any
 import numpy as np
 
 from envs.gym.multi import SearchParallelEnv
-
-TEAM_ENV_ID = "osa/Team-v0"
+from envs.gym.registration import TEAM_ENV_ID  # noqa: F401  (its name here too)
 
 
 def make_team_env(kwargs: dict) -> SearchParallelEnv:
