@@ -4,11 +4,13 @@ in v1's actions, a uniformly random v1 policy and ``adaptive`` (docs/rl.md).
 Every policy flies ``osa search`` (``envs.loop.run_search``) on the same first
 ``--seeds`` test worlds (common random numbers). Per world: the time until every
 expected responder is localised (the estimator's judgement; censored at the budget),
-the number localised, and the mean horizontal error of the final estimates (the
-truth, for evaluation only). Paired two-sided exact sign tests compare each policy
-with ``adaptive`` on the time (ties dropped). ``--model`` (repeatable) adds
-``ppo:PATH`` policies. ``--curve MODEL`` draws the learning
-curve of an ``osa train`` folder (``progress.csv`` and ``validation.json``).
+the number localised, the mean horizontal error of the final estimates (the
+truth, for evaluation only), and whether the flight ended at take-off (within
+``HOME_M`` horizontally of where it started) with a responder heard but not
+localised (``home_unlocalised``: issue 20 asks that a trained policy never does).
+Paired two-sided exact sign tests compare each policy with ``adaptive`` on the time
+(ties dropped). ``--model`` (repeatable) adds ``ppo:PATH`` policies. ``--curve MODEL``
+draws the learning curve of an ``osa train`` folder (``progress.csv`` and ``validation.json``).
 
     python benchmarks/bench_rl_v1.py --model MODEL --seeds 20 --json rows.json
     python benchmarks/bench_rl_v1.py --table rows.json
@@ -58,6 +60,9 @@ class PlanPolicy:
         return self.pilot.act(self.act(enc), obs)
 
 
+HOME_M = 10.0  # "at take-off": the end of the true track this close to its start
+
+
 def fly(scenario, name: str, seed: int) -> dict:
     """One ``osa search`` of policy ``name`` (``heuristic``, ``random``, a named policy
     or ``ppo:PATH``) on world ``seed``."""
@@ -69,9 +74,14 @@ def fly(scenario, name: str, seed: int) -> dict:
     want = scenario.search.expected_responders or len(times)
     t_all = max(t for t in times if t is not None) if times and n_loc >= want else budget
     errs = [r["err_h_m"] for r in res.responders if r.get("err_h_m") is not None]
+    track = res.true_track[0]
+    home = bool(len(track)) and float(np.hypot(*(track[-1][:2] - track[0][:2]))) < HOME_M
+    unloc = sum("detected_at_s" in r and r.get("localised_at_s") is None
+                for r in res.responders)
     return {"policy": name, "seed": seed, "t_all_s": float(t_all), "localised": n_loc,
             "responders": len(times), "err_h_m": float(np.mean(errs)) if errs else None,
-            "flight_time_s": res.flight_time_s, "ended": res.ended}
+            "flight_time_s": res.flight_time_s, "ended": res.ended,
+            "home_unlocalised": bool(home and unloc > 0)}
 
 
 def sign_test_two_sided(wins: int, losses: int) -> float:
@@ -88,20 +98,22 @@ def table(rows: list[dict], budget: float) -> str:
           for p in pols}
     w0 = max(11, *(len(p) + 1 for p in pols))
     out = [f"{'policy':<{w0}}{'all localised':>14}{'responders':>11}{'median t_all':>13}"
-           f"{'median err':>11}{'vs adaptive (faster/slower/tie, p)':>37}"]
+           f"{'median err':>11}{'home+heard':>11}{'vs adaptive (faster/slower/tie, p)':>37}"]
     for p in pols:
         rs = by[p]
         t = np.array([r["t_all_s"] for r in rs])
         done = np.mean([r["t_all_s"] < budget for r in rs])
         loc = sum(r["localised"] for r in rs) / max(sum(r["responders"] for r in rs), 1)
         errs = [r["err_h_m"] for r in rs if r["err_h_m"] is not None]
+        hov = [r["home_unlocalised"] for r in rs if "home_unlocalised" in r]
+        home = f"{sum(hov)}/{len(hov)}" if hov else "-"
         cmp = ""
         if "adaptive" in by and p != "adaptive":
             a = np.array([r["t_all_s"] for r in by["adaptive"]])
             w, lo, ti = int((t < a).sum()), int((t > a).sum()), int((t == a).sum())
             cmp = f"{w}/{lo}/{ti}, p = {sign_test_two_sided(w, lo):.2g}"
         out.append(f"{p:<{w0}}{100 * done:>13.0f}%{100 * loc:>10.0f}%{np.median(t):>12.0f}s"
-                   f"{(f'{np.median(errs):.2f} m' if errs else '-'):>11}{cmp:>37}")
+                   f"{(f'{np.median(errs):.2f} m' if errs else '-'):>11}{home:>11}{cmp:>37}")
     return "\n".join(out)
 
 

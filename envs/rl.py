@@ -50,6 +50,7 @@ class TrainSettings:
     imitate_epochs: int = 30
     imitate_rounds: int = 0  # DAgger rounds after the first fit
     imitate_learning_rate: float = 3e-4  # Adam's rate while imitating (whatever PPO's)
+    init: Path | None = None  # a model folder whose weights and statistics start the training
 
 
 def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
@@ -172,8 +173,8 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
             self.seeds = split_seeds("validation", settings.eval_worlds)
             self.best: tuple | None = None
             self.history: list[dict] = []
-            if settings.imitate_episodes and settings.eval_every:
-                self.run()  # the imitation alone, before any PPO update
+            if (settings.imitate_episodes or settings.init is not None) and settings.eval_every:
+                self.run()  # the warm start alone, before any PPO update
 
         def _on_step(self) -> bool:
             if settings.eval_every and self.num_timesteps >= self.next:
@@ -251,10 +252,49 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
         "seed": settings.seed,
         "steps": int(model.num_timesteps),
         **({"curriculum": list(settings.curriculum)} if settings.curriculum else {}),
+        **({"init": str(settings.init)} if settings.init is not None else {}),
         **({"validation": extra} if extra else {}),
     }
     env.close()
     (folder / META_FILE).write_text(json.dumps(meta, indent=1))
+
+
+def check_init(folder: Path, env_id: str, algo: str, env_kwargs: dict) -> str | None:
+    """Why the model in ``folder`` cannot start a training of ``algo`` in ``env_id`` with
+    ``env_kwargs`` (one line), or None."""
+    if not (folder / MODEL_FILE).is_file() or not (folder / META_FILE).is_file():
+        return f"{folder}: not a model written by osa train (no {MODEL_FILE} and {META_FILE})"
+    try:
+        meta = json.loads((folder / META_FILE).read_text())
+    except ValueError as exc:
+        return f"{folder / META_FILE}: unreadable ({exc})"
+    if meta.get("env_id") != env_id or meta.get("algo", "PPO") != algo:
+        return (f"{folder} is a {meta.get('algo', 'PPO')} model of {meta.get('env_id')}, not "
+                f"{algo} in {env_id}")
+    if env_id != TEAM_ENV_ID:
+        env = make_env(env_id, env_kwargs).unwrapped
+        config = env.config.to_json()
+        env.close()
+        rewards = ("detection_bonus", "coverage_bonus", "time_cost_per_s", "leave_penalty")
+        if {k: v for k, v in meta.get("config", {}).items() if k not in rewards} != \
+                {k: v for k, v in config.items() if k not in rewards}:
+            return (f"{folder} was trained with other env settings (observation and "
+                    "actions) than this training's")
+    return None
+
+
+def load_init(model, venv, folder: Path) -> None:
+    """Start ``model`` (policy, value and optimiser state) and the ``VecNormalize``
+    ``venv`` (observation and return statistics) from the model in ``folder``
+    (``osa train --init``); the step count and the rates are this training's."""
+    import pickle
+
+    model.set_parameters(str(folder / MODEL_FILE), exact_match=True, device="cpu")
+    stats_p = folder / STATS_FILE
+    if stats_p.is_file():
+        with open(stats_p, "rb") as f:
+            stats = pickle.load(f)
+        venv.obs_rms, venv.ret_rms = stats.obs_rms, stats.ret_rms
 
 
 def _fly_and_label(venv, episodes: int, teacher, actor, gamma: float):
@@ -426,6 +466,8 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     except ImportError:
         pass
     model.set_logger(configure(str(out), formats))
+    if settings.init is not None:
+        load_init(model, venv, Path(settings.init))
     cbs, val = _callbacks(settings, out, venv)
     t0 = time.perf_counter()
     try:

@@ -33,6 +33,34 @@ PPO_DEFAULTS = dict(n_steps=256, batch_size=128, n_epochs=10, gamma=0.995, gae_l
                     clip_range=0.2)  # docs/rl.md
 
 
+REWARD_WEIGHTS = ("time_cost_per_s", "localised_bonus", "detection_bonus", "coverage_bonus",
+                  "leave_penalty")  # the env arguments --reward sets (docs/rl.md "Rewards")
+
+
+def reward_weights(items: list[str], env_id: str) -> tuple[str | None, dict]:
+    """``--reward NAME=X`` items as env keywords: (why they cannot be, or None; them)."""
+    from envs.gym.team import TEAM_ENV_ID
+
+    out: dict = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in REWARD_WEIGHTS:
+            return (f"--reward: unknown weight {name!r}; choose from "
+                    f"{', '.join(REWARD_WEIGHTS)}"), out
+        if env_id == TEAM_ENV_ID:
+            return f"--reward: not for {TEAM_ENV_ID}", out
+        if name == "localised_bonus" and env_id != "osa/Search-v1":
+            return f"--reward: localised_bonus is osa/Search-v1's, not {env_id}'s", out
+        try:
+            x = float(value)
+        except ValueError:
+            return f"--reward: expected NAME=X with X a number, got {item!r}", out
+        if not (math.isfinite(x) and x >= 0.0):
+            return f"--reward: {name} must be a number >= 0, got {value!r}", out
+        out[name] = x
+    return None, out
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train",
@@ -76,6 +104,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
                    help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
                    "policy labels its states, the clone is fitted again; default 0)")
+    p.add_argument("--init", default=None, metavar="MODEL",
+                   help="start from the weights (policy, value, optimiser) and the "
+                   "normalisation statistics of MODEL, an osa train folder of the same env, "
+                   "settings and algorithm (e.g. a DAgger clone); default: fresh weights")
+    p.add_argument("--reward", action="append", default=[], metavar="NAME=X",
+                   help="a reward weight of the env (repeatable): "
+                   f"{', '.join(REWARD_WEIGHTS)} (localised_bonus: osa/Search-v1); "
+                   "default: the env's")
     p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
                    help="PPO: the learning rate at the start, falling linearly to 0 "
                    "(default 3e-4)")
@@ -188,9 +224,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail("--scheduler runs the tasks of a --sweep FILE")
     if args.sweep is not None:
         if args.curriculum or args.imitate or args.learning_rate is not None or \
-                args.ent_coef is not None:
-            return _fail("--sweep: --curriculum, --imitate, --dagger, --learning-rate and "
-                         "--ent-coef are for one training, not a sweep")
+                args.ent_coef is not None or args.init is not None or args.reward:
+            return _fail("--sweep: --curriculum, --imitate, --dagger, --init, --reward, "
+                         "--learning-rate and --ent-coef are for one training, not a sweep")
         return run_sweep(args, task)
     problem = check_task(task)
     if problem:
@@ -203,9 +239,25 @@ def run(args: argparse.Namespace) -> int:
         env_kwargs["scenario"] = args.scenario
     if args.env == TEAM_ENV_ID:
         env_kwargs["uavs"] = args.uavs or 2
+    problem, weights = reward_weights(args.reward, args.env)
+    if problem:
+        return _fail(problem)
+    env_kwargs.update(weights)
+    init = None
+    if args.init is not None:
+        from envs.gym.trained import model_dir
+        from envs.rl import check_init
+
+        init = model_dir(args.init).resolve()
+        problem = check_init(init, args.env, args.algo.upper(), env_kwargs)
+        if problem:
+            return _fail(f"--init: {problem}")
+        v1_kw["init"] = init
     from envs.commands._outputs import OutputRefusedError, claim_output_dir
 
     inputs = [args.scenario] if args.scenario and Path(args.scenario).exists() else []
+    if init is not None:
+        inputs.append(str(init))
     try:  # the one output rule (docs/cli.md "Outputs"), before any training
         out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
     except OutputRefusedError as exc:

@@ -328,3 +328,49 @@ def test_osa_train_curriculum_and_imitate_errors(tmp_path, capsys):
         assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
+
+
+def test_osa_train_init_starts_from_a_model_s_weights_and_statistics(tmp_path, capsys):
+    pytest.importorskip("stable_baselines3")
+    import json
+    import pickle
+
+    import torch
+    from stable_baselines3 import PPO
+
+    from envs.cli import main
+
+    toml = tmp_path / "r.toml"
+    toml.write_text('extends = "search-five-mixed"\nname = "r"\n[search]\nbudget_s = 100.0\n'
+                    'random_responders = 1\nexpected_responders = 1\n')
+    common = ["train", "--env", "osa/Search-v1", "--scenario", str(toml), "--steps", "256",
+              "--envs", "1", "--checkpoint-every", "0", "--no-progress"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main([*common, "--eval-every", "0", "-o", str(a)]) == 0
+    # from a, with another seed (other fresh weights) at learning rate 0: the weights stay
+    # a's, and the first validation (before any rollout) flies a's policy
+    # (and other reward weights: the observation and actions are the same)
+    assert main([*common, "--init", str(a), "--seed", "1", "--learning-rate", "0",
+                 "--reward", "time_cost_per_s=0.1", "--reward", "localised_bonus=0",
+                 "--eval-every", "100000", "--eval-worlds", "1", "-o", str(b)]) == 0
+    pa, pb = (PPO.load(str(m / "model.zip"), device="cpu").policy.state_dict() for m in (a, b))
+    assert all(torch.equal(pa[k], pb[k]) for k in pa)
+    meta = json.loads((b / "osa-model.json").read_text())
+    assert meta["init"] == str(a.resolve()) and meta["config"]["time_cost_per_s"] == 0.1
+    assert meta["env_kwargs"]["localised_bonus"] == 0.0
+    with open(a / "vecnormalize.pkl", "rb") as f:
+        n_a = pickle.load(f).obs_rms["agent"].count
+    with open(b / "vecnormalize.pkl", "rb") as f:
+        n_b = pickle.load(f).obs_rms["agent"].count
+    assert n_b >= n_a + 256  # a's statistics, updated by b's 256 steps
+    capsys.readouterr()
+    for argv, match in ((["--init", str(tmp_path / "none")], "not a model"),
+                        (["--init", str(a), "--env", "osa/Search-v0"], "not PPO in osa/Search-v0"),
+                        (["--init", str(a), "--env", "osa/Search-v1", "--algo", "A2C"],
+                         "not A2C in osa/Search-v1"),
+                        (["--reward", "speed=1"], "unknown weight"),
+                        (["--reward", "time_cost_per_s=-1"], ">= 0"),
+                        (["--reward", "localised_bonus=1"], "osa/Search-v1's")):
+        assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
