@@ -34,11 +34,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scenario", metavar="SCENARIO",
                    help="a search preset (osa simulate --list), a suite preset "
-                   "suite/r{1,5,10}-c{0,30,50}-{sa,rtk}-u{1,2,4}, or a .toml with a [search] "
+                   "suite/r{1,5,10}-{c,h}{0,30,50}-{sa,rtk}-u{1,2,4}, or a .toml with a [search] "
                    "table")
     p.add_argument("--policies", required=True, metavar="P[,P...]",
                    help="comma-separated: lawnmower, expanding-square, adaptive, random, "
-                   "ppo:PATH")
+                   "random:waypoint, ppo:PATH, team:POLICY")
     p.add_argument("--seeds", required=True, type=positive_int, metavar="N",
                    help="number of seeds (worlds)")
     p.add_argument("--first-seed", type=non_negative_int, default=None, metavar="K",
