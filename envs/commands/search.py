@@ -21,8 +21,8 @@ from estimator.tables import Column, text_table
 
 POLICY_HELP = ("lawnmower (the QGroundControl-style survey), expanding-square, adaptive "
                "(default: search until heard, then plan around the estimate), random (uniform "
-               "actions of osa/Search-v0: the floor), or ppo:PATH "
-               "(a policy trained by osa train)")
+               "actions of osa/Search-v0: the floor; random:waypoint), ppo:PATH "
+               "(a policy trained by osa train) or team:POLICY (every UAV its own copy)")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
