@@ -27,11 +27,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import envs.evaluate
-from envs.cli import EXIT_SOFTWARE, main
+from envs.cli import EXIT_SOFTWARE
 from envs.commands._outputs import json_text
 from planner.files import write_plan
 from planner.mavlink import mavutil  # MAVLink 2 set up before pymavlink is used
 from planner.mission import Mission, MissionItem
+from tests.cli import one_line, status_of
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "example_flight.jsonl"
@@ -41,20 +42,6 @@ ESC = "\x1b"
 FAST = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture,
                                        HealthCheck.too_slow])
-
-
-def status_of(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exc:
-        return int(exc.code)
-
-
-def one_line(capsys) -> str:
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.endswith("\n"), err
-    assert "Traceback" not in err
-    return err.strip()
 
 
 def no_traceback(err: str) -> None:

@@ -12,28 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from envs.cli import EXIT_BROKEN_PIPE, main
+from envs.cli import EXIT_BROKEN_PIPE
 from planner.files import read_mission, write_plan
 from planner.mission import Mission, MissionItem
+from tests.cli import one_line, status_of
 from tests.estimator.synth import write_flight
 
 ROOT = Path(__file__).resolve().parents[2]
 CENTER = "36.7149,-4.4781"
-
-
-def status_of(argv: list[str]) -> int:
-    """``osa argv``'s exit status, whether it returns or argparse exits."""
-    try:
-        return main(argv)
-    except SystemExit as exc:
-        return int(exc.code)
-
-
-def one_line(capsys) -> str:
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.endswith("\n"), err
-    assert "Traceback" not in err
-    return err.strip()
 
 
 # ------------------------------------------------------------------ osa upload

@@ -16,16 +16,10 @@ from envs.cli import main
 from envs.commands.run import StepProgress
 from planner.files import read_mission
 from planner.mission import MAV_CMD_NAV_WAYPOINT
+from tests.cli import status_of
 from tests.estimator.synth import write_flight
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def status_of(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exc:
-        return int(exc.code)
 
 
 @pytest.fixture(scope="module")

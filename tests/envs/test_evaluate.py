@@ -16,7 +16,6 @@ import sys
 import numpy as np
 import pytest
 
-from envs.cli import main
 from envs.evaluate import (
     COLUMNS,
     SPEC_COLUMNS,
@@ -33,6 +32,7 @@ from envs.loop import LoopConfig, run_search
 from envs.metrics import time_within_s
 from envs.policies import load_policy
 from sim.scenario import load_scenario
+from tests.cli import one_line, status_of
 
 POLICIES = ("lawnmower", "expanding-square", "adaptive")
 SEEDS = (0, 1, 2_000_000)  # no answer / heard / heard and converged (adaptive)
@@ -73,20 +73,6 @@ def dask_client():
     finally:
         client.close(timeout=30)
         cluster.close(timeout=30)
-
-
-def status_of(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exc:
-        return int(exc.code)
-
-
-def one_line(capsys) -> str:
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.endswith("\n"), err
-    assert "Traceback" not in err
-    return err.strip()
 
 
 def _same_series(a, b) -> bool:
