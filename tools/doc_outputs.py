@@ -67,7 +67,7 @@ class Block:
     line: int  # 1-based line of the opening marker
     size: str  # "small" | "slow"
     commands: list[str]
-    output: list[str]  # the lines shown in the document
+    output: list[str]  # the lines shown in the document (a console's: with its prompts)
     output_span: tuple[int, int]  # 0-based [start, end) of the output lines in the file
     console: bool = False
     masks: list[re.Pattern] = field(default_factory=list)
@@ -81,35 +81,32 @@ class Block:
     def script(self) -> str:
         return "\n".join(self.commands) + "\n"
 
-    def comparable(self, lines: list[str]) -> list[str]:
+    def kept(self, lines: list[str]) -> list[str]:
+        """The lines a document shows of printed ones: right-stripped, ``keep`` applied
+        (a console's ``$`` prompts always kept), trailing blank lines dropped."""
         out = [ln.rstrip() for ln in lines]
         if self.keep is not None:
-            out = [ln for ln in out if self.keep.search(ln)]
-        for mask in self.masks:
-            out = [mask.sub(MASKED, ln) for ln in out]
+            out = [ln for ln in out if ln.startswith("$ ") or self.keep.search(ln)]
         while out and not out[-1]:
             out.pop()
         return out
 
-    def render(self, printed: list[str]) -> list[str]:
-        """The document's lines for this output (the commands' prompts kept in a console)."""
-        lines = [ln.rstrip() for ln in printed]
-        if self.keep is not None:
-            lines = [ln for ln in lines if self.keep.search(ln)]
-        while lines and not lines[-1]:
-            lines.pop()
-        return lines
+    def comparable(self, lines: list[str]) -> list[str]:
+        """``lines`` as compared: :meth:`kept`, with the masked parts replaced."""
+        out = self.kept(lines)
+        for mask in self.masks:
+            out = [mask.sub(MASKED, ln) for ln in out]
+        return out
 
 
-def _options(text: str) -> dict[str, str]:
-    opts: dict[str, str] = {}
+def _options(text: str) -> list[tuple[str, str]]:
+    """A marker's ``key: value`` options in order (``mask`` may come several times)."""
+    pairs = []
     for part in text.split(";"):
-        part = part.strip()
-        if not part:
-            continue
-        key, _, value = part.partition(":")
-        opts[key.strip()] = value.strip()
-    return opts
+        if part.strip():
+            key, _, value = part.partition(":")
+            pairs.append((key.strip(), value.strip()))
+    return pairs
 
 
 def _fenced(lines: list[str], i: int, where: str, prose: bool = False
@@ -148,16 +145,15 @@ def blocks(path: Path) -> list[Block]:
             continue
         where = f"{path.relative_to(ROOT)}:{i + 1}"
         opts = _options(m.group(2))
+        keep = [v for k, v in opts if k == "keep"]
         lang, a, b = _fenced(lines, i + 1, where)
         common = dict(path=path, line=i + 1, size=m.group(1),
-                      masks=[re.compile(v) for k, v in _split_masks(m.group(2))],
-                      keep=re.compile(opts["keep"]) if "keep" in opts else None,
-                      stderr="stderr" in opts)
+                      masks=[re.compile(v) for k, v in opts if k == "mask"],
+                      keep=re.compile(keep[-1]) if keep else None,
+                      stderr=any(k == "stderr" for k, _ in opts))
         if lang == "console":
-            body = lines[a:b]
-            cmds = [ln[2:] for ln in body if ln.startswith("$ ")]
-            shown = [ln for ln in body if not ln.startswith("$ ")]
-            found.append(Block(commands=cmds, output=shown, output_span=(a, b),
+            cmds = [ln[2:] for ln in lines[a:b] if ln.startswith("$ ")]
+            found.append(Block(commands=cmds, output=lines[a:b], output_span=(a, b),
                                console=True, **common))
             end = b + 1
         else:
@@ -171,11 +167,6 @@ def blocks(path: Path) -> list[Block]:
             raise DocFormatError(f"{where}: no <!-- /output --> right after the output block")
         i = end + 1
     return found
-
-
-def _split_masks(text: str) -> list[tuple[str, str]]:
-    return [(k, v.strip()) for k, v in (p.strip().partition(":")[::2] for p in text.split(";"))
-            if k.strip() == "mask"]
 
 
 def documents() -> list[Path]:
@@ -204,7 +195,6 @@ def run(block: Block, timeout_s: float = 1800.0) -> list[str]:
     with tempfile.TemporaryDirectory(prefix="osa-doc-") as tmp:
         for name in LINKED:
             os.symlink(ROOT / name, Path(tmp) / name)
-        printed: list[str] = []
         scripts = ([c + "\n" for c in block.commands] if block.console
                    else [block.script()])
         shell = "set -e\n"
@@ -220,8 +210,7 @@ def run(block: Block, timeout_s: float = 1800.0) -> list[str]:
         text = proc.stdout + (proc.stderr if block.stderr else "")
         if block.console:
             return _console(block, text)
-        printed = text.splitlines()
-        return block.render(printed)
+        return block.kept(text.splitlines())
 
 
 def _console(block: Block, text: str) -> list[str]:
@@ -229,26 +218,13 @@ def _console(block: Block, text: str) -> list[str]:
     parts = text.split(BOUNDARY + "\n")
     out: list[str] = []
     for cmd, printed in zip(block.commands, parts, strict=False):
-        out.append(f"$ {cmd}")
-        lines = [ln.rstrip() for ln in printed.splitlines()]
-        if block.keep is not None:
-            lines = [ln for ln in lines if block.keep.search(ln)]
-        out += lines
+        out += [f"$ {cmd}", *block.kept(printed.splitlines())]
     return out
-
-
-def expected(block: Block) -> list[str]:
-    """The block's output as the document shows it (with its commands, for a console)."""
-    if not block.console:
-        return block.output
-    path_lines = block.path.read_text(encoding="utf-8").splitlines()
-    a, b = block.output_span
-    return path_lines[a:b]
 
 
 def check(block: Block) -> str | None:
     """None when the document shows what the commands print, else a unified diff."""
-    want = block.comparable(expected(block))
+    want = block.comparable(block.output)
     got = block.comparable(run(block))
     if want == got:
         return None
