@@ -530,6 +530,8 @@ class Multirotor:
                 x, y, z = st[:3].tolist()
                 if nav_l is not None:
                     bx, by, bz = nav_l[j]
+                    if walker:  # a walker's height is the ground's: no GNSS height error
+                        bz = 0.0
                     cx, cy, cz = command(x + bx, y + by, z + bz, dt)
                 else:
                     cx, cy, cz = command(x, y, z, dt)
