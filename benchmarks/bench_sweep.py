@@ -9,6 +9,8 @@ budget cut to ``--budget-s`` (0: the scenario's own), and checked for:
 - the true path leaving the area or entering a keep-out below its top (worst excursion,
   metres; ``--tolerance-m`` allowed for the controller's wander),
 - stalls the loop detected and the longest time still while a segment was pending,
+- a hover: the vehicle within 3 m of one point for ``--hover-s`` or longer, whatever
+  the policy asked (``bench_stalls.longest_still_s``; the env's ``return`` holds too),
 - with ``--repeat``: a second identical run whose report or log differs.
 
     python benchmarks/bench_sweep.py --budget-s 240 --seeds 0,1,2147483647,4294967301
@@ -29,6 +31,7 @@ import traceback
 from pathlib import Path
 
 import numpy as np
+from bench_stalls import longest_still_s
 
 from envs.loop import ClosedLoop, fly
 from envs.policies import load_policy
@@ -78,22 +81,28 @@ def excursion_m(loop: ClosedLoop) -> float:
 
 
 def one_run(scenario, policy: str, seed: int, log: Path | None) -> dict:
-    loop = ClosedLoop(scenario, seed, log_paths=None if log is None else [log])
+    logs = None if log is None else [log.with_suffix(f".{i}.jsonl")
+                                      for i in range(len(scenario.agents))]
+    loop = ClosedLoop(scenario, seed, log_paths=logs)
     res = fly(loop, load_policy(policy, scenario))
     report = res.to_json()
     report.pop("log", None)
+    report.pop("logs", None)  # the file names differ between the two runs
     out = {
         "ended": res.ended, "flight_time_s": res.flight_time_s,
         "nonfinite": non_finite(report), "excursion_m": excursion_m(loop),
         "stalls": len(loop.stalls),
         "still_pending_s": max(loop.longest_still_s(i) for i in range(len(loop.nav_track))),
+        # the UAVs the policy flies: one-UAV policies leave the others at take-off
+        "still_s": max(longest_still_s(t) for t in (
+            loop.nav_track if policy.startswith(("team:", "random")) else loop.nav_track[:1])),
         "refused": res.refused_plans,
         "localised": sum("localised_at_s" in r for r in res.responders),
         "responders": len(res.responders),
         "digest": hashlib.sha256(json.dumps(report, sort_keys=True).encode()).hexdigest(),
     }
-    if log is not None:
-        out["digest"] += hashlib.sha256(log.read_bytes()).hexdigest()
+    for p in logs or ():
+        out["digest"] += hashlib.sha256(p.read_bytes()).hexdigest()
     return out
 
 
@@ -131,12 +140,16 @@ def main() -> None:
                     help="cut every budget to this (0: the scenario's own)")
     ap.add_argument("--repeat", action="store_true", help="fly each twice and compare")
     ap.add_argument("--tolerance-m", type=float, default=3.0)
+    ap.add_argument("--hover-s", type=float, default=120.0)
     ap.add_argument("--wall-s", type=float, default=600.0, help="per search (a hang)")
     ap.add_argument("--json", default=None, help="write the rows here")
     a = ap.parse_args()
     rows = []
-    jobs = [(s, p, int(k)) for s in a.scenarios.split(",") for p in a.policies.split(",")
-            for k in a.seeds.split(",")]
+    jobs = []
+    for s in a.scenarios.split(","):
+        team = len(load_scenario(s).agents) > 1  # several UAVs: every one its own adaptive
+        for p in [*a.policies.split(","), *(["team:adaptive"] if team else [])]:
+            jobs += [(s, p, int(k)) for k in a.seeds.split(",")]
     for i, (s, p, k) in enumerate(jobs):
         r = run_job(s, p, k, a.budget_s, a.repeat, a.wall_s)
         rows.append(r)
@@ -152,12 +165,15 @@ def main() -> None:
                 bad.append(f"{r['stalls']} stalls (still {r['still_pending_s']:.0f} s)")
             if r.get("same") is False:
                 bad.append("two runs differ")
+            if r["still_s"] >= a.hover_s:
+                bad.append(f"hover {r['still_s']:.0f} s")
         flag = "FAIL " + "; ".join(bad) if bad else "ok"
         print(f"[{i + 1}/{len(jobs)}] {s} {p} seed {k}: {r.get('ended', '-')} "
               f"{r.get('localised', 0)}/{r.get('responders', 0)} localised, "
               f"{r['cpu_s']:.1f} CPU s: {flag}", flush=True)
     n_bad = sum(1 for r in rows if "error" in r or r.get("nonfinite") or r.get("stalls")
-                or r.get("excursion_m", 0) > a.tolerance_m or r.get("same") is False)
+                or r.get("excursion_m", 0) > a.tolerance_m or r.get("same") is False
+                or r.get("still_s", 0) >= a.hover_s)
     print(f"{len(rows)} searches, {n_bad} with a problem, "
           f"{sum(r['cpu_s'] for r in rows) / 60:.1f} CPU min")
     if a.json:
