@@ -382,11 +382,43 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
         target: str | Path = parent
         if parent.endswith(".toml") and not Path(parent).is_absolute():
             target = base_dir / parent
-        base, _, _ = _read_toml(target, (*chain, source))
+        base, _, parent_dir = _read_toml(target, (*chain, source))
+        base = _anchor_files(base, parent_dir)  # the parent's files, not this file's
         base.pop("name", None)
         table = merge_tables(base, table)
     table.setdefault("name", stem)
     return table, source, base_dir
+
+
+def _anchor_files(table: dict, base_dir: Path) -> dict:
+    """``table`` with its relative file names (the DEM, a grid file, the area's file,
+    the keep-outs' files) made absolute against ``base_dir``, the folder of the file
+    that names them, so that a scenario extending it from elsewhere still finds them."""
+
+    def anchored(v: Any) -> Any:
+        if isinstance(v, str) and v and not Path(v).is_absolute():
+            return str(base_dir / v)
+        return v
+
+    out = dict(table)
+    world = out.get("world")
+    if isinstance(world, dict) and isinstance(world.get("terrain"), dict):
+        terrain = dict(world["terrain"])
+        for k in ("path", "file"):
+            if k in terrain:
+                terrain[k] = anchored(terrain[k])
+        out["world"] = {**world, "terrain": terrain}
+    search = out.get("search")
+    if isinstance(search, dict):
+        search = dict(search)
+        if "area_file" in search:
+            search["area_file"] = anchored(search["area_file"])
+        if isinstance(search.get("keepout"), list):
+            search["keepout"] = [
+                {**k, "file": anchored(k["file"])} if isinstance(k, dict) and "file" in k
+                else k for k in search["keepout"]]
+        out["search"] = search
+    return out
 
 
 def _terrain(table: dict, base_dir: Path) -> Terrain:

@@ -76,3 +76,15 @@ def test_the_search_height_floor_follows_the_vertical_gnss_error(tmp_path):
                  "suite/r5-h30-sa-u4"):
         sc = load_scenario(name)
         assert sc.search.height_m >= min_search_height_m(sc), name
+
+
+def test_a_variant_of_a_site_preset_finds_the_presets_files(tmp_path):
+    """``extends = "site-valley"`` from another folder: the preset's DEM, area and
+    keep-out files are the preset's (before: looked for beside the variant, exit 2)."""
+    p = write(tmp_path, 'extends = "site-valley"\nname = "short"\n[search]\nbudget_s = 300.0\n')
+    variant, preset = load_scenario(p), load_scenario("site-valley")
+    assert variant.search.budget_s == 300.0
+    assert variant.search.area_enu_m == preset.search.area_enu_m
+    assert variant.keepouts == preset.keepouts and len(variant.keepouts) > 1
+    e, n = 100.0, 50.0
+    assert variant.world.ground_m(e, n) == preset.world.ground_m(e, n)
