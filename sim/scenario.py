@@ -715,6 +715,10 @@ def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[Agen
     for i, a in enumerate(raw):
         where = f"agents[{i}]"
         t = dict(a)
+        known = ("gnss", "kind", "name", "start_e_m", "start_n_m", "vehicle")
+        unknown = sorted(set(t) - set(known))
+        if unknown:
+            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(known)})")
         kind = t.pop("kind", "uav")
         if kind not in ("uav", "ground"):
             raise ConfigError(f"{where}.kind: {kind!r} is not 'uav' or 'ground'")

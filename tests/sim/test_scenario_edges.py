@@ -40,6 +40,8 @@ def write(tmp_path, text: str, name: str = "edge.toml"):
     (BASE + '\n[world.terrain]\nkind = "grid"\ne0_m = 0\nn0_m = 0\nspacing_m = 10\n'
             'heights_m = [[0.0, 1.0], [2.0]]\n',
      "world.terrain.heights_m: expected rows of numbers, all of the same length"),
+    (BASE + '\n[[agents]]\nname = "a"\nspeed = 3.0\n',
+     "agents[0]: unknown key 'speed' (known: gnss, kind, name, start_e_m, start_n_m, vehicle)"),
     (BASE + '\n[[agents]]\nname = "a"\n[[agents]]\nname = "b"\nstart_e_m = 30.0\n',
      "agents[1]: agent b: give both start_e_m and start_n_m, or neither"),
     (BASE + '\n[[agents]]\nname = "a"\n[[agents]]\nname = "b"\nstart_e_m = 3000.0\n'
