@@ -17,6 +17,16 @@ through them, each with an id (the first element of a :data:`Peer`):
 
 MAVSDK's ``udpin://``, ``udpout://``, ``tcp://`` forms are accepted too
 (:func:`vehicle_url`).
+
+Framing (:class:`Framing`): a link speaks MAVLink 2 until its ground station shows it
+reads only MAVLink 1, as PX4 (MAV_PROTO_VER 0) and ArduPilot negotiate it: a ground
+station that can read MAVLink 2 switches to it on the first MAVLink 2 frame it hears
+(QGroundControl, Mission Planner, pymavlink's ``mavutil``; MAVSDK always sends 2), so
+one still writing MAVLink 1 :data:`MAVLINK1_AFTER_S` after the link was first heard
+(and greeted in MAVLink 2) gets MAVLink 1 frames from then on, until it writes a
+MAVLink 2 frame. On a MAVLink 1 link, messages with an id above 255 (MAVLink 2 only:
+TUNNEL, PROTOCOL_VERSION...) are not sent, and extension fields are left out; a
+PROTOCOL_VERSION asked for goes in MAVLink 2 framing all the same, as PX4 sends it.
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ TCP_BUFFER_BYTES = 1 << 20  # per TCP client: what it has not read yet, at most
 TCP_SEND_BUFFER_BYTES = 1 << 16  # the kernel's send buffer per TCP client (SO_SNDBUF)
 TCP_BACKLOG = 8
 MAX_MESSAGES_PER_POLL = 1000  # per link and poll: a flood never starves the loop
+MAVLINK1_AFTER_S = 2.0  # wall seconds a ground station has to switch to MAVLink 2
 
 _SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
             "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
@@ -68,6 +79,33 @@ def vehicle_url(url: str) -> str:
     return u
 
 
+def is_mavlink1(msg: Any) -> bool:
+    """Whether a received message came in MAVLink 1 framing."""
+    buf = msg.get_msgbuf()
+    return bool(buf) and buf[0] == mavlink.PROTOCOL_MARKER_V1
+
+
+class Framing:
+    """The MAVLink version a link's ground station reads (see the module docstring):
+    ``heard(mavlink1, now)`` for every frame received; ``mavlink1`` says how to send."""
+
+    def __init__(self) -> None:
+        self.first_heard: float | None = None
+        self.mavlink1 = False
+
+    def heard(self, mavlink1: bool, now: float) -> None:
+        if self.first_heard is None:
+            self.first_heard = now
+        if not mavlink1:
+            self.mavlink1 = False
+        elif now - self.first_heard >= MAVLINK1_AFTER_S:
+            self.mavlink1 = True
+
+    def can_send(self, msg_id: int, mavlink2: bool = False) -> bool:
+        """Whether message ``msg_id`` can go on this link (``mavlink2``: forced)."""
+        return msg_id <= 255 or mavlink2 or not self.mavlink1
+
+
 class MavPort:
     """One pymavlink connection (udpin, udpout, tcp): one link."""
 
@@ -94,6 +132,7 @@ class MavPort:
         self.url = url
         self.mav = self.conn.mav
         self.closed = False
+        self.framing = Framing()
 
     def fileno(self) -> int | None:
         return self.conn.fd
@@ -130,6 +169,7 @@ class TcpClient:
         self.closed = False
         self.mav = mavlink.MAVLink(self, srcSystem=sysid, srcComponent=compid)
         self.mav.robust_parsing = True
+        self.framing = Framing()
 
     def fileno(self) -> int | None:
         return None if self.closed else self.sock.fileno()
@@ -240,13 +280,16 @@ class Links:
             self.close()
             raise
 
-    def poll(self) -> Iterator[tuple[int, Any]]:
-        """(link id, message) for everything received; new TCP clients are accepted."""
+    def poll(self, now: float | None = None) -> Iterator[tuple[int, Any]]:
+        """(link id, message) for everything received; new TCP clients are accepted;
+        each link's framing follows what it hears (``now``: wall seconds)."""
         for lst in self.listeners:
             for client in lst.accept():
                 self.links[next(self._ids)] = client
         for k, link in list(self.links.items()):
             for msg in link.receive():
+                if now is not None and msg.get_type() != "BAD_DATA":
+                    link.framing.heard(is_mavlink1(msg), now)
                 yield k, msg
             if link.closed:
                 del self.links[k]
@@ -259,31 +302,40 @@ class Links:
             return None
         return [fd for fd in fds if fd is not None]
 
+    @staticmethod
+    def _send(link: Link, msg: Any, mavlink2: bool = False) -> int:
+        """Send ``msg`` on ``link`` in its framing; 1 if sent."""
+        if not link.framing.can_send(msg.id, mavlink2):
+            return 0
+        with contextlib.suppress(OSError):
+            link.mav.send(msg, force_mavlink1=link.framing.mavlink1 and not mavlink2)
+            return 1
+        return 0
+
     def broadcast(self, msg: Any) -> None:
         """``msg`` on every link."""
         if msg is None:
             return
         for link in list(self.links.values()):
-            with contextlib.suppress(OSError):
-                link.mav.send(msg)
-                self.sent += 1
+            self.sent += self._send(link, msg)
 
-    def send(self, peer: Peer, msg: Any) -> None:
-        """``msg`` on the link of ``peer`` (gone: nothing)."""
+    def send(self, peer: Peer, msg: Any, *, mavlink2: bool = False) -> None:
+        """``msg`` on the link of ``peer`` (gone: nothing); ``mavlink2``: in MAVLink 2
+        framing whatever the link's."""
         link = self.links.get(peer[0])
         if msg is None or link is None:
             return
-        with contextlib.suppress(OSError):
-            link.mav.send(msg)
-            self.sent += 1
+        self.sent += self._send(link, msg, mavlink2)
 
     def send_args(self, peer: Peer, name: str, args: tuple) -> None:
         """``<name>_send(target system, target component, *args)`` to ``peer``."""
         link = self.links.get(peer[0])
-        if link is None:
+        if link is None or not link.framing.can_send(
+                getattr(mavlink, f"MAVLink_{name}_message").id):
             return
         with contextlib.suppress(OSError):
-            getattr(link.mav, f"{name}_send")(peer[1], peer[2], *args)
+            getattr(link.mav, f"{name}_send")(peer[1], peer[2], *args,
+                                              force_mavlink1=link.framing.mavlink1)
             self.sent += 1
 
     def close(self) -> None:

@@ -10,6 +10,10 @@ and 5 s). A resent last item after the final ACK is acknowledged again (the ACK 
 lost), a resent earlier item is answered with a request for the one expected, an
 item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE. One upload per
 list at a time: a second ground station gets MAV_MISSION_DENIED while one runs.
+Items are asked for in the form the ground station speaks, as PX4 does: MISSION_REQUEST_INT,
+or the legacy MISSION_REQUEST to one that last sent a float MISSION_ITEM or asked with
+MISSION_REQUEST, or started the upload in MAVLink 1 framing (a MAVLink 1-era ground
+station may know no other).
 
 Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_ITEM_INT)
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
@@ -51,6 +55,8 @@ class _Upload:
     items: list[WireItem]
     activity_s: float
     requested_s: float
+    float_form: bool = False  # ask with the legacy MISSION_REQUEST
+    legacy_guess: bool = False  # float form from what the peer did before
 
 
 @dataclass(frozen=True)
@@ -79,6 +85,7 @@ class MissionServer:
         self._last: dict[int, _Commit] = {}
         self.refused: list[tuple[int, int]] = []  # (mission_type, MAV_MISSION_RESULT)
         self.commits: dict[int, int] = {t: 0 for t in CAPACITY}  # accepted lists per type
+        self._float_peers: set[Peer] = set()  # last spoke the float forms
 
     # ------------------------------------------------------------------ helpers
     def _ack(self, peer: Peer, result: int, mission_type: int) -> None:
@@ -91,7 +98,17 @@ class MissionServer:
 
     def _request(self, rx: _Upload) -> None:
         rx.requested_s = self.clock()
-        self.send(rx.peer, "mission_request_int", (len(rx.items), rx.mission_type))
+        name = "mission_request" if rx.float_form else "mission_request_int"
+        self.send(rx.peer, name, (len(rx.items), rx.mission_type))
+
+    def _speaks(self, peer: Peer, float_form: bool) -> None:
+        """``peer`` was heard in the float (legacy) or the INT form."""
+        if float_form:
+            if len(self._float_peers) >= 1024:
+                self._float_peers.clear()
+            self._float_peers.add(peer)
+        else:
+            self._float_peers.discard(peer)
 
     def _commit(self, peer: Peer, mission_type: int, items: list[WireItem]) -> None:
         current = 0
@@ -108,7 +125,9 @@ class MissionServer:
         return bool(self._rx)
 
     # ------------------------------------------------------------------ upload
-    def on_count(self, peer: Peer, count: int, mission_type: int) -> None:
+    def on_count(self, peer: Peer, count: int, mission_type: int, *,
+                 mavlink1: bool = False) -> None:
+        """MISSION_COUNT (``mavlink1``: it came in MAVLink 1 framing)."""
         now = self.clock()
         if mission_type not in CAPACITY:
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
@@ -128,12 +147,18 @@ class MissionServer:
         if rx is not None and rx.peer == peer and rx.count == count and not rx.items:
             self._request(rx)  # the count again: our request was lost
             return
-        rx = _Upload(peer, mission_type, count, [], now, now)
+        guess = peer in self._float_peers and not mavlink1
+        rx = _Upload(peer, mission_type, count, [], now, now,
+                     float_form=mavlink1 or guess, legacy_guess=guess)
         self._rx[mission_type] = rx
         self._request(rx)
 
-    def on_item(self, peer: Peer, w: WireItem) -> None:
+    def on_item(self, peer: Peer, w: WireItem, *, float_form: bool = False) -> None:
+        """One uploaded item (``float_form``: it came as a legacy MISSION_ITEM)."""
+        self._speaks(peer, float_form)
         rx = self._rx.get(w.mission_type)
+        if rx is not None and rx.peer == peer:
+            rx.float_form = float_form
         if rx is None or rx.peer != peer:
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
@@ -176,7 +201,7 @@ class MissionServer:
                      x=deg_to_e7(x) if math.isfinite(x) else 2**31 - 1,
                      y=deg_to_e7(y) if math.isfinite(y) else 2**31 - 1, z=float(msg.z),
                      mission_type=int(getattr(msg, "mission_type", 0)))
-        self.on_item(peer, w)
+        self.on_item(peer, w, float_form=True)
 
     def on_ack(self, peer: Peer, result: int, mission_type: int) -> None:
         """A ground station's MISSION_ACK: a non-zero one cancels its upload."""
@@ -191,6 +216,10 @@ class MissionServer:
             if now - rx.activity_s > self.timeout_s:
                 self._refuse(rx.peer, MAV_MISSION_OPERATION_CANCELLED, t)
             elif now - rx.requested_s > self.retry_s:
+                if rx.legacy_guess and not rx.items:
+                    # asked in the float form on memory alone and not answered: this
+                    # ground station may have moved on to the INT form; alternate
+                    rx.float_form = not rx.float_form
                 self._request(rx)
 
     # ------------------------------------------------------------------ download
@@ -208,6 +237,7 @@ class MissionServer:
 
     def on_request(self, peer: Peer, seq: int, mission_type: int, *,
                    float_form: bool = False) -> None:
+        self._speaks(peer, float_form)
         items = self.held.get(mission_type)
         if items is None:
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)

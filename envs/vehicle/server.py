@@ -54,6 +54,7 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_NAV_TAKEOFF,
     MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
     MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_REQUEST_PROTOCOL_VERSION,
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_PARAM_TYPE_REAL32,
@@ -73,7 +74,7 @@ from pymavlink.dialects.v20.common import (
 )
 
 from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.links import ConnectionURLError, Links
+from envs.vehicle.links import ConnectionURLError, Links, is_mavlink1
 from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
 from envs.vehicle.params import Params
 from envs.vehicle.protocol import MissionServer, Peer
@@ -85,7 +86,7 @@ from envs.vehicle.px4 import (
     mode_name,
 )
 from envs.vehicle.relay import RecordRelay
-from envs.vehicle.telemetry import REQUESTABLE, Telemetry
+from envs.vehicle.telemetry import MAVLINK_MSG_ID_PROTOCOL_VERSION, REQUESTABLE, Telemetry
 from envs.vehicle.terrain import REQUEST_BLOCKS_E, REQUEST_BLOCKS_N
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
@@ -335,7 +336,9 @@ class VirtualVehicle:
         self.stats.sent = self.links.sent
 
     def _send_msg(self, peer: Peer, msg: Any) -> None:
-        self.links.send(peer, msg)
+        # PROTOCOL_VERSION in MAVLink 2 framing on any link (as PX4: the handshake)
+        self.links.send(peer, msg, mavlink2=getattr(msg, "id", None)
+                        == MAVLINK_MSG_ID_PROTOCOL_VERSION)
         self.stats.sent = self.links.sent
 
     def _ack(self, peer: Peer, command: int, result: int) -> None:
@@ -368,7 +371,7 @@ class VirtualVehicle:
 
     # ------------------------------------------------------------------ receiving
     def _receive(self, now: float) -> None:
-        for link, msg in self.links.poll():
+        for link, msg in self.links.poll(now):
             self._dispatch(link, msg, now)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:
@@ -417,7 +420,8 @@ class VirtualVehicle:
 
     # mission protocol
     def _on_mission_count(self, peer: Peer, msg: Any) -> None:
-        self.protocol.on_count(peer, int(msg.count), int(getattr(msg, "mission_type", 0)))
+        self.protocol.on_count(peer, int(msg.count), int(getattr(msg, "mission_type", 0)),
+                               mavlink1=is_mavlink1(msg))
 
     def _on_mission_item_int(self, peer: Peer, msg: Any) -> None:
         self.protocol.on_item_int(peer, msg)
@@ -624,9 +628,11 @@ class VirtualVehicle:
                 ok = self.telemetry.streams.set_interval(msg_id, p[1])
                 return (MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED), "", None
         if cmd in (MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                   MAV_CMD_GET_HOME_POSITION):
+                   MAV_CMD_GET_HOME_POSITION, MAV_CMD_REQUEST_PROTOCOL_VERSION):
             msg_id = {MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: MAVLINK_MSG_ID_AUTOPILOT_VERSION,
-                      MAV_CMD_GET_HOME_POSITION: MAVLINK_MSG_ID_HOME_POSITION}.get(cmd, int(p[0]))
+                      MAV_CMD_GET_HOME_POSITION: MAVLINK_MSG_ID_HOME_POSITION,
+                      MAV_CMD_REQUEST_PROTOCOL_VERSION: MAVLINK_MSG_ID_PROTOCOL_VERSION,
+                      }.get(cmd, int(p[0]))
             if msg_id in REQUESTABLE:
                 return MAV_RESULT_ACCEPTED, "", self.telemetry.build(msg_id)
         return MAV_RESULT_UNSUPPORTED, "", None

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import hashlib
 import math
+import struct
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from pymavlink.dialects.v20.common import (
     MAV_AUTOPILOT_PX4,
@@ -47,6 +49,33 @@ from sim.realisation import Realisation
 
 mavlink = mavutil.mavlink
 
+MAVLINK_MSG_ID_PROTOCOL_VERSION = 300  # minimal.xml; not in pymavlink 2.4's dialects
+
+
+class ProtocolVersionMessage(mavlink.MAVLink_message):
+    """PROTOCOL_VERSION (300, MAVLink 2 only; pymavlink's common dialect lacks it): the
+    versions spoken, for the handshake of MAV_CMD_REQUEST_PROTOCOL_VERSION / REQUEST_MESSAGE
+    (every node should answer it, the MAVLink specification says). Hashes of the
+    definitions are zeros (unknown)."""
+
+    id = MAVLINK_MSG_ID_PROTOCOL_VERSION
+    msgname = "PROTOCOL_VERSION"
+    fieldnames: ClassVar[list[str]] = ["version", "min_version", "max_version",
+                                       "spec_version_hash", "library_version_hash"]
+    CRC_EXTRA = 217  # of the message definition (minimal.xml)
+
+    def __init__(self, version: int = 200, min_version: int = 100,
+                 max_version: int = 200) -> None:
+        super().__init__(self.id, self.msgname)
+        self._fieldnames = self.fieldnames
+        self.version, self.min_version, self.max_version = version, min_version, max_version
+        self.spec_version_hash = self.library_version_hash = bytes(8)
+
+    def pack(self, mav: object, force_mavlink1: bool = False) -> bytes:
+        payload = struct.pack("<HHH8s8s", self.version, self.min_version, self.max_version,
+                              self.spec_version_hash, self.library_version_hash)
+        return self._pack(mav, self.CRC_EXTRA, payload, force_mavlink1=force_mavlink1)
+
 
 # message id -> default rate (Hz of simulated time)
 DEFAULT_RATES_HZ = {
@@ -62,7 +91,7 @@ DEFAULT_RATES_HZ = {
     MAVLINK_MSG_ID_TERRAIN_REPORT: 1.0,
 }
 REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MAVLINK_MSG_ID_HEARTBEAT,
-                         MAVLINK_MSG_ID_AUTOPILOT_VERSION})
+                         MAVLINK_MSG_ID_AUTOPILOT_VERSION, MAVLINK_MSG_ID_PROTOCOL_VERSION})
 
 CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
@@ -226,6 +255,8 @@ class Telemetry:
         if msg_id == MAVLINK_MSG_ID_TERRAIN_REPORT:
             p = ap.position
             return _terrain_report(ap.terrain.report_below(p, ap.geodetic(p)))
+        if msg_id == MAVLINK_MSG_ID_PROTOCOL_VERSION:
+            return ProtocolVersionMessage()  # MAVLink 2 spoken, 1 understood
         if msg_id == MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return mavlink.MAVLink_autopilot_version_message(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),

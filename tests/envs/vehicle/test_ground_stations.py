@@ -1,0 +1,224 @@
+"""Ground stations the vehicle was not written against: what each one expects of a
+PX4/ArduPilot autopilot, with real peers on 127.0.0.1.
+
+- A MAVLink 1-only ground station (pymavlink's v1.0 dialect on a bare UDP socket: it
+  cannot read a MAVLink 2 frame) sees the vehicle, uploads a mission the legacy way
+  (MISSION_COUNT, MISSION_REQUEST, float MISSION_ITEM), reads it back, arms and reads a
+  parameter, all in MAVLink 1 framing; the PROTOCOL_VERSION it asks for comes in
+  MAVLink 2 framing all the same (as PX4 sends it).
+- A legacy upload loop over MAVLink 2 (it sends float MISSION_ITEMs and waits for
+  MISSION_REQUEST only, as scripts built on pymavlink's ``mavwp`` do) is asked in
+  that form once it has sent one, and gets through; the same ground station moving on
+  to MISSION_ITEM_INT gets MISSION_REQUEST_INT again.
+- The MAVLink version handshake (MAV_CMD_REQUEST_PROTOCOL_VERSION, REQUEST_MESSAGE 300)
+  is acknowledged and answered, as the specification asks of every node.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import time
+
+import numpy as np
+from pymavlink.dialects.v10 import common as mavlink1
+from pymavlink.dialects.v20.common import (
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_NAV_WAYPOINT,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_REQUEST_PROTOCOL_VERSION,
+    MAV_FRAME_GLOBAL_RELATIVE_ALT,
+    MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    MAV_MISSION_ACCEPTED,
+    MAV_RESULT_ACCEPTED,
+)
+
+from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs
+from tests.net import LOOPBACK
+from tests.vehicles import running_vehicle
+
+PROTOCOL_VERSION_ID = 300
+
+
+def _waypoints(rv, n: int) -> list[tuple[float, float, float]]:
+    """``n`` points (lat, lon in degrees, 20 m above home) 30 m apart north of home."""
+    ap = rv.autopilot
+    h = ap.home.enu
+    out = []
+    for k in range(n):
+        lat, lon, _ = ap.frame.to_geodetic(h[0], h[1] + 30.0 * (k + 1), h[2])
+        out.append((float(lat), float(lon), 20.0))
+    return out
+
+
+def _f32(x: float) -> float:
+    """``x`` as a MAVLink float field carries it."""
+    return float(np.float32(x))
+
+
+class Mavlink1Gcs:
+    """A ground station that speaks and reads MAVLink 1 only (system 250)."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.settimeout(0.2)
+        self.addr = (LOOPBACK, port)
+        gcs = self
+
+        class _Out:
+            def write(self, buf: bytes) -> None:
+                gcs.sock.sendto(buf, gcs.addr)
+
+        self.mav = mavlink1.MAVLink(_Out(), srcSystem=250, srcComponent=190)
+        self.mav.robust_parsing = True
+        self.datagrams: list[bytes] = []
+        self._hb = -math.inf
+
+    def recv(self) -> list:
+        now = time.monotonic()
+        if now - self._hb > 0.3:  # a ground station's heartbeat keeps the link
+            self._hb = now
+            self.mav.heartbeat_send(6, 8, 0, 0, 0)
+        try:
+            data = self.sock.recv(65536)
+        except TimeoutError:
+            return []
+        self.datagrams.append(data)
+        return [m for m in self.mav.parse_buffer(data) or [] if m.get_type() != "BAD_DATA"]
+
+    def wait(self, kind: str, timeout_s: float = 10.0, where=None):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for m in self.recv():
+                if m.get_type() == kind and (where is None or where(m)):
+                    return m
+        raise TimeoutError(f"no {kind} within {timeout_s:g} s")
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def _protocol_version_frames(datagrams: list[bytes]) -> list[tuple[int, int, int]]:
+    """(version, min, max) of every MAVLink 2 PROTOCOL_VERSION frame in the datagrams."""
+    out = []
+    for d in datagrams:
+        k = d.find(b"\xfd")
+        while 0 <= k and k + 10 <= len(d):
+            length = d[k + 1]
+            msg_id = d[k + 7] | d[k + 8] << 8 | d[k + 9] << 16
+            if msg_id == PROTOCOL_VERSION_ID:
+                payload = d[k + 10:k + 10 + length] + bytes(22)
+                out.append(struct.unpack_from("<HHH", payload))
+            k = d.find(b"\xfd", k + 1)
+    return out
+
+
+def test_a_mavlink1_ground_station_uploads_reads_back_and_arms() -> None:
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Mavlink1Gcs(rv.port)
+        try:
+            hb = gcs.wait("HEARTBEAT", where=lambda m: m.get_srcSystem() == 1)
+            assert (hb.type, hb.autopilot) == (2, 12)  # a PX4 quadrotor
+            gcs.wait("GLOBAL_POSITION_INT")  # the streams in MAVLink 1 too
+            points = _waypoints(rv, 3)
+            # legacy upload: asked with MISSION_REQUEST (the MAVLink 1 count says so)
+            gcs.mav.mission_count_send(1, 1, len(points))
+            for k in range(len(points)):
+                req = gcs.wait("MISSION_REQUEST", where=lambda m, k=k: m.seq == k)
+                lat, lon, alt = points[req.seq]
+                gcs.mav.mission_item_send(1, 1, req.seq, MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                                          MAV_CMD_NAV_WAYPOINT, int(k == 0), 1,
+                                          0, 0, 0, math.nan, lat, lon, alt)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_ACCEPTED
+            held = rv.held()
+            assert [w.command for w in held] == [MAV_CMD_NAV_WAYPOINT] * 3
+            for w, (lat, lon, _) in zip(held, points, strict=True):  # float32 on the wire
+                assert abs(w.x / 1e7 - _f32(lat)) < 1e-7 and abs(w.y / 1e7 - _f32(lon)) < 1e-7
+            # download: MISSION_REQUEST_LIST, MISSION_REQUEST -> float MISSION_ITEM
+            gcs.mav.mission_request_list_send(1, 1)
+            assert gcs.wait("MISSION_COUNT").count == 3
+            for k, (lat, lon, alt) in enumerate(points):
+                gcs.mav.mission_request_send(1, 1, k)
+                it = gcs.wait("MISSION_ITEM", where=lambda m, k=k: m.seq == k)
+                assert abs(it.x - _f32(lat)) < 1e-7 and abs(it.y - _f32(lon)) < 1e-7
+                assert it.z == alt
+            # a parameter and a command
+            gcs.mav.param_request_read_send(1, 1, b"NAV_ACC_RAD", -1)
+            assert gcs.wait("PARAM_VALUE").param_value == rv.autopilot.params["NAV_ACC_RAD"]
+            gcs.mav.command_long_send(1, 1, MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0,
+                                      0, 0)
+            ack = gcs.wait("COMMAND_ACK", where=lambda m: m.command == 400)
+            assert ack.result == MAV_RESULT_ACCEPTED
+            gcs.wait("HEARTBEAT", where=lambda m: m.get_srcSystem() == 1
+                     and m.base_mode & 128)  # armed
+            # the version handshake: acknowledged, its answer in MAVLink 2 framing
+            gcs.mav.command_long_send(1, 1, MAV_CMD_REQUEST_PROTOCOL_VERSION, 0, 1, 0, 0, 0,
+                                      0, 0, 0)
+            ack = gcs.wait("COMMAND_ACK", where=lambda m: m.command == 519)
+            assert ack.result == MAV_RESULT_ACCEPTED
+            deadline = time.monotonic() + 10.0
+            while not _protocol_version_frames(gcs.datagrams) \
+                    and time.monotonic() < deadline:
+                gcs.recv()
+            assert _protocol_version_frames(gcs.datagrams) == [(200, 100, 200)]
+        finally:
+            gcs.close()
+
+
+def test_a_legacy_upload_loop_is_asked_with_mission_request() -> None:
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            points = _waypoints(rv, 3)
+            gcs.conn.mav.mission_count_send(1, 1, len(points))
+            first = gcs.wait(["MISSION_REQUEST", "MISSION_REQUEST_INT"])
+            assert first.seq == 0
+            lat, lon, alt = points[0]
+            gcs.conn.mav.mission_item_send(1, 1, 0, MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                                           MAV_CMD_NAV_WAYPOINT, 1, 1, 0, 0, 0, math.nan,
+                                           lat, lon, alt)
+            # from now on, as mavwp-style loops wait for it: MISSION_REQUEST only
+            for k in (1, 2):
+                req = gcs.wait(["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"],
+                               where=lambda m, k=k: m.get_type() == "MISSION_ACK"
+                               or m.seq == k)
+                assert req.get_type() == "MISSION_REQUEST", req
+                lat, lon, alt = points[k]
+                gcs.conn.mav.mission_item_send(1, 1, k, MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                                               MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0,
+                                               math.nan, lat, lon, alt)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_ACCEPTED
+            assert rv.upload_count() == 1 and len(rv.held()) == 3
+            # the same ground station moves on to the INT form: a request it
+            # understands comes (alternating while it does not answer), then only INT
+            gcs.conn.mav.mission_count_send(1, 1, 2)
+            req = gcs.wait("MISSION_REQUEST_INT", where=lambda m: m.seq == 0)
+            for k in range(2):
+                lat, lon, alt = points[k]
+                gcs.conn.mav.mission_item_int_send(1, 1, k, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                                   MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0,
+                                                   math.nan, round(lat * 1e7),
+                                                   round(lon * 1e7), alt)
+                if k == 0:
+                    req = gcs.wait(["MISSION_REQUEST", "MISSION_REQUEST_INT"],
+                                   where=lambda m: m.seq == 1)
+                    assert req.get_type() == "MISSION_REQUEST_INT"
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_ACCEPTED
+            assert rv.upload_count() == 2 and len(rv.held()) == 2
+        finally:
+            gcs.close()
+
+
+def test_the_protocol_version_handshake_is_answered() -> None:
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            for cmd, params in ((MAV_CMD_REQUEST_PROTOCOL_VERSION, (1,)),
+                                (MAV_CMD_REQUEST_MESSAGE, (PROTOCOL_VERSION_ID,))):
+                assert gcs.command(cmd, *params) == MAV_RESULT_ACCEPTED
+                # pymavlink's dialect lacks message 300: it arrives as its raw frame
+                m = gcs.wait("UNKNOWN_300")
+                assert _protocol_version_frames([bytes(m.data)]) == [(200, 100, 200)]
+        finally:
+            gcs.close()
