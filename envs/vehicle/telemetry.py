@@ -1,11 +1,12 @@
 """Telemetry: the messages the vehicle publishes, built from the autopilot's state.
 
 Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUDE
-10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT
-1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz; TERRAIN_REPORT for its own position
+10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT /
+ALTITUDE / LOCAL_POSITION_NED 1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz; TERRAIN_REPORT for its own position
 1 Hz, as ArduPilot), on the simulated clock (as PX4 SITL
 with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
-time) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most once per
+time) and MAV_CMD_REQUEST_MESSAGE sends one now (also GPS_GLOBAL_ORIGIN: the local
+frame of LOCAL_POSITION_NED and HOME_POSITION is the world's ENU frame, as NED). A stream is sent at most once per
 simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
 50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz of wall
 time (it keeps ground stations' links alive whatever the speed-up) and at once on a
@@ -25,14 +26,17 @@ from pymavlink.dialects.v20.common import (
     MAV_STATE_ACTIVE,
     MAV_STATE_STANDBY,
     MAV_TYPE_QUADROTOR,
+    MAVLINK_MSG_ID_ALTITUDE,
     MAVLINK_MSG_ID_ATTITUDE,
     MAVLINK_MSG_ID_AUTOPILOT_VERSION,
     MAVLINK_MSG_ID_BATTERY_STATUS,
     MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
     MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
     MAVLINK_MSG_ID_GPS_RAW_INT,
     MAVLINK_MSG_ID_HEARTBEAT,
     MAVLINK_MSG_ID_HOME_POSITION,
+    MAVLINK_MSG_ID_LOCAL_POSITION_NED,
     MAVLINK_MSG_ID_MISSION_CURRENT,
     MAVLINK_MSG_ID_SYS_STATUS,
     MAVLINK_MSG_ID_TERRAIN_REPORT,
@@ -89,9 +93,13 @@ DEFAULT_RATES_HZ = {
     MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
     MAVLINK_MSG_ID_TERRAIN_REPORT: 1.0,
+    MAVLINK_MSG_ID_ALTITUDE: 1.0,
+    MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1.0,
 }
 REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MAVLINK_MSG_ID_HEARTBEAT,
-                         MAVLINK_MSG_ID_AUTOPILOT_VERSION, MAVLINK_MSG_ID_PROTOCOL_VERSION})
+                         MAVLINK_MSG_ID_AUTOPILOT_VERSION, MAVLINK_MSG_ID_PROTOCOL_VERSION,
+                         MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN})
+UNKNOWN_TERRAIN_M = -1001.0  # ALTITUDE.altitude_terrain below -1000: unknown
 
 CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
@@ -255,6 +263,23 @@ class Telemetry:
         if msg_id == MAVLINK_MSG_ID_TERRAIN_REPORT:
             p = ap.position
             return _terrain_report(ap.terrain.report_below(p, ap.geodetic(p)))
+        if msg_id == MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            # the local frame is the world's ENU frame (origin: GPS_GLOBAL_ORIGIN), NED
+            p, v = ap.position, ap.velocity
+            return mavlink.MAVLink_local_position_ned_message(
+                self._time_ms(), p[1], p[0], -p[2], v[1], v[0], -v[2])
+        if msg_id == MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            f = ap.frame
+            return mavlink.MAVLink_gps_global_origin_message(
+                deg_to_e7(f.lat0_deg), deg_to_e7(f.lon0_deg), round(f.h0_m * 1000.0),
+                int(ap.t_s * 1e6))
+        if msg_id == MAVLINK_MSG_ID_ALTITUDE:
+            p = ap.position
+            lat, lon, alt = ap.geodetic(p)
+            ground = ap.terrain.height_m(lat, lon)
+            above = alt - ground if math.isfinite(ground) else UNKNOWN_TERRAIN_M
+            return mavlink.MAVLink_altitude_message(
+                int(ap.t_s * 1e6), alt, alt, p[2], alt - ap.home.alt_m, above, -1.0)
         if msg_id == MAVLINK_MSG_ID_PROTOCOL_VERSION:
             return ProtocolVersionMessage()  # MAVLink 2 spoken, 1 understood
         if msg_id == MAVLINK_MSG_ID_AUTOPILOT_VERSION:

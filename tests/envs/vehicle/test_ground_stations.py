@@ -22,6 +22,7 @@ import struct
 import time
 
 import numpy as np
+import pytest
 from pymavlink.dialects.v10 import common as mavlink1
 from pymavlink.dialects.v20.common import (
     MAV_CMD_COMPONENT_ARM_DISARM,
@@ -222,3 +223,34 @@ def test_the_protocol_version_handshake_is_answered() -> None:
                 assert _protocol_version_frames([bytes(m.data)]) == [(200, 100, 200)]
         finally:
             gcs.close()
+
+
+def test_mavsdk_altitude_local_position_and_origin() -> None:
+    """MAVSDK's Telemetry.altitude, position_velocity_ned and get_gps_global_origin (PX4
+    streams ALTITUDE and LOCAL_POSITION_NED; the origin is the local frame's)."""
+    from mavsdk.plugins.telemetry import Telemetry
+
+    from tests.envs.vehicle.test_mavsdk import _until, mavsdk_gcs
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv, \
+            mavsdk_gcs(rv.mavsdk_url) as system:
+        t = Telemetry(system)
+        assert _until(lambda: math.isfinite(t.altitude().altitude_amsl_m), 20.0)
+        origin = t.get_gps_global_origin()
+        f = rv.autopilot.frame
+        assert (origin.latitude_deg, origin.longitude_deg) == pytest.approx(
+            (f.lat0_deg, f.lon0_deg), abs=1e-7)
+        assert origin.altitude_m == pytest.approx(f.h0_m, abs=1e-3)
+        # on the ground: every form of the altitude agrees with the position's
+        alt, pos, ned = t.altitude(), t.position(), t.position_velocity_ned().position
+        assert alt.altitude_amsl_m == pytest.approx(pos.absolute_altitude_m, abs=1.0)
+        assert alt.altitude_relative_m == pytest.approx(pos.relative_altitude_m, abs=1.0)
+        ground = rv.autopilot.terrain.height_m(pos.latitude_deg, pos.longitude_deg)
+        assert alt.altitude_terrain_m == pytest.approx(pos.absolute_altitude_m - ground,
+                                                       abs=1.0)
+        lat, lon, h = f.to_geodetic(ned.east_m, ned.north_m, -ned.down_m)
+        assert float(h) == pytest.approx(pos.absolute_altitude_m, abs=1.0)
+        north_m = math.radians(float(lat) - pos.latitude_deg) * 6.371e6
+        east_m = math.radians(float(lon) - pos.longitude_deg) * 6.371e6 \
+            * math.cos(math.radians(pos.latitude_deg))
+        assert math.hypot(north_m, east_m) < 1.0
