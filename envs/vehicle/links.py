@@ -270,6 +270,7 @@ class Links:
         self.listeners: list[TcpListener] = []
         self._ids = itertools.count()
         self.sent = 0
+        self.gone: list[int] = []  # ids of links closed since the last take_gone()
         try:
             for url in urls:
                 if vehicle_url(url).startswith("tcpin:"):
@@ -293,6 +294,12 @@ class Links:
                 yield k, msg
             if link.closed:
                 del self.links[k]
+                self.gone.append(k)
+
+    def take_gone(self) -> list[int]:
+        """The ids of the links closed since the last call."""
+        gone, self.gone = self.gone, []
+        return gone
 
     def fds(self) -> list[int] | None:
         """The file descriptors to wait on (None: a link has none, sleep instead)."""

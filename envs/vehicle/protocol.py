@@ -9,7 +9,11 @@ drops a transfer that makes no progress for ``timeout_s`` (wall clock; PX4: 250 
 and 5 s). A resent last item after the final ACK is acknowledged again (the ACK was
 lost), a resent earlier item is answered with a request for the one expected, an
 item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE. One upload per
-list at a time: a second ground station gets MAV_MISSION_DENIED while one runs.
+list at a time: a second ground station gets MAV_MISSION_DENIED while one runs. A ground
+station is its MAVLink identity (system and component), as PX4 keeps it: the same one
+starting again on another link (it reconnected, its old TCP connection half-open)
+restarts its own upload; an upload whose link is gone (a TCP client that hung up) is
+dropped at once (:meth:`MissionServer.forget_link`).
 Items are asked for in the form the ground station speaks, as PX4 does: MISSION_REQUEST_INT,
 or the legacy MISSION_REQUEST to one that last sent a float MISSION_ITEM or asked with
 MISSION_REQUEST, or started the upload in MAVLink 1 framing (a MAVLink 1-era ground
@@ -133,7 +137,7 @@ class MissionServer:
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
             return
         rx = self._rx.get(mission_type)
-        if rx is not None and rx.peer != peer and now - rx.activity_s < self.timeout_s:
+        if rx is not None and rx.peer[1:] != peer[1:] and now - rx.activity_s < self.timeout_s:
             self._ack(peer, MAV_MISSION_DENIED, mission_type)  # another ground station's upload
             return
         if count > CAPACITY[mission_type]:
@@ -208,6 +212,13 @@ class MissionServer:
         rx = self._rx.get(mission_type)
         if rx is not None and rx.peer == peer and result != MAV_MISSION_ACCEPTED:
             del self._rx[mission_type]
+
+    def forget_link(self, link: int) -> None:
+        """The link ``link`` is gone: its uploads end (no one to tell)."""
+        for t, rx in list(self._rx.items()):
+            if rx.peer[0] == link:
+                del self._rx[t]
+        self._float_peers = {p for p in self._float_peers if p[0] != link}
 
     def tick(self) -> None:
         """Re-request unanswered items; drop stalled uploads."""

@@ -373,6 +373,8 @@ class VirtualVehicle:
     def _receive(self, now: float) -> None:
         for link, msg in self.links.poll(now):
             self._dispatch(link, msg, now)
+        for link in self.links.take_gone():  # a TCP client hung up
+            self.protocol.forget_link(link)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:
         kind = msg.get_type()

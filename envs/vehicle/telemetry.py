@@ -2,15 +2,15 @@
 
 Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUDE
 10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT /
-ALTITUDE / LOCAL_POSITION_NED 1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz; TERRAIN_REPORT for its own position
-1 Hz, as ArduPilot), on the simulated clock (as PX4 SITL
-with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
-time) and MAV_CMD_REQUEST_MESSAGE sends one now (also GPS_GLOBAL_ORIGIN: the local
-frame of LOCAL_POSITION_NED and HOME_POSITION is the world's ENU frame, as NED). A stream is sent at most once per
-simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
-50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz of wall
-time (it keeps ground stations' links alive whatever the speed-up) and at once on a
-change of mode or arming.
+ALTITUDE / LOCAL_POSITION_NED 1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz;
+TERRAIN_REPORT for its own position 1 Hz, as ArduPilot), on the simulated clock (as
+PX4 SITL with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also
+simulated time) and MAV_CMD_REQUEST_MESSAGE sends one now (also GPS_GLOBAL_ORIGIN:
+the local frame of LOCAL_POSITION_NED and HOME_POSITION is the world's ENU frame, as
+NED). A stream is sent at most once per simulation step (0.2 s of simulated time up to
+a speed-up of 10, then up to 1 s from 50x), so a faster stream is thinned to the step
+rate. HEARTBEAT goes at 1 Hz of wall time (it keeps ground stations' links alive
+whatever the speed-up) and at once on a change of mode or arming.
 """
 
 from __future__ import annotations

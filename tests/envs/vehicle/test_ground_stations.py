@@ -35,7 +35,9 @@ from pymavlink.dialects.v20.common import (
     MAV_RESULT_ACCEPTED,
 )
 
-from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs
+from envs.vehicle import VirtualVehicle
+from sim import load_scenario
+from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port
 from tests.net import LOOPBACK
 from tests.vehicles import running_vehicle
 
@@ -254,3 +256,58 @@ def test_mavsdk_altitude_local_position_and_origin() -> None:
         east_m = math.radians(float(lon) - pos.longitude_deg) * 6.371e6 \
             * math.cos(math.radians(pos.latitude_deg))
         assert math.hypot(north_m, east_m) < 1.0
+
+
+def _upload_int(gcs: Gcs, points: list[tuple[float, float, float]]) -> int:
+    """A MISSION_ITEM_INT upload answering every request; the MISSION_ACK's result."""
+    gcs.conn.mav.mission_count_send(1, 1, len(points))
+    while True:
+        m = gcs.wait(["MISSION_REQUEST_INT", "MISSION_ACK"])
+        if m.get_type() == "MISSION_ACK":
+            return int(m.type)
+        lat, lon, alt = points[m.seq]
+        gcs.conn.mav.mission_item_int_send(1, 1, m.seq, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                           MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, math.nan,
+                                           round(lat * 1e7), round(lon * 1e7), alt)
+
+
+def test_a_ground_station_that_reconnects_mid_upload_is_not_locked_out() -> None:
+    """Over TCP: an upload left half way by a ground station whose old connection is
+    half-open (it started again on a new one) or gone (it hung up) locks no one out
+    (they used to get MAV_MISSION_DENIED until the 5 s transfer timeout)."""
+    port = free_tcp_port()
+    sc = load_scenario(SEARCH_SCENARIO)
+    v = VirtualVehicle(sc, [f"tcpin:{LOOPBACK}:{port}"], speedup=2.0).start()
+    opened: list[Gcs] = []
+    try:
+        url = f"tcp:{LOOPBACK}:{port}"
+        first = Gcs(url)
+        opened.append(first)
+        first.conn.mav.mission_count_send(1, 1, 3)
+        assert first.wait("MISSION_REQUEST_INT").seq == 0
+        # the same ground station (255/190) on a new connection, the old one left open
+        again = Gcs(url)
+        opened.append(again)
+        points = _waypoints(_Rv(v), 3)
+        assert _upload_int(again, points) == MAV_MISSION_ACCEPTED
+        assert v.protocol.commits[0] == 1
+        # it starts another upload and hangs up: another ground station is served
+        again.conn.mav.mission_count_send(1, 1, 2)
+        assert again.wait("MISSION_REQUEST_INT").seq == 0
+        again.close()
+        opened.remove(again)
+        other = Gcs(url, source_system=254)
+        opened.append(other)
+        assert _upload_int(other, points[:2]) == MAV_MISSION_ACCEPTED
+        assert v.protocol.commits[0] == 2 and len(v.protocol.held[0]) == 2
+    finally:
+        for g in opened:
+            g.close()
+        v.stop()
+
+
+class _Rv:
+    """What :func:`_waypoints` needs of a running vehicle."""
+
+    def __init__(self, v: VirtualVehicle) -> None:
+        self.autopilot = v.autopilot
