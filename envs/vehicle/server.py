@@ -20,7 +20,9 @@ station heard for the first time gets a HEARTBEAT at once (it need not wait a se
 discover the vehicle). Every
 COMMAND_LONG and COMMAND_INT is answered with a COMMAND_ACK, malformed ones too (NaN
 or out-of-range parameters: DENIED; a command it does not know: UNSUPPORTED; one that
-fails: FAILED). Any message from another system keeps the ground-station link alive;
+fails: FAILED). Any message from another system keeps the ground-station link alive
+(another component of its own system, a companion computer, is answered too but is no
+ground station);
 after COM_DL_LOSS_T wall seconds of silence the autopilot's link-loss rule applies.
 """
 
@@ -381,20 +383,23 @@ class VirtualVehicle:
         if kind == "BAD_DATA":
             return
         src = (msg.get_srcSystem(), msg.get_srcComponent())
-        if src[0] == self.sysid:
+        if src == (self.sysid, self.compid):  # its own messages, looped back
             return
         self.stats.received += 1
-        self._link.last_rx_wall = now
         here = (link, *src)
         if here not in self._link.peers:  # a new ground station: it hears from us at once
             if len(self._link.peers) >= MAX_PEERS:
                 self._link.peers.clear()
             self._link.peers.add(here)
             self._send_msg(here, self.telemetry.heartbeat())
-        if not self._link.seen or self._link.lost:
-            if self._link.lost:
-                self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
-            self._link.seen, self._link.lost = True, False
+        # another component of its own system (a companion computer) is served but is
+        # no ground station: it does not keep the ground-station link alive
+        if src[0] != self.sysid:
+            self._link.last_rx_wall = now
+            if not self._link.seen or self._link.lost:
+                if self._link.lost:
+                    self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
+                self._link.seen, self._link.lost = True, False
         target = getattr(msg, "target_system", 0)
         if target not in (0, self.sysid):
             return

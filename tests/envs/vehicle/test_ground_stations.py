@@ -311,3 +311,31 @@ class _Rv:
 
     def __init__(self, v: VirtualVehicle) -> None:
         self.autopilot = v.autopilot
+
+
+def test_a_companion_computer_on_the_vehicles_system_is_answered() -> None:
+    """MAVSDK as a companion computer (system 1, as the vehicle's own onboard computer
+    or phone app would be): its parameter read and mission download are answered (the
+    vehicle used to drop everything from its own system id); it is no ground station,
+    so it does not keep the ground-station link alive."""
+    from mavsdk import ComponentType, Configuration, Mavsdk
+    from mavsdk.plugins.mission_raw import MissionRaw
+    from mavsdk.plugins.param import Param
+
+    from planner.mavlink import quiet_mavsdk_logs
+
+    quiet_mavsdk_logs()
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        m = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
+        try:
+            assert m.add_any_connection(rv.mavsdk_url).name == "SUCCESS"
+            system = m.first_autopilot(30.0)
+            assert system is not None
+            assert Param(system).get_param_float("NAV_ACC_RAD") \
+                == rv.autopilot.params["NAV_ACC_RAD"]
+            assert MissionRaw(system).download_mission() == []
+            peers = {p[1] for p in rv.vehicle._link.peers}
+            assert peers == {1}  # only the companion talked
+            assert not rv.vehicle._link.seen  # no ground station yet
+        finally:
+            m.destroy()
