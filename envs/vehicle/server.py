@@ -523,6 +523,11 @@ class VirtualVehicle:
         """Accepted without effect: the database is the scenario's terrain."""
         self.terrain_data_ignored += 1
 
+    def _on_log_request_list(self, peer: Peer, msg: Any) -> None:
+        """The autopilot keeps no logs (the phone's log is ``--log``): one LOG_ENTRY with
+        ``num_logs`` 0, as the log protocol answers an empty list."""
+        self._send_msg(peer, mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0))
+
     def _on_timesync(self, peer: Peer, msg: Any) -> None:
         if msg.tc1 == 0:
             self._send_msg(peer, mavlink.MAVLink_timesync_message(

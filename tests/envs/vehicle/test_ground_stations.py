@@ -339,3 +339,25 @@ def test_a_companion_computer_on_the_vehicles_system_is_answered() -> None:
             assert not rv.vehicle._link.seen  # no ground station yet
         finally:
             m.destroy()
+
+
+def test_the_log_list_is_answered_empty() -> None:
+    """LOG_REQUEST_LIST (QGroundControl's log download, MAVSDK's LogFiles) gets the empty
+    list's one LOG_ENTRY (the autopilot keeps no logs): MAVSDK says NO_LOGFILES (it used to
+time out)."""
+    from mavsdk.plugins.log_files import LogFiles, LogFilesError, LogFilesResult
+
+    from tests.envs.vehicle.test_mavsdk import mavsdk_gcs
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            gcs.conn.mav.log_request_list_send(1, 1, 0, 0xFFFF)
+            entry = gcs.wait("LOG_ENTRY")
+            assert (entry.id, entry.num_logs, entry.last_log_num, entry.size) == (0, 0, 0, 0)
+        finally:
+            gcs.close()
+        with mavsdk_gcs(rv.mavsdk_url) as system:
+            with pytest.raises(LogFilesError) as err:  # MAVSDK's word for an empty list
+                LogFiles(system).get_entries()
+            assert err.value.result == LogFilesResult.NO_LOGFILES
