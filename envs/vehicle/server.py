@@ -58,7 +58,10 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_REQUEST_PROTOCOL_VERSION,
     MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_MODE_FLAG_AUTO_ENABLED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+    MAV_MODE_FLAG_GUIDED_ENABLED,
+    MAV_MODE_FLAG_MANUAL_INPUT_ENABLED,
     MAV_PARAM_TYPE_REAL32,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
@@ -652,7 +655,15 @@ class VirtualVehicle:
     def _set_mode(self, p: list[float]) -> tuple[int, str]:
         base = int(p[0]) if math.isfinite(p[0]) and 0 <= p[0] <= 255 else 0
         if not base & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return MAV_RESULT_DENIED, "mode change without a custom mode"
+            # the base mode alone, as PX4 reads it: AUTO_ENABLED is AUTO.MISSION, manual
+            # input with GUIDED is POSCTL, manual input without it needs sticks
+            if base & MAV_MODE_FLAG_AUTO_ENABLED:
+                return self.autopilot.set_mode(Mode.MISSION)
+            if base & MAV_MODE_FLAG_MANUAL_INPUT_ENABLED:
+                if base & MAV_MODE_FLAG_GUIDED_ENABLED:
+                    return self.autopilot.set_mode(Mode.POSCTL)
+                return MAV_RESULT_DENIED, f"base mode {base} (manual) not supported"
+            return MAV_RESULT_DENIED, f"mode change to base mode {base}: no mode in it"
         if not all(math.isfinite(x) and 0 <= x <= 255 for x in p[1:3]):
             return MAV_RESULT_DENIED, f"mode change to main mode {p[1]:g}, sub mode {p[2]:g}"
         main, sub = int(p[1]), int(p[2])

@@ -361,3 +361,41 @@ time out)."""
             with pytest.raises(LogFilesError) as err:  # MAVSDK's word for an empty list
                 LogFiles(system).get_entries()
             assert err.value.result == LogFilesResult.NO_LOGFILES
+
+
+def test_a_mode_change_by_the_base_mode_alone() -> None:
+    """DO_SET_MODE / SET_MODE with MAVLink's standard modes (no custom mode: what
+    pymavlink's ``set_mode(MAV_MODE_...)`` and generic ground stations send) are read as
+    PX4 reads them; they used to be DENIED."""
+    from pymavlink.dialects.v20.common import (
+        MAV_MODE_AUTO_DISARMED,
+        MAV_MODE_GUIDED_DISARMED,
+        MAV_MODE_MANUAL_DISARMED,
+        MAV_RESULT_DENIED,
+    )
+
+    from envs.vehicle.px4 import Mode
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            assert _upload_int(gcs, _waypoints(rv, 2)) == MAV_MISSION_ACCEPTED
+            conn = gcs.conn
+            conn.target_system, conn.target_component = 1, 1
+            for base, result, mode in ((MAV_MODE_AUTO_DISARMED, MAV_RESULT_ACCEPTED,
+                                        Mode.MISSION),
+                                       (MAV_MODE_GUIDED_DISARMED, MAV_RESULT_ACCEPTED,
+                                        Mode.POSCTL),
+                                       (MAV_MODE_MANUAL_DISARMED, MAV_RESULT_DENIED,
+                                        Mode.POSCTL)):
+                conn.set_mode(base)  # pymavlink: DO_SET_MODE, base mode only, to PX4
+                ack = gcs.wait("COMMAND_ACK", where=lambda m: m.command == 176)
+                assert ack.result == result
+                assert rv.autopilot.mode is mode
+            conn.mav.set_mode_send(1, MAV_MODE_AUTO_DISARMED, 0)  # the SET_MODE message
+            assert gcs.wait("COMMAND_ACK", where=lambda m: m.command == 176).result \
+                == MAV_RESULT_ACCEPTED
+            gcs.wait("HEARTBEAT", where=lambda m: m.get_srcSystem() == 1
+                     and m.custom_mode == Mode.MISSION.custom_mode)
+        finally:
+            gcs.close()
