@@ -23,6 +23,8 @@ Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_IT
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
 float MISSION_ITEM, as PX4 does); the mission's current item carries ``current=1``.
 MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
+Partial lists (MISSION_WRITE_PARTIAL_LIST, MISSION_REQUEST_PARTIAL_LIST) are refused
+with MAV_MISSION_UNSUPPORTED.
 """
 
 from __future__ import annotations
@@ -206,6 +208,13 @@ class MissionServer:
                      y=deg_to_e7(y) if math.isfinite(y) else 2**31 - 1, z=float(msg.z),
                      mission_type=int(getattr(msg, "mission_type", 0)))
         self.on_item(peer, w, float_form=True)
+
+    def refuse_partial(self, peer: Peer, mission_type: int) -> None:
+        """MISSION_WRITE_PARTIAL_LIST / MISSION_REQUEST_PARTIAL_LIST (ArduPilot's; PX4
+        leaves them unanswered, a ground station would wait): MAV_MISSION_UNSUPPORTED at
+        once; nothing held changes."""
+        self.refused.append((mission_type, MAV_MISSION_UNSUPPORTED))
+        self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
 
     def on_ack(self, peer: Peer, result: int, mission_type: int) -> None:
         """A ground station's MISSION_ACK: a non-zero one cancels its upload."""

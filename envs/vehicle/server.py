@@ -449,6 +449,12 @@ class VirtualVehicle:
         self.protocol.on_request(peer, int(msg.seq), int(getattr(msg, "mission_type", 0)),
                                  float_form=True)
 
+    def _on_mission_write_partial_list(self, peer: Peer, msg: Any) -> None:
+        """Partial lists (ArduPilot's) are refused at once, never left unanswered."""
+        self.protocol.refuse_partial(peer, int(getattr(msg, "mission_type", 0)))
+
+    _on_mission_request_partial_list = _on_mission_write_partial_list
+
     def _on_mission_clear_all(self, peer: Peer, msg: Any) -> None:
         self.protocol.on_clear_all(peer, int(getattr(msg, "mission_type", 0)))
 

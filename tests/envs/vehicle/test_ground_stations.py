@@ -399,3 +399,24 @@ def test_a_mode_change_by_the_base_mode_alone() -> None:
                      and m.custom_mode == Mode.MISSION.custom_mode)
         finally:
             gcs.close()
+
+
+def test_partial_lists_are_refused_at_once() -> None:
+    """MISSION_WRITE_PARTIAL_LIST / MISSION_REQUEST_PARTIAL_LIST (MAVProxy's ``wp move``,
+    ArduPilot ground stations) get MAV_MISSION_UNSUPPORTED (they used to go unanswered);
+    the held mission is unchanged."""
+    from pymavlink.dialects.v20.common import MAV_MISSION_UNSUPPORTED
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            points = _waypoints(rv, 3)
+            assert _upload_int(gcs, points) == MAV_MISSION_ACCEPTED
+            before = rv.held()
+            gcs.conn.mav.mission_write_partial_list_send(1, 1, 1, 1, 0)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_UNSUPPORTED
+            gcs.conn.mav.mission_request_partial_list_send(1, 1, 0, 2, 0)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_UNSUPPORTED
+            assert rv.held() == before and rv.upload_count() == 1
+        finally:
+            gcs.close()
