@@ -17,7 +17,8 @@ dropped at once (:meth:`MissionServer.forget_link`).
 Items are asked for in the form the ground station speaks, as PX4 does: MISSION_REQUEST_INT,
 or the legacy MISSION_REQUEST to one that last sent a float MISSION_ITEM or asked with
 MISSION_REQUEST, or started the upload in MAVLink 1 framing (a MAVLink 1-era ground
-station may know no other).
+station may know no other); a MISSION_ACK MAV_MISSION_UNSUPPORTED from the uploader
+switches to the other form, as PX4 negotiates it.
 
 Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_ITEM_INT)
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
@@ -217,10 +218,19 @@ class MissionServer:
         self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
 
     def on_ack(self, peer: Peer, result: int, mission_type: int) -> None:
-        """A ground station's MISSION_ACK: a non-zero one cancels its upload."""
+        """A ground station's MISSION_ACK during its upload: MAV_MISSION_UNSUPPORTED says
+        it does not speak the form it was asked in (MAVSDK answers a MISSION_REQUEST so):
+        ask again in the other form, as PX4 does; any other non-zero one cancels."""
         rx = self._rx.get(mission_type)
-        if rx is not None and rx.peer == peer and result != MAV_MISSION_ACCEPTED:
-            del self._rx[mission_type]
+        if rx is None or rx.peer != peer or result == MAV_MISSION_ACCEPTED:
+            return
+        if result == MAV_MISSION_UNSUPPORTED:
+            rx.float_form = not rx.float_form
+            rx.legacy_guess = False  # it told: no more guessing
+            self._speaks(peer, rx.float_form)
+            self._request(rx)
+            return
+        del self._rx[mission_type]
 
     def forget_link(self, link: int) -> None:
         """The link ``link`` is gone: its uploads end (no one to tell)."""

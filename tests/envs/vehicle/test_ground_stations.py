@@ -420,3 +420,30 @@ def test_partial_lists_are_refused_at_once() -> None:
             assert rv.held() == before and rv.upload_count() == 1
         finally:
             gcs.close()
+
+
+def test_an_uploader_that_refuses_the_float_form_is_asked_in_the_int_form() -> None:
+    """The request form is negotiated as PX4 does: a ground station known to speak the
+    float form (it asked with MISSION_REQUEST) is asked with MISSION_REQUEST; MAVSDK
+    under the same identity answers MISSION_ACK MAV_MISSION_UNSUPPORTED (it speaks INT
+    only), and the vehicle asks again with MISSION_REQUEST_INT: the upload succeeds
+    (it used to cancel the transfer and MAVSDK timed out)."""
+    from mavsdk.plugins.mission_raw import MissionItem, MissionRaw
+
+    from tests.envs.vehicle.test_mavsdk import mavsdk_gcs
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        legacy = Gcs(rv.pymavlink_url, source_system=245)  # MAVSDK's identity, 245/190
+        try:
+            legacy.conn.mav.mission_request_send(1, 1, 0)  # a float-form download
+            legacy.wait("MISSION_ACK")  # (nothing held: INVALID_SEQUENCE)
+        finally:
+            legacy.close()
+        with mavsdk_gcs(rv.mavsdk_url) as system:
+            (lat, lon, alt), = _waypoints(rv, 1)
+            item = MissionItem(0, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, MAV_CMD_NAV_WAYPOINT, 1,
+                               1, 0.0, 0.0, 0.0, math.nan, round(lat * 1e7),
+                               round(lon * 1e7), alt, 0)
+            MissionRaw(system).upload_mission([item])
+        assert rv.upload_count() == 1
+        assert (rv.held()[0].x, rv.held()[0].y) == (round(lat * 1e7), round(lon * 1e7))
