@@ -1,5 +1,6 @@
 """Ground stations the vehicle was not written against: what each one expects of a
-PX4/ArduPilot autopilot, with real peers on 127.0.0.1.
+PX4/ArduPilot autopilot, with real peers on 127.0.0.1 (docs/vehicle.md). Each test
+failed before its fix.
 
 - A MAVLink 1-only ground station (pymavlink's v1.0 dialect on a bare UDP socket: it
   cannot read a MAVLink 2 frame) sees the vehicle, uploads a mission the legacy way
@@ -9,9 +10,17 @@ PX4/ArduPilot autopilot, with real peers on 127.0.0.1.
 - A legacy upload loop over MAVLink 2 (it sends float MISSION_ITEMs and waits for
   MISSION_REQUEST only, as scripts built on pymavlink's ``mavwp`` do) is asked in
   that form once it has sent one, and gets through; the same ground station moving on
-  to MISSION_ITEM_INT gets MISSION_REQUEST_INT again.
+  to MISSION_ITEM_INT gets MISSION_REQUEST_INT again. MAVSDK under an identity that
+  spoke the float form refuses a MISSION_REQUEST (MISSION_ACK UNSUPPORTED) and is asked
+  again in the INT form, as PX4 negotiates it.
 - The MAVLink version handshake (MAV_CMD_REQUEST_PROTOCOL_VERSION, REQUEST_MESSAGE 300)
   is acknowledged and answered, as the specification asks of every node.
+- MAVSDK's Telemetry.altitude, position_velocity_ned and get_gps_global_origin (PX4's
+  ALTITUDE and LOCAL_POSITION_NED streams, GPS_GLOBAL_ORIGIN on request).
+- A TCP ground station that reconnects mid-upload, or hangs up, locks no one out.
+- MAVSDK as a companion computer (the vehicle's own system id) is answered.
+- LOG_REQUEST_LIST, partial mission lists and standard (base-only) mode changes are
+  answered, never left waiting.
 """
 
 from __future__ import annotations
