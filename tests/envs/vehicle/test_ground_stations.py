@@ -45,6 +45,7 @@ from pymavlink.dialects.v20.common import (
 )
 
 from envs.vehicle import VirtualVehicle
+from envs.vehicle.px4 import Mode
 from sim import load_scenario
 from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port
 from tests.net import LOOPBACK
@@ -383,8 +384,6 @@ def test_a_mode_change_by_the_base_mode_alone() -> None:
         MAV_RESULT_DENIED,
     )
 
-    from envs.vehicle.px4 import Mode
-
     with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
         gcs = Gcs(rv.pymavlink_url)
         try:
@@ -456,3 +455,50 @@ def test_an_uploader_that_refuses_the_float_form_is_asked_in_the_int_form() -> N
             MissionRaw(system).upload_mission([item])
         assert rv.upload_count() == 1
         assert (rv.held()[0].x, rv.held()[0].y) == (round(lat * 1e7), round(lon * 1e7))
+
+
+def test_a_plan_with_px4s_payload_items_is_taken_and_flown_through() -> None:
+    """Camera, gimbal, ROI, winch, gripper, actuator items and the DO_LAND_START marker
+    (every payload item PX4's mission takes; QGroundControl's camera and ROI sections
+    emit some) are stored as sent and passed over on the way; they used to make the
+    whole upload fail with MAV_MISSION_UNSUPPORTED."""
+    from pymavlink.dialects.v20 import common as mav
+
+    from tests.envs.vehicle.helpers import fly, item, make_autopilot, numbered
+
+    payload = [mav.MAV_CMD_NAV_ROI, mav.MAV_CMD_DO_SET_ROI_WPNEXT_OFFSET,
+               mav.MAV_CMD_DO_MOUNT_CONFIGURE, mav.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+               mav.MAV_CMD_SET_CAMERA_FOCUS, mav.MAV_CMD_DO_CONTROL_VIDEO,
+               mav.MAV_CMD_DO_TRIGGER_CONTROL, mav.MAV_CMD_OBLIQUE_SURVEY,
+               mav.MAV_CMD_DO_WINCH, mav.MAV_CMD_DO_GRIPPER, mav.MAV_CMD_DO_SET_ACTUATOR,
+               mav.MAV_CMD_DO_LAND_START]
+    ap = make_autopilot(SEARCH_SCENARIO)
+    items = numbered([item(ap, mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 10.0),
+                      *(item(ap, c, frame=mav.MAV_FRAME_MISSION, p1=1.0) for c in payload),
+                      item(ap, e=30, n=0, alt=10.0),
+                      item(ap, mav.MAV_CMD_NAV_LAND, 30, 0, 0.0)])
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            gcs.conn.mav.mission_count_send(1, 1, len(items))
+            while True:
+                m = gcs.wait(["MISSION_REQUEST_INT", "MISSION_ACK"])
+                if m.get_type() == "MISSION_ACK":
+                    break
+                w = items[m.seq]
+                gcs.conn.mav.mission_item_int_send(
+                    1, 1, w.seq, w.frame, w.command, w.current, w.autocontinue, w.param1,
+                    w.param2, w.param3, w.param4, w.x, w.y, w.z)
+            assert m.type == MAV_MISSION_ACCEPTED
+            assert [w.command for w in rv.held()] == [w.command for w in items]
+        finally:
+            gcs.close()
+    # flown in process: the payload items are reached at once, in order, on the way
+    ap.set_mission(items)
+    assert ap.set_mode(Mode.MISSION)[0] == MAV_RESULT_ACCEPTED
+    assert ap.arm()[0] == MAV_RESULT_ACCEPTED
+    fly(ap, 300.0, until=lambda a: not a.armed)
+    assert not ap.armed
+    assert [r[0] for r in ap.reached_log] == list(range(len(items)))
+    t = {seq: t_s for seq, t_s, _ in ap.reached_log}
+    assert all(t[k] == t[1] for k in range(1, len(payload) + 1))  # at once, after take-off
