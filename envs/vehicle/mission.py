@@ -115,6 +115,14 @@ FENCE_VERTEX = (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
 FENCE_CIRCLE = (MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION)
 
 MAX_ALTITUDE_M = 10_000.0  # |altitude| of a positioned item or command, at most
+# x or y INT32_MAX: "not set" (MAVLink: INT32_MAX in an integer param is the NaN of a
+# float one; a float MISSION_ITEM's NaN is stored so); x = y = 0 too (older senders)
+UNSET_E7 = 2**31 - 1
+
+
+def has_position(w: WireItem) -> bool:
+    """Whether an item carries a latitude and longitude (else: where the vehicle is)."""
+    return not ((w.x == 0 and w.y == 0) or w.x == UNSET_E7 or w.y == UNSET_E7)
 
 # storage sizes (PX4's dataman on a Pixhawk 6: 2000 items, 64 fence vertices... raised a
 # little for fences: a keep-in polygon and some keep-out circles)
@@ -125,9 +133,10 @@ CAPACITY = {MAV_MISSION_TYPE_MISSION: 2000, MAV_MISSION_TYPE_FENCE: 256,
 def _check_position(w: WireItem) -> int:
     if w.frame not in GLOBAL_FRAMES:
         return MAV_MISSION_UNSUPPORTED_FRAME
-    if not -900_000_000 <= w.x <= 900_000_000:
+    unset = w.x == UNSET_E7 and w.y == UNSET_E7  # no position: here
+    if not unset and not -900_000_000 <= w.x <= 900_000_000:
         return MAV_MISSION_INVALID_PARAM5_X
-    if not -1_800_000_000 <= w.y <= 1_800_000_000:
+    if not unset and not -1_800_000_000 <= w.y <= 1_800_000_000:
         return MAV_MISSION_INVALID_PARAM6_Y
     if not math.isfinite(w.z) or abs(w.z) > MAX_ALTITUDE_M:
         return MAV_MISSION_INVALID_PARAM7

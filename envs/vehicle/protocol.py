@@ -46,7 +46,7 @@ from pymavlink.dialects.v20.common import (
     MAV_MISSION_UNSUPPORTED,
 )
 
-from envs.vehicle.mission import CAPACITY, check_item, check_list
+from envs.vehicle.mission import CAPACITY, UNSET_E7, check_item, check_list
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
@@ -205,8 +205,8 @@ class MissionServer:
                      current=int(msg.current), autocontinue=int(msg.autocontinue),
                      param1=float(msg.param1), param2=float(msg.param2),
                      param3=float(msg.param3), param4=float(msg.param4),
-                     x=deg_to_e7(x) if math.isfinite(x) else 2**31 - 1,
-                     y=deg_to_e7(y) if math.isfinite(y) else 2**31 - 1, z=float(msg.z),
+                     x=deg_to_e7(x) if math.isfinite(x) else UNSET_E7,
+                     y=deg_to_e7(y) if math.isfinite(y) else UNSET_E7, z=float(msg.z),
                      mission_type=int(getattr(msg, "mission_type", 0)))
         self.on_item(peer, w, float_form=True)
 

@@ -80,7 +80,13 @@ from pymavlink.dialects.v20.common import (
 
 from envs.vehicle.autopilot import Autopilot
 from envs.vehicle.links import ConnectionURLError, Links, is_mavlink1
-from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
+from envs.vehicle.mission import (
+    GLOBAL_FRAMES,
+    MAX_ALTITUDE_M,
+    RELATIVE_FRAMES,
+    TERRAIN_FRAMES,
+    UNSET_E7,
+)
 from envs.vehicle.params import Params
 from envs.vehicle.protocol import MissionServer, Peer
 from envs.vehicle.px4 import (
@@ -552,6 +558,9 @@ class VirtualVehicle:
         p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z]
         if msg.x == 0 and msg.y == 0:
             p[4] = p[5] = math.nan
+        for k, v in ((4, msg.x), (5, msg.y)):  # INT32_MAX: not set (the NaN of an int)
+            if v == UNSET_E7:
+                p[k] = math.nan
         self._command(peer, int(msg.command), [float(v) for v in p], int(msg.frame))
 
     def _on_set_mode(self, peer: Peer, msg: Any) -> None:

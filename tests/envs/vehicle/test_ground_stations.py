@@ -502,3 +502,52 @@ def test_a_plan_with_px4s_payload_items_is_taken_and_flown_through() -> None:
     assert [r[0] for r in ap.reached_log] == list(range(len(items)))
     t = {seq: t_s for seq, t_s, _ in ap.reached_log}
     assert all(t[k] == t[1] for k in range(1, len(payload) + 1))  # at once, after take-off
+
+
+def test_int32_max_is_an_unset_latitude_and_longitude() -> None:
+    """INT32_MAX in COMMAND_INT's or MISSION_ITEM_INT's x and y is "not set" (MAVLink:
+    the NaN of an integer param): DO_REPOSITION with only an altitude (QGroundControl's
+    change of altitude) climbs where the vehicle is, and a take-off item without a
+    position is taken; both used to be refused (a latitude of 214.7 degrees)."""
+    from pymavlink.dialects.v20.common import (
+        MAV_CMD_DO_REPOSITION,
+        MAV_CMD_NAV_TAKEOFF,
+        MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+    )
+
+    UNSET_E7 = 2**31 - 1  # INT32_MAX
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=10.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            # a mission whose take-off has no position, then one waypoint
+            (lat, lon, _), = _waypoints(rv, 1)
+            items = [(MAV_CMD_NAV_TAKEOFF, UNSET_E7, UNSET_E7, 6.0),
+                     (MAV_CMD_NAV_WAYPOINT, round(lat * 1e7), round(lon * 1e7), 6.0)]
+            gcs.conn.mav.mission_count_send(1, 1, 2)
+            for _ in range(2):
+                req = gcs.wait("MISSION_REQUEST_INT")
+                cmd, x, y, z = items[req.seq]
+                gcs.conn.mav.mission_item_int_send(1, 1, req.seq,
+                                                   MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, cmd, 0,
+                                                   1, 0, 0, 0, math.nan, x, y, z)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_ACCEPTED
+            assert (rv.held()[0].x, rv.held()[0].y) == (UNSET_E7, UNSET_E7)
+            # arm, take off (MIS_TAKEOFF_ALT), then only a new altitude by COMMAND_INT
+            assert gcs.command(MAV_CMD_COMPONENT_ARM_DISARM, 1) == MAV_RESULT_ACCEPTED
+            assert gcs.command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
+                               math.nan) == MAV_RESULT_ACCEPTED
+            ap = rv.autopilot
+            gcs.wait("EXTENDED_SYS_STATE", 30.0, where=lambda m: m.landed_state == 2)
+            e0, n0 = ap.position[0], ap.position[1]
+            gcs.conn.mav.command_int_send(1, 1, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                          MAV_CMD_DO_REPOSITION, 0, 0, -1, 0, 0, math.nan,
+                                          UNSET_E7, UNSET_E7, 12.0)
+            ack = gcs.wait("COMMAND_ACK", where=lambda m: m.command == MAV_CMD_DO_REPOSITION)
+            assert ack.result == MAV_RESULT_ACCEPTED
+            gpi = gcs.wait("GLOBAL_POSITION_INT", 60.0,
+                           where=lambda m: abs(m.relative_alt / 1000.0 - 12.0) < 0.5)
+            assert gpi is not None
+            assert math.hypot(ap.position[0] - e0, ap.position[1] - n0) < 1.5
+        finally:
+            gcs.close()
