@@ -543,6 +543,13 @@ class VirtualVehicle:
         ``num_logs`` 0, as the log protocol answers an empty list."""
         self._send_msg(peer, mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0))
 
+    def _on_ping(self, peer: Peer, msg: Any) -> None:
+        """A PING request (targets 0) is answered to its sender with its time and
+        sequence (the ping microservice; PX4 answers it too)."""
+        if msg.target_system == 0 and msg.target_component == 0:
+            self._send_msg(peer, mavlink.MAVLink_ping_message(int(msg.time_usec), int(msg.seq),
+                                                              peer[1], peer[2]))
+
     def _on_timesync(self, peer: Peer, msg: Any) -> None:
         if msg.tc1 == 0:
             self._send_msg(peer, mavlink.MAVLink_timesync_message(

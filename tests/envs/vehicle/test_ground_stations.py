@@ -551,3 +551,17 @@ def test_int32_max_is_an_unset_latitude_and_longitude() -> None:
             assert math.hypot(ap.position[0] - e0, ap.position[1] - n0) < 1.5
         finally:
             gcs.close()
+
+
+def test_a_ping_is_answered() -> None:
+    """The ping microservice (MAVProxy's link latency): a PING to all (targets 0) comes
+    back to its sender with its time and sequence; it used to go unanswered."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            gcs.conn.mav.ping_send(123_456_789, 42, 0, 0)
+            pong = gcs.wait("PING", where=lambda m: m.get_srcSystem() == 1)
+            assert (pong.time_usec, pong.seq, pong.target_system, pong.target_component) \
+                == (123_456_789, 42, 255, 190)
+        finally:
+            gcs.close()
