@@ -22,9 +22,9 @@ Framing (:class:`Framing`): a link speaks MAVLink 2 until its ground station sho
 reads only MAVLink 1, as PX4 (MAV_PROTO_VER 0) and ArduPilot negotiate it: a ground
 station that can read MAVLink 2 switches to it on the first MAVLink 2 frame it hears
 (QGroundControl, Mission Planner, pymavlink's ``mavutil``; MAVSDK always sends 2), so
-one still writing MAVLink 1 :data:`MAVLINK1_AFTER_S` after the link was first heard
-(and greeted in MAVLink 2) gets MAVLink 1 frames from then on, until it writes a
-MAVLink 2 frame. On a MAVLink 1 link, messages with an id above 255 (MAVLink 2 only:
+one still writing MAVLink 1 :data:`MAVLINK1_AFTER_S` after it was first heard (and
+greeted in MAVLink 2), and never MAVLink 2, gets MAVLink 1 frames from then on, until
+it writes a MAVLink 2 frame. On a MAVLink 1 link, messages with an id above 255 (MAVLink 2 only:
 TUNNEL, PROTOCOL_VERSION...) are not sent, and extension fields are left out; a
 PROTOCOL_VERSION asked for goes in MAVLink 2 framing all the same, as PX4 sends it.
 """
@@ -87,18 +87,27 @@ def is_mavlink1(msg: Any) -> bool:
 
 class Framing:
     """The MAVLink version a link's ground station reads (see the module docstring):
-    ``heard(mavlink1, now)`` for every frame received; ``mavlink1`` says how to send."""
+    ``heard(source, mavlink1, now)`` for every frame received (``source``: system and
+    component id); ``mavlink1`` says how to send. A source that ever sent a MAVLink 2
+    frame reads MAVLink 2: when it starts again in MAVLink 1 (QGroundControl restarted)
+    its link stays MAVLink 2, so it hears MAVLink 2 and switches back."""
+
+    MAX_SOURCES = 1024
 
     def __init__(self) -> None:
-        self.first_heard: float | None = None
+        self.first_heard: dict[tuple[int, int], float] = {}
+        self.speaks_2: set[tuple[int, int]] = set()
         self.mavlink1 = False
 
-    def heard(self, mavlink1: bool, now: float) -> None:
-        if self.first_heard is None:
-            self.first_heard = now
+    def heard(self, source: tuple[int, int], mavlink1: bool, now: float) -> None:
+        if len(self.first_heard) >= self.MAX_SOURCES:
+            self.first_heard.clear()
+            self.speaks_2.clear()
+        first = self.first_heard.setdefault(source, now)
         if not mavlink1:
+            self.speaks_2.add(source)
             self.mavlink1 = False
-        elif now - self.first_heard >= MAVLINK1_AFTER_S:
+        elif source not in self.speaks_2 and now - first >= MAVLINK1_AFTER_S:
             self.mavlink1 = True
 
     def can_send(self, msg_id: int, mavlink2: bool = False) -> bool:
@@ -290,7 +299,8 @@ class Links:
         for k, link in list(self.links.items()):
             for msg in link.receive():
                 if now is not None and msg.get_type() != "BAD_DATA":
-                    link.framing.heard(is_mavlink1(msg), now)
+                    link.framing.heard((msg.get_srcSystem(), msg.get_srcComponent()),
+                                       is_mavlink1(msg), now)
                 yield k, msg
             if link.closed:
                 del self.links[k]

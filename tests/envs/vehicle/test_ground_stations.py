@@ -73,7 +73,7 @@ def _f32(x: float) -> float:
 class Mavlink1Gcs:
     """A ground station that speaks and reads MAVLink 1 only (system 250)."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, source_system: int = 250) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.settimeout(0.2)
         self.addr = (LOOPBACK, port)
@@ -83,7 +83,7 @@ class Mavlink1Gcs:
             def write(self, buf: bytes) -> None:
                 gcs.sock.sendto(buf, gcs.addr)
 
-        self.mav = mavlink1.MAVLink(_Out(), srcSystem=250, srcComponent=190)
+        self.mav = mavlink1.MAVLink(_Out(), srcSystem=source_system, srcComponent=190)
         self.mav.robust_parsing = True
         self.datagrams: list[bytes] = []
         self._hb = -math.inf
@@ -177,6 +177,29 @@ def test_a_mavlink1_ground_station_uploads_reads_back_and_arms() -> None:
             assert _protocol_version_frames(gcs.datagrams) == [(200, 100, 200)]
         finally:
             gcs.close()
+
+
+def test_a_mavlink2_ground_station_restarting_in_mavlink1_keeps_hearing_mavlink2() -> None:
+    """QGroundControl starts in MAVLink 1 and switches on the first MAVLink 2 frame it
+    hears: the same ground station (255/190) heard in MAVLink 2 before and now writing
+    MAVLink 1 for longer than the grace keeps getting MAVLink 2, or it would never switch
+    back (and lose mission_type: no fence, no rally)."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        first = Gcs(rv.pymavlink_url)  # MAVLink 2, 255/190
+        first.close()
+        again = Mavlink1Gcs(rv.port, source_system=255)
+        try:
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 3.0:  # past the 2 s grace, writing MAVLink 1
+                again.recv()
+            again.datagrams.clear()
+            deadline = time.monotonic() + 10.0
+            while len(again.datagrams) < 5 and time.monotonic() < deadline:
+                again.recv()
+            assert len(again.datagrams) >= 5
+            assert all(d[0] == 0xFD for d in again.datagrams)  # MAVLink 2 frames
+        finally:
+            again.close()
 
 
 def test_a_legacy_upload_loop_is_asked_with_mission_request() -> None:
