@@ -3,9 +3,15 @@
 :class:`Links` opens one endpoint per connection URL and keeps the links that talk
 through them, each with an id (the first element of a :data:`Peer`):
 
-- ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``: one pymavlink
-  connection, one link (``udpin`` answers the address that wrote last, as pymavlink
-  does);
+- ``udpout:HOST:PORT``, ``tcp:HOST:PORT``: one pymavlink connection, one link;
+- ``udpin:HOST:PORT``: a socket bound there; every address that writes to it is a link
+  of its own (:class:`UdpPeer`), like a TCP client: it gets the telemetry and the answers
+  to its own requests, so several ground stations may share the port (pymavlink 2.4's
+  own ``udpin`` sends every message to every address that wrote: each ground station
+  also got the others' mission requests and acknowledgements, and one MAVLink 1
+  ground station made the whole port MAVLink 1). An address silent for
+  :data:`UDP_PEER_TIMEOUT_S` is forgotten, except the last one that wrote (a script
+  that sent once and only listens keeps its telemetry);
 - ``tcpin:HOST:PORT``: a listening socket that accepts every ground station that
   connects; each client is a link of its own, with its own parser and encoder, so each
   gets the telemetry and the answers to its own requests. Sockets never block the
@@ -47,6 +53,7 @@ TCP_SEND_BUFFER_BYTES = 1 << 16  # the kernel's send buffer per TCP client (SO_S
 TCP_BACKLOG = 8
 MAX_MESSAGES_PER_POLL = 1000  # per link and poll: a flood never starves the loop
 MAVLINK1_AFTER_S = 2.0  # wall seconds a ground station has to switch to MAVLink 2
+UDP_PEER_TIMEOUT_S = 60.0  # wall seconds of silence after which a udpin address is dropped
 
 _SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
             "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
@@ -85,29 +92,46 @@ def is_mavlink1(msg: Any) -> bool:
     return bool(buf) and buf[0] == mavlink.PROTOCOL_MARKER_V1
 
 
-class Framing:
-    """The MAVLink version a link's ground station reads (see the module docstring):
-    ``heard(source, mavlink1, now)`` for every frame received (``source``: system and
-    component id); ``mavlink1`` says how to send. A source that ever sent a MAVLink 2
-    frame reads MAVLink 2: when it starts again in MAVLink 1 (QGroundControl restarted)
-    its link stays MAVLink 2, so it hears MAVLink 2 and switches back."""
+class Versions:
+    """What the vehicle knows of each ground station's MAVLink (by system and component
+    id, on whatever link): when it was first heard and whether it ever sent MAVLink 2."""
 
     MAX_SOURCES = 1024
 
     def __init__(self) -> None:
         self.first_heard: dict[tuple[int, int], float] = {}
         self.speaks_2: set[tuple[int, int]] = set()
-        self.mavlink1 = False
 
-    def heard(self, source: tuple[int, int], mavlink1: bool, now: float) -> None:
+    def reads_only_1(self, source: tuple[int, int], mavlink1: bool, now: float) -> bool:
+        """Record a frame of ``source``; whether it is known to read MAVLink 1 only (it
+        still writes MAVLink 1 :data:`MAVLINK1_AFTER_S` after it was first heard, and never
+        wrote MAVLink 2)."""
         if len(self.first_heard) >= self.MAX_SOURCES:
             self.first_heard.clear()
             self.speaks_2.clear()
         first = self.first_heard.setdefault(source, now)
         if not mavlink1:
             self.speaks_2.add(source)
+            return False
+        return source not in self.speaks_2 and now - first >= MAVLINK1_AFTER_S
+
+
+class Framing:
+    """The MAVLink version a link's ground station reads (see the module docstring):
+    ``heard(source, mavlink1, now, versions)`` for every frame received (``source``:
+    system and component id); ``mavlink1`` says how to send. A ground station that ever
+    sent a MAVLink 2 frame reads MAVLink 2: when it starts again in MAVLink 1
+    (QGroundControl restarted) it is sent MAVLink 2, so it switches back."""
+
+    def __init__(self) -> None:
+        self.mavlink1 = False
+
+    def heard(self, source: tuple[int, int], mavlink1: bool, now: float,
+              versions: Versions) -> None:
+        only_1 = versions.reads_only_1(source, mavlink1, now)
+        if not mavlink1:
             self.mavlink1 = False
-        elif source not in self.speaks_2 and now - first >= MAVLINK1_AFTER_S:
+        elif only_1:
             self.mavlink1 = True
 
     def can_send(self, msg_id: int, mavlink2: bool = False) -> bool:
@@ -159,6 +183,81 @@ class MavPort:
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self.conn.close()
+
+
+class UdpListener:
+    """A ``udpin:HOST:PORT`` port: a bound socket; each address that writes is a
+    :class:`UdpPeer` (see the module docstring)."""
+
+    def __init__(self, url: str, sysid: int, compid: int) -> None:
+        host, _, port = vehicle_url(url).split(":", 1)[1].rpartition(":")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((host, int(port)))  # no SO_REUSEADDR: a port in use is an error
+            sock.setblocking(False)
+        except OSError as exc:
+            sock.close()
+            raise ConnectionURLError(f"cannot listen on {url}: {exc.strerror or exc}") from None
+        self.url = url
+        self.sock = sock
+        self.sysid, self.compid = sysid, compid
+        self.peers: dict[tuple, UdpPeer] = {}
+        self.latest: tuple | None = None  # the address that wrote last
+
+    def fileno(self) -> int | None:
+        return self.sock.fileno()
+
+    def read(self) -> list[tuple[tuple, bytes]]:
+        """(address, datagram) for what is waiting (at most MAX_MESSAGES_PER_POLL)."""
+        out = []
+        for _ in range(MAX_MESSAGES_PER_POLL):
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:  # e.g. an ICMP error of an earlier send: not ours to end
+                continue
+            out.append((addr, data))
+            self.latest = addr
+        return out
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.close()
+
+
+class UdpPeer:
+    """One address writing to a ``udpin`` port: a link with its own parser, encoder and
+    framing; what it sent waits in :attr:`pending` until :meth:`receive`."""
+
+    def __init__(self, listener: UdpListener, address: tuple, now: float | None) -> None:
+        self.listener = listener
+        self.address = address
+        self.url = f"udp peer {address[0]}:{address[1]}"
+        self.pending: list[bytes] = []
+        self.last_rx = now
+        self.closed = False
+        self.mav = mavlink.MAVLink(self, srcSystem=listener.sysid, srcComponent=listener.compid)
+        self.mav.robust_parsing = True
+        self.framing = Framing()
+
+    def fileno(self) -> int | None:
+        return None if self.closed else self.listener.fileno()
+
+    def write(self, buf: bytes) -> None:
+        if not self.closed:
+            with contextlib.suppress(OSError):
+                self.listener.sock.sendto(buf, self.address)
+
+    def receive(self) -> Iterator[Any]:
+        pending, self.pending = self.pending, []
+        for data in pending:
+            yield from self.mav.parse_buffer(data) or ()
+
+    def close(self) -> None:
+        self.closed = True
+        if self.listener.peers.get(self.address) is self:
+            del self.listener.peers[self.address]
 
 
 class TcpClient:
@@ -268,7 +367,7 @@ class TcpListener:
             self.sock.close()
 
 
-Link = MavPort | TcpClient
+Link = MavPort | TcpClient | UdpPeer
 
 
 class Links:
@@ -276,14 +375,18 @@ class Links:
 
     def __init__(self, urls: Sequence[str], sysid: int, compid: int) -> None:
         self.links: dict[int, Link] = {}
-        self.listeners: list[TcpListener] = []
+        self.listeners: list[TcpListener | UdpListener] = []
         self._ids = itertools.count()
         self.sent = 0
         self.gone: list[int] = []  # ids of links closed since the last take_gone()
+        self.versions = Versions()  # each ground station's MAVLink, across links
         try:
             for url in urls:
-                if vehicle_url(url).startswith("tcpin:"):
+                scheme = vehicle_url(url).split(":", 1)[0]
+                if scheme == "tcpin":
                     self.listeners.append(TcpListener(url, sysid, compid))
+                elif scheme in ("udpin", "udp"):
+                    self.listeners.append(UdpListener(url, sysid, compid))
                 else:
                     self.links[next(self._ids)] = MavPort(url, sysid, compid)
         except BaseException:
@@ -294,13 +397,27 @@ class Links:
         """(link id, message) for everything received; new TCP clients are accepted;
         each link's framing follows what it hears (``now``: wall seconds)."""
         for lst in self.listeners:
-            for client in lst.accept():
-                self.links[next(self._ids)] = client
+            if isinstance(lst, TcpListener):
+                for client in lst.accept():
+                    self.links[next(self._ids)] = client
+                continue
+            for addr, data in lst.read():
+                peer = lst.peers.get(addr)
+                if peer is None:
+                    peer = lst.peers[addr] = UdpPeer(lst, addr, now)
+                    self.links[next(self._ids)] = peer
+                peer.pending.append(data)
+                peer.last_rx = now
+            if now is not None:  # forget the silent ones (never the last that wrote)
+                for addr, peer in list(lst.peers.items()):
+                    if addr != lst.latest and peer.last_rx is not None \
+                            and now - peer.last_rx > UDP_PEER_TIMEOUT_S:
+                        peer.close()
         for k, link in list(self.links.items()):
             for msg in link.receive():
                 if now is not None and msg.get_type() != "BAD_DATA":
                     link.framing.heard((msg.get_srcSystem(), msg.get_srcComponent()),
-                                       is_mavlink1(msg), now)
+                                       is_mavlink1(msg), now, self.versions)
                 yield k, msg
             if link.closed:
                 del self.links[k]

@@ -588,3 +588,35 @@ def test_a_ping_is_answered() -> None:
                 == (123_456_789, 42, 255, 190)
         finally:
             gcs.close()
+
+
+def test_two_ground_stations_on_one_udpin_port() -> None:
+    """Two ground stations (systems 255 and 254) writing to the same ``udpin`` port,
+    as QGroundControl and a MAVSDK script on one PX4 SITL port: each address is a link of
+    its own, like a TCP client: both get the telemetry, each gets its own answers and
+    not the other's (pymavlink's ``udpin`` sends every message to every address that
+    wrote: the quiet one received the talker's MISSION_REQUEST_INTs and COMMAND_ACKs)."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        quiet = Gcs(rv.pymavlink_url, source_system=254)
+        talker = Gcs(rv.pymavlink_url)
+        try:
+            assert _upload_int(talker, _waypoints(rv, 3)) == MAV_MISSION_ACCEPTED
+            assert talker.command(MAV_CMD_REQUEST_MESSAGE, 148) == MAV_RESULT_ACCEPTED
+            heard = []
+            for _ in range(100_000):  # what reached the quiet one meanwhile
+                m = quiet.conn.recv_match(blocking=False)
+                if m is None:
+                    break
+                heard.append(m)
+            kinds = {m.get_type() for m in heard}
+            assert {"GLOBAL_POSITION_INT", "HEARTBEAT"} <= kinds  # the telemetry
+            assert [m for m in heard if getattr(m, "target_system", 0) == 255] == []
+            # its own command is answered to it
+            assert quiet.command(MAV_CMD_REQUEST_MESSAGE, 148) == MAV_RESULT_ACCEPTED
+            quiet.conn.mav.mission_request_list_send(1, 1)
+            assert quiet.wait("MISSION_COUNT").count == 3  # what the talker uploaded
+            assert [m for m in talker.collect(0.5) if getattr(m, "target_system", 0) == 254] \
+                == []
+        finally:
+            quiet.close()
+            talker.close()
