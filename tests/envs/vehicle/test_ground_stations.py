@@ -620,3 +620,31 @@ def test_two_ground_stations_on_one_udpin_port() -> None:
         finally:
             quiet.close()
             talker.close()
+
+
+def test_a_takeoff_sent_again_is_accepted() -> None:
+    """A ground station whose take-off ACK was lost sends it again (MAVSDK and QGroundControl
+    retry with ``confirmation`` + 1): MAVLink asks ARM and TAKEOFF to be idempotent, so
+    the retry is ACCEPTED and changes nothing (it used to be TEMPORARILY_REJECTED:
+    the ground station reported a failed take-off while the vehicle climbed)."""
+    from pymavlink.dialects.v20.common import MAV_CMD_NAV_TAKEOFF
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=5.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            nan = math.nan
+            assert gcs.command(MAV_CMD_COMPONENT_ARM_DISARM, 1) == MAV_RESULT_ACCEPTED
+            assert gcs.command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, nan, nan, nan, nan) \
+                == MAV_RESULT_ACCEPTED
+            for confirmation in (1, 2):  # the retries of a lost ACK
+                gcs.conn.mav.command_long_send(1, 1, MAV_CMD_NAV_TAKEOFF, confirmation, 0, 0,
+                                               0, nan, nan, nan, nan)
+                ack = gcs.wait("COMMAND_ACK", where=lambda m: m.command == MAV_CMD_NAV_TAKEOFF)
+                assert ack.result == MAV_RESULT_ACCEPTED
+            ess = gcs.wait("EXTENDED_SYS_STATE", 30.0, where=lambda m: m.landed_state == 2)
+            assert ess is not None  # in the air, the one take-off done
+            target = rv.autopilot.home.alt_m + rv.autopilot.params["MIS_TAKEOFF_ALT"]
+            gpi = gcs.wait("GLOBAL_POSITION_INT")
+            assert gpi.alt / 1000.0 == pytest.approx(target, abs=1.0)
+        finally:
+            gcs.close()
