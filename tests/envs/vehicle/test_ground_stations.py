@@ -648,3 +648,24 @@ def test_a_takeoff_sent_again_is_accepted() -> None:
             assert gpi.alt / 1000.0 == pytest.approx(target, abs=1.0)
         finally:
             gcs.close()
+
+
+def test_attitude_quaternion_on_request() -> None:
+    """MAVSDK's Telemetry.set_rate_attitude_quaternion turns ATTITUDE_QUATERNION on (off
+    by default, as in PX4's normal mode; it used to be UNSUPPORTED), and the quaternion
+    is the one of the ATTITUDE angles."""
+    from mavsdk.plugins.telemetry import Telemetry
+
+    from tests.envs.vehicle.test_mavsdk import _until, mavsdk_gcs
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv, \
+            mavsdk_gcs(rv.mavsdk_url) as system:
+        t = Telemetry(system)
+        t.set_rate_attitude_quaternion(5.0)
+        assert _until(lambda: math.isfinite(t.attitude_quaternion().w), 20.0)
+        q = t.attitude_quaternion()
+        assert q.w ** 2 + q.x ** 2 + q.y ** 2 + q.z ** 2 == pytest.approx(1.0, abs=1e-5)
+        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y ** 2 + q.z ** 2))
+        _, _, attitude_yaw = rv.vehicle.telemetry._attitude()  # ATTITUDE's yaw
+        assert yaw == pytest.approx(attitude_yaw, abs=1e-3)  # landed: the nose stays
+        assert rv.vehicle.telemetry.streams.interval_us(31) == 200_000
