@@ -54,6 +54,7 @@ TCP_BACKLOG = 8
 MAX_MESSAGES_PER_POLL = 1000  # per link and poll: a flood never starves the loop
 MAVLINK1_AFTER_S = 2.0  # wall seconds a ground station has to switch to MAVLink 2
 UDP_PEER_TIMEOUT_S = 60.0  # wall seconds of silence after which a udpin address is dropped
+MAX_UDP_PEERS = 256  # addresses per udpin port; beyond, the one silent longest is dropped
 
 _SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
             "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
@@ -404,6 +405,8 @@ class Links:
             for addr, data in lst.read():
                 peer = lst.peers.get(addr)
                 if peer is None:
+                    if len(lst.peers) >= MAX_UDP_PEERS:  # a flood of addresses: bounded
+                        min(lst.peers.values(), key=lambda q: q.last_rx or 0.0).close()
                     peer = lst.peers[addr] = UdpPeer(lst, addr, now)
                     self.links[next(self._ids)] = peer
                 peer.pending.append(data)

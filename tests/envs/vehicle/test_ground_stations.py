@@ -602,11 +602,15 @@ def test_two_ground_stations_on_one_udpin_port() -> None:
         try:
             assert _upload_int(talker, _waypoints(rv, 3)) == MAV_MISSION_ACCEPTED
             assert talker.command(MAV_CMD_REQUEST_MESSAGE, 148) == MAV_RESULT_ACCEPTED
-            heard = []
-            for _ in range(100_000):  # what reached the quiet one meanwhile
-                m = quiet.conn.recv_match(blocking=False)
-                if m is None:
-                    break
+            heard = []  # what reaches the quiet one while the talker talks
+            deadline = time.monotonic() + 20.0
+            while not {"GLOBAL_POSITION_INT", "HEARTBEAT"} <= {m.get_type() for m in heard} \
+                    and time.monotonic() < deadline:
+                talker.recv(0.02)  # (its HEARTBEATs)
+                m = quiet.conn.recv_match(blocking=True, timeout=0.02)
+                if m is not None:
+                    heard.append(m)
+            while (m := quiet.conn.recv_match(blocking=False)) is not None:
                 heard.append(m)
             kinds = {m.get_type() for m in heard}
             assert {"GLOBAL_POSITION_INT", "HEARTBEAT"} <= kinds  # the telemetry
@@ -645,7 +649,7 @@ def test_a_takeoff_sent_again_is_accepted() -> None:
             assert ess is not None  # in the air, the one take-off done
             target = rv.autopilot.home.alt_m + rv.autopilot.params["MIS_TAKEOFF_ALT"]
             gpi = gcs.wait("GLOBAL_POSITION_INT")
-            assert gpi.alt / 1000.0 == pytest.approx(target, abs=1.0)
+            assert gpi.alt / 1000.0 == pytest.approx(target, abs=1.5)  # one take-off, not two
         finally:
             gcs.close()
 
