@@ -39,6 +39,7 @@ from typing import Any
 from pymavlink.dialects.v20.common import (
     MAV_MISSION_ACCEPTED,
     MAV_MISSION_DENIED,
+    MAV_MISSION_ERROR,
     MAV_MISSION_INVALID_SEQUENCE,
     MAV_MISSION_NO_SPACE,
     MAV_MISSION_OPERATION_CANCELLED,
@@ -170,6 +171,9 @@ class MissionServer:
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
                 self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
+                return
+            if rx is None:
+                self._wrong_type(peer, w)
             return
         n = len(rx.items)
         if w.seq < n:
@@ -194,6 +198,15 @@ class MissionServer:
         del self._rx[rx.mission_type]
         self._commit(peer, rx.mission_type, rx.items)
         self._ack(peer, MAV_MISSION_ACCEPTED, rx.mission_type)
+
+    def _wrong_type(self, peer: Peer, w: WireItem) -> None:
+        """An item answering this ground station's pending request (its sequence) but
+        for another list (a script that left ``mission_type`` at 0 in a fence upload):
+        that transfer ends with MAV_MISSION_ERROR at once, as PX4 answers it, instead of
+        re-requests until the timeout. The held list stays."""
+        for t, rx in list(self._rx.items()):
+            if rx.peer == peer and t != w.mission_type and w.seq == len(rx.items):
+                self._refuse(peer, MAV_MISSION_ERROR, t)
 
     def on_item_int(self, peer: Peer, msg: Any) -> None:
         self.on_item(peer, WireItem.from_msg(msg))

@@ -673,3 +673,32 @@ def test_attitude_quaternion_on_request() -> None:
         _, _, attitude_yaw = rv.vehicle.telemetry._attitude()  # ATTITUDE's yaw
         assert yaw == pytest.approx(attitude_yaw, abs=1e-3)  # landed: the nose stays
         assert rv.vehicle.telemetry.streams.interval_us(31) == 200_000
+
+
+def test_a_fence_item_sent_as_a_mission_item_ends_the_upload_at_once() -> None:
+    """A fence upload whose items come with ``mission_type`` 0 (pymavlink's
+    ``mission_item_int_send`` without its last argument) ends at once with
+    MAV_MISSION_ERROR for the fence (as PX4 answers an item of the wrong list; it used
+    to be asked again until the 5 s timeout: OPERATION_CANCELLED); the fence held stays."""
+    from pymavlink.dialects.v20.common import (
+        MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
+        MAV_FRAME_GLOBAL_INT,
+        MAV_MISSION_ERROR,
+        MAV_MISSION_TYPE_FENCE,
+    )
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            (lat, lon, _), = _waypoints(rv, 1)
+            gcs.conn.mav.mission_count_send(1, 1, 1, MAV_MISSION_TYPE_FENCE)
+            req = gcs.wait("MISSION_REQUEST_INT", where=lambda m: m.mission_type == 1)
+            gcs.conn.mav.mission_item_int_send(1, 1, req.seq, MAV_FRAME_GLOBAL_INT,
+                                               MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, 0, 1,
+                                               500.0, 0, 0, 0, round(lat * 1e7),
+                                               round(lon * 1e7), 0.0)  # mission_type 0
+            ack = gcs.wait("MISSION_ACK", 10.0)
+            assert (ack.type, ack.mission_type) == (MAV_MISSION_ERROR, MAV_MISSION_TYPE_FENCE)
+            assert rv.held(MAV_MISSION_TYPE_FENCE) == [] and not rv.vehicle.protocol.uploading
+        finally:
+            gcs.close()
