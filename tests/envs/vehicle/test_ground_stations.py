@@ -17,10 +17,14 @@ failed before its fix.
   is acknowledged and answered, as the specification asks of every node.
 - MAVSDK's Telemetry.altitude, position_velocity_ned and get_gps_global_origin (PX4's
   ALTITUDE and LOCAL_POSITION_NED streams, GPS_GLOBAL_ORIGIN on request).
-- A TCP ground station that reconnects mid-upload, or hangs up, locks no one out.
+- A TCP ground station that reconnects mid-upload, or hangs up, locks no one out; two
+  ground stations on one ``udpin`` port each get their own answers only; one heard in
+  MAVLink 2 that restarts in MAVLink 1 (QGroundControl) keeps hearing MAVLink 2.
 - MAVSDK as a companion computer (the vehicle's own system id) is answered.
-- LOG_REQUEST_LIST, partial mission lists and standard (base-only) mode changes are
-  answered, never left waiting.
+- LOG_REQUEST_LIST, PING, partial mission lists, standard (base-only) mode changes, a
+  fence item sent with the mission's type, are answered at once, never left waiting.
+- PX4's payload mission items are taken; INT32_MAX is an unset latitude/longitude; a
+  take-off sent again (its ACK lost) is ACCEPTED; ATTITUDE_QUATERNION on request.
 """
 
 from __future__ import annotations
