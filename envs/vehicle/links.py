@@ -21,8 +21,8 @@ through them, each with an id (the first element of a :data:`Peer`):
   (pymavlink's own ``tcpin`` serves one client at a time: an idle one would lock the
   others out.)
 
-MAVSDK's ``udpin://``, ``udpout://``, ``tcp://`` forms are accepted too
-(:func:`vehicle_url`).
+MAVSDK's ``udpin://``, ``udpout://``, ``tcp://`` forms are accepted too, and its
+``udp://:PORT`` (no host: listen on every interface) (:func:`vehicle_url`).
 
 Framing (:class:`Framing`): a link speaks MAVLink 2 until its ground station shows it
 reads only MAVLink 1, as PX4 (MAV_PROTO_VER 0) and ArduPilot negotiate it: a ground
@@ -76,12 +76,15 @@ def vehicle_url(url: str) -> str:
         raise ConnectionURLError(
             f"unsupported connection URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, "
             "tcpin:HOST:PORT or tcp:HOST:PORT")
-    host, _, port = u.split(":", 1)[1].rpartition(":")
+    scheme, rest = u.split(":", 1)
+    host, _, port = rest.rpartition(":")
     try:
         p = int(port)
     except ValueError:
         raise ConnectionURLError(f"bad connection URL {url!r}: port {port!r} "
                                  "is not a number") from None
+    if not host and scheme in ("udpin", "udp", "tcpin") and 0 < p < 65536:
+        return f"{scheme}:0.0.0.0:{p}"  # MAVSDK's "udp://:14540": every interface
     if not host or not 0 < p < 65536:
         raise ConnectionURLError(f"bad connection URL {url!r}: expected HOST:PORT")
     return u

@@ -706,3 +706,20 @@ def test_a_fence_item_sent_as_a_mission_item_ends_the_upload_at_once() -> None:
             assert rv.held(MAV_MISSION_TYPE_FENCE) == [] and not rv.vehicle.protocol.uploading
         finally:
             gcs.close()
+
+
+def test_mavsdks_listen_everywhere_url() -> None:
+    """``--connection udp://:14540`` (MAVSDK's and PX4's documentation form: no host,
+    every interface) listens on 0.0.0.0; it used to be refused ("expected HOST:PORT")."""
+    from tests.net import free_udp_port
+
+    port = free_udp_port()
+    v = VirtualVehicle(load_scenario(SEARCH_SCENARIO), [f"udp://:{port}"], speedup=2.0).start()
+    try:
+        gcs = Gcs(f"udpout:{LOOPBACK}:{port}")
+        try:
+            assert gcs.command(MAV_CMD_REQUEST_MESSAGE, 148) == MAV_RESULT_ACCEPTED
+        finally:
+            gcs.close()
+    finally:
+        v.stop()
