@@ -2,10 +2,11 @@
 
 :class:`VirtualVehicle` realises the scenario's world for a seed
 (:func:`sim.realise`), flies its first agent with the :class:`Autopilot` and talks
-MAVLink 2 on one or more ports (:mod:`envs.vehicle.links`: ``udpin:HOST:PORT``: the
-vehicle listens and answers whoever wrote last; ``udpout:HOST:PORT``: it sends there,
-as PX4 SITL to QGroundControl's 14550; ``tcpin:HOST:PORT``: any number of ground
-stations connect; ``tcp:HOST:PORT``). Each loop iteration (about 50 per wall second)
+MAVLink 2 (1 to a ground station that reads only 1) on one or more ports
+(:mod:`envs.vehicle.links`: ``udpin:HOST:PORT``: the vehicle listens, each address
+that writes is answered on its own; ``udpout:HOST:PORT``: it sends there, as PX4 SITL
+to QGroundControl's 14550; ``tcpin:HOST:PORT``: any number of ground stations
+connect; ``tcp:HOST:PORT``). Each loop iteration (about 50 per wall second)
 it reads every link, advances simulated time to ``speedup`` x the elapsed wall time
 in steps of at most ``step_s`` (``speedup=inf``: one step per iteration, as fast as
 it can), publishes the autopilot's events and the telemetry streams that are due, and
