@@ -265,3 +265,38 @@ def test_udpin_addresses_are_forgotten_when_silent_or_too_many(monkeypatch) -> N
         for s in socks:
             s.close()
         lk.close()
+
+
+def test_a_client_gone_in_the_same_poll_as_anothers_count_locks_no_one_out() -> None:
+    """A TCP client that hung up mid-upload and another ground station's MISSION_COUNT
+    read in the same poll of the links (the loop stepped by hand, no waiting on the
+    clock): the hang-up is handled before the count, so the count starts its upload
+    (it was MAV_MISSION_DENIED: the gone link's upload was forgotten only after the
+    whole poll; test_ground_stations' reconnect test failed so now and then)."""
+    mav = mavutil.mavlink
+    port = free_tcp_port()
+    v = VirtualVehicle(load_scenario(SEARCH_SCENARIO), [f"tcpin:127.0.0.1:{port}"])
+    gone = socket.create_connection(("127.0.0.1", port))
+    other = socket.create_connection(("127.0.0.1", port))
+    try:
+        gone.sendall(mav.MAVLink_mission_count_message(1, 1, 3, 0).pack(
+            mav.MAVLink(None, 255, 190)))
+        assert until(lambda: v._receive(0.0) or v.protocol.uploading, 5.0)
+        # in one poll: the first client hangs up, the other one writes its count
+        gone.close()
+        other.sendall(mav.MAVLink_mission_count_message(1, 1, 2, 0).pack(
+            mav.MAVLink(None, 254, 190)))
+        v._receive(0.1)
+        other.settimeout(5.0)
+        parser = mav.MAVLink(None)
+        parser.robust_parsing = True
+        answer = None
+        while answer is None:
+            for m in parser.parse_buffer(other.recv(65536)) or ():
+                if m.get_type() in ("MISSION_ACK", "MISSION_REQUEST_INT"):
+                    answer = m
+        assert answer.get_type() == "MISSION_REQUEST_INT", answer.to_dict()
+        assert answer.seq == 0
+    finally:
+        other.close()
+        v.close()
