@@ -130,10 +130,13 @@ CAPACITY = {MAV_MISSION_TYPE_MISSION: 2000, MAV_MISSION_TYPE_FENCE: 256,
             MAV_MISSION_TYPE_RALLY: 16}
 
 
-def _check_position(w: WireItem) -> int:
+def _check_position(w: WireItem, *, unset_ok: bool = False) -> int:
+    """``unset_ok``: x = y = INT32_MAX ("not set": where the vehicle is) is taken; only a
+    mission item can mean that (a fence vertex, a fence circle's centre or a rally
+    point without a position has none: INVALID_PARAM5_X, as any latitude beyond 90)."""
     if w.frame not in GLOBAL_FRAMES:
         return MAV_MISSION_UNSUPPORTED_FRAME
-    unset = w.x == UNSET_E7 and w.y == UNSET_E7  # no position: here
+    unset = unset_ok and w.x == UNSET_E7 and w.y == UNSET_E7  # no position: here
     if not unset and not -900_000_000 <= w.x <= 900_000_000:
         return MAV_MISSION_INVALID_PARAM5_X
     if not unset and not -1_800_000_000 <= w.y <= 1_800_000_000:
@@ -163,7 +166,7 @@ def check_item(w: WireItem, count: int) -> int:
             return MAV_MISSION_INVALID_PARAM1
         if w.command in POSITIONLESS:
             return MAV_MISSION_ACCEPTED
-        return _check_position(w)
+        return _check_position(w, unset_ok=True)
     if w.mission_type == MAV_MISSION_TYPE_FENCE:
         if w.command in FENCE_VERTEX:
             n = w.param1

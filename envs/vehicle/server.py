@@ -384,8 +384,14 @@ class VirtualVehicle:
     # ------------------------------------------------------------------ receiving
     def _receive(self, now: float) -> None:
         for link, msg in self.links.poll(now):
+            self._forget_gone()  # before the next message: it may be another's count
             self._dispatch(link, msg, now)
-        for link in self.links.take_gone():  # a TCP client hung up
+        self._forget_gone()
+
+    def _forget_gone(self) -> None:
+        """The uploads of links closed since (a TCP client hung up, a udpin address
+        silent too long) end."""
+        for link in self.links.take_gone():
             self.protocol.forget_link(link)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:

@@ -214,3 +214,89 @@ def test_tcpin_that_cannot_listen_is_one_line() -> None:
             assert "\n" not in str(info.value)
     finally:
         busy.close()
+
+
+def test_udpin_addresses_are_forgotten_when_silent_or_too_many(monkeypatch) -> None:
+    """A ``udpin`` port's per-address links are bounded (wall times given, no waiting on
+    the clock): an address silent for UDP_PEER_TIMEOUT_S is forgotten (its id reported
+    by ``take_gone``, so its upload is dropped), never the last one that wrote; beyond
+    MAX_UDP_PEERS addresses the one silent longest makes room; a forgotten address that
+    writes again is a new link."""
+    from tests.net import LOOPBACK, free_udp_port
+
+    port = free_udp_port()
+    lk = links.Links([f"udpin:{LOOPBACK}:{port}"], 1, 1)
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+    try:
+        def hb(k: int) -> None:
+            m = mavutil.mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3)
+            socks[k].sendto(m.pack(mavutil.mavlink.MAVLink(None, 250 + k, 190)),
+                            (LOOPBACK, port))
+
+        def heard(now: float, n: int) -> dict[int, int]:
+            """link id -> system id of the next ``n`` messages (bounded wait)."""
+            got: dict[int, int] = {}
+
+            def enough() -> bool:
+                got.update({k: m.get_srcSystem() for k, m in lk.poll(now)})
+                return len(got) >= n
+
+            until(enough, 5.0)
+            return got
+
+        t_out = links.UDP_PEER_TIMEOUT_S
+        hb(0)
+        hb(1)
+        first = heard(0.0, 2)
+        a, b = sorted(first, key=first.get)  # systems 250 and 251
+        hb(1)
+        assert heard(50.0, 1) == {b: 251}
+        assert list(lk.poll(t_out + 1.0)) == [] and lk.take_gone() == [a]  # 250: silent
+        assert sorted(lk.links) == [b]
+        assert list(lk.poll(t_out + 150.0)) == [] and lk.take_gone() == []  # 251: last
+        hb(0)  # 250 again: a new link
+        (a2, sys_a2), = heard(t_out + 160.0, 1).items()
+        assert sys_a2 == 250 and a2 not in (a, b)
+        monkeypatch.setattr(links, "MAX_UDP_PEERS", 2)
+        hb(2)  # a third address: 251 (silent since 50 s) makes room
+        assert list(heard(t_out + 170.0, 1).values()) == [252]
+        assert lk.take_gone() == [b] and len(lk.links) == 2
+    finally:
+        for s in socks:
+            s.close()
+        lk.close()
+
+
+def test_a_client_gone_in_the_same_poll_as_anothers_count_locks_no_one_out() -> None:
+    """A TCP client that hung up mid-upload and another ground station's MISSION_COUNT
+    read in the same poll of the links (the loop stepped by hand, no waiting on the
+    clock): the hang-up is handled before the count, so the count starts its upload
+    (it was MAV_MISSION_DENIED: the gone link's upload was forgotten only after the
+    whole poll; test_ground_stations' reconnect test failed so now and then)."""
+    mav = mavutil.mavlink
+    port = free_tcp_port()
+    v = VirtualVehicle(load_scenario(SEARCH_SCENARIO), [f"tcpin:127.0.0.1:{port}"])
+    gone = socket.create_connection(("127.0.0.1", port))
+    other = socket.create_connection(("127.0.0.1", port))
+    try:
+        gone.sendall(mav.MAVLink_mission_count_message(1, 1, 3, 0).pack(
+            mav.MAVLink(None, 255, 190)))
+        assert until(lambda: v._receive(0.0) or v.protocol.uploading, 5.0)
+        # in one poll: the first client hangs up, the other one writes its count
+        gone.close()
+        other.sendall(mav.MAVLink_mission_count_message(1, 1, 2, 0).pack(
+            mav.MAVLink(None, 254, 190)))
+        v._receive(0.1)
+        other.settimeout(5.0)
+        parser = mav.MAVLink(None)
+        parser.robust_parsing = True
+        answer = None
+        while answer is None:
+            for m in parser.parse_buffer(other.recv(65536)) or ():
+                if m.get_type() in ("MISSION_ACK", "MISSION_REQUEST_INT"):
+                    answer = m
+        assert answer.get_type() == "MISSION_REQUEST_INT", answer.to_dict()
+        assert answer.seq == 0
+    finally:
+        other.close()
+        v.close()

@@ -201,3 +201,25 @@ def test_download_clear_and_count_zero() -> None:
     link.take()
     link.server.on_count(GCS, 0, MAV_MISSION_TYPE_MISSION)  # PX4: a count of 0 clears
     assert link.acks() == [MISSION_ACCEPTED] and link.server.held[0] == []
+
+
+def test_int32_max_is_no_position_only_for_a_mission_item() -> None:
+    """INT32_MAX in x and y ("not set": where the vehicle is) is taken for a mission item
+    only; a fence vertex, a fence circle or a rally point has no "here" (the fence used
+    to be placed at latitude 214.7 degrees, and the vehicle could not arm)."""
+    unset = 2**31 - 1
+    link = Link()
+    upload(link, [wp(0, command=22, x=unset, y=unset), wp(1)])  # take-off: here
+    assert link.acks() == [MISSION_ACCEPTED]
+    circle = wp(0, command=5003, frame=5, param1=500.0, x=unset, y=unset,
+                mission_type=MAV_MISSION_TYPE_FENCE)
+    vertices = [wp(k, command=5001, frame=5, param1=3.0, x=unset if k == 1 else 367150000 + k,
+                   y=unset if k == 1 else -44780000 - k * k, mission_type=MAV_MISSION_TYPE_FENCE)
+                for k in range(3)]
+    rally = wp(0, command=5100, x=unset, y=unset, mission_type=2)
+    for items, t in (([circle], MAV_MISSION_TYPE_FENCE), (vertices, MAV_MISSION_TYPE_FENCE),
+                     ([rally], 2)):
+        link.take()
+        upload(link, items, mission_type=t)
+        assert link.acks() == [MISSION_INVALID_PARAM5_X], items
+        assert t not in {c[0] for c in link.commits}
