@@ -37,8 +37,14 @@ NumPy surface, as for :class:`sim.terrain.GridTerrain`). A window of more than
 :data:`CASADI_MAX_CELLS` cells gives the B-spline every k-th cell in each direction
 (a 1 m LiDAR model of a 2 km area: every 5th).
 
+Values. Band 1 is read as GDAL declares it: raw x scale + offset (an int16 file of
+decimetres), in its vertical unit (metres, or feet converted; another unit is refused).
+Nodata cells are the file's declared nodata and NaN; a file that declares none has the
+usual void markers (:data:`VOID_MARKERS`, SRTM's -32768) and heights beyond the Earth's
+(:data:`LOWEST_M`, :data:`HIGHEST_M`) as nodata too.
+
 Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS, a
-window beyond :data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
+picture's band (red, palette...) rather than heights, a window beyond :data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
 :meth:`DemTerrain.require_polygon`, a point or area whose bilinear support leaves the
 file's extent or touches a nodata cell.
 """
@@ -59,6 +65,10 @@ from sim.terrain import bilinear, map_elementwise
 MAX_WINDOW_CELLS = 16_000_000  # 128 MB of float64: far beyond a search area at 1 m
 CASADI_MAX_CELLS = 250_000  # the CasADi B-spline takes every k-th cell beyond this
 DEFAULT_MARGIN_M = 300.0  # read this far around the scenario's box (overshoot, figures)
+# a file that declares no nodata: these raw values are voids (SRTM's -32768, ...), and so
+# is any height beyond the Earth's (below the deepest trench, above the highest summit)
+VOID_MARKERS = (-32768.0, -32767.0, -9999.0)
+LOWEST_M, HIGHEST_M = -11_000.0, 9_000.0
 _U_SPAN_M = 1000.0  # the map is fitted over u_ref +- this (metres of ENU up)
 
 
@@ -107,12 +117,22 @@ class DemTerrain:
         try:
             src = rasterio.open(self.path)
         except (OSError, rasterio.errors.RasterioError) as exc:
-            raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}") from None
+            hint = ""
+            if self.path.suffix.lower() == ".hgt" and self.path.is_file():
+                hint = (" (an SRTM .hgt tile must keep its tile's name, such as "
+                        "N36W005.hgt: the name places it)")
+            raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}{hint}") \
+                from None
         with src:
             if src.count < 1:
                 raise DemError(f"{self.name}: the file holds no raster band")
             if src.crs is None:
                 raise DemError(f"{self.name}: the file declares no coordinate reference system")
+            if src.colorinterp[0].name in _PICTURE_BANDS:
+                raise DemError(f"{self.name}: band 1 is the {src.colorinterp[0].name} of a "
+                               "picture, not heights (a hillshade or map image?)")
+            self.scale, self.offset_m, self.unit_m = _band_scaling(src, self.name)
+            self.declares_nodata = src.nodata is not None
             self.crs = src.crs.to_string()
             self.file_shape = (src.height, src.width)
             aff = src.transform
@@ -146,6 +166,11 @@ class DemTerrain:
                 raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}") from None
         vals = np.ma.getdata(band).astype(float)
         bad = np.ma.getmaskarray(band) | ~np.isfinite(vals)
+        if not self.declares_nodata:  # the usual void markers of a file that declares none
+            bad |= np.isin(vals, VOID_MARKERS)
+        # the band's declared meaning: value = raw x scale + offset, in its vertical unit
+        vals = (vals * self.scale + self.offset_m) * self.unit_m
+        bad |= (vals < LOWEST_M) | (vals > HIGHEST_M)  # no height on Earth: a void
         if bad.all():
             raise DemError(f"{self.name}: no valid height in the scenario's window")
         self._c0, self._r0 = c0, r0
@@ -421,7 +446,7 @@ class DemTerrain:
         poly = np.asarray(polygon_en, dtype=float).reshape(-1, 2)
         step = 0.25 * min(self.pixel_m)
         ring = np.vstack([poly, poly[:1]])
-        pts = [poly]
+        pts = []  # the ring once round, in order (each edge from its first vertex)
         for a, b in itertools.pairwise(ring):
             k = max(1, math.ceil(float(np.linalg.norm(b - a)) / step))
             f = (np.arange(k) / k)[:, None]
@@ -445,7 +470,8 @@ class DemTerrain:
             ci, cj = i0 + ii + 0.5, j0 + jj + 0.5
             # back to ENU for the message: Newton on the fitted map
             e, n = self._index_to_enu(ci, cj)
-            raise DemError(f"{self.name}: {what} touches nodata cells at ({e:.1f}, {n:.1f}) m")
+            raise DemError(f"{self.name}: {what} touches nodata cells at ({round(e, 1) + 0.0:.1f}, "
+                           f"{round(n, 1) + 0.0:.1f}) m")
 
     def _index_to_enu(self, i: float, j: float) -> tuple[float, float]:
         e, n = self._ec, self._nc
@@ -476,6 +502,30 @@ class DemTerrain:
 
         self.__dict__.update(state)
         self._to_crs = Transformer.from_crs("EPSG:4326", state["_crs_wkt"], always_xy=True)
+
+
+_PICTURE_BANDS = ("red", "green", "blue", "alpha", "palette", "hue", "saturation",
+                  "lightness", "cyan", "magenta", "yellow", "black")
+# vertical units a DEM band may declare (GDAL's unit type), in metres; none means metres
+_UNITS_M = {"": 1.0, "m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0,
+            "ft": 0.3048, "foot": 0.3048, "feet": 0.3048, "international foot": 0.3048,
+            "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0, "us survey foot": 1200.0 / 3937.0,
+            "foot_us": 1200.0 / 3937.0, "us_survey_foot": 1200.0 / 3937.0}
+
+
+def _band_scaling(src, name: str) -> tuple[float, float, float]:
+    """(scale, offset, metres per unit) of band 1: GDAL's scale and offset (value = raw x
+    scale + offset, e.g. decimetres in int16) and its declared vertical unit (metres or
+    feet; another unit is refused)."""
+    scale = float(src.scales[0]) if src.scales and src.scales[0] is not None else 1.0
+    offset = float(src.offsets[0]) if src.offsets and src.offsets[0] is not None else 0.0
+    if not (math.isfinite(scale) and math.isfinite(offset)) or scale == 0.0:
+        raise DemError(f"{name}: band 1 declares scale {scale:g} and offset {offset:g}")
+    unit = (src.units[0] if src.units else None) or ""
+    key = unit.strip().lower()
+    if key not in _UNITS_M:
+        raise DemError(f"{name}: band 1's heights are in {unit!r}: use metres or feet")
+    return scale, offset, _UNITS_M[key]
 
 
 def _box_ring(e0: float, e1: float, n0: float, n1: float, k: int = 64):
