@@ -138,6 +138,7 @@ class DemTerrain:
             aff = src.transform
             self._inv = ~aff
             self._to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
+            self.extent_text = _extent_text(src)
             self.pixel_is_point = src.tags().get("AREA_OR_POINT", "Area").lower() == "point"
             # the window: the box plus the margin, through the exact map (u = 0)
             m = max(float(margin_m), 0.0)
@@ -153,7 +154,7 @@ class DemTerrain:
             r1 = min(math.ceil(wj.max()) + 1, H - 1)
             if c1 - c0 < 1 or r1 - r0 < 1:
                 raise DemError(f"{self.name}: the scenario's area lies outside the DEM's "
-                               f"extent")
+                               f"extent ({self.extent_text})")
             cells = (c1 - c0 + 1) * (r1 - r0 + 1)
             if cells > MAX_WINDOW_CELLS:
                 raise DemError(
@@ -424,8 +425,10 @@ class DemTerrain:
         win_out = (i < -eps) | (j < -eps) | (i > nx - 1 + eps) | (j > ny - 1 + eps)
         if np.any(out):
             k = int(np.argmax(out))
+            lat, lon, _ = self._frame.to_geodetic(p[k, 0], p[k, 1], 0.0)
             raise DemError(f"{self.name}: {what} leaves the DEM's extent at "
-                           f"({p[k, 0]:.1f}, {p[k, 1]:.1f}) m")
+                           f"({p[k, 0]:.1f}, {p[k, 1]:.1f}) m, {_latlon_text(lat, lon)} "
+                           f"({self.extent_text})")
         if np.any(win_out):
             k = int(np.argmax(win_out))
             raise DemError(f"{self.name}: {what} reaches ({p[k, 0]:.1f}, {p[k, 1]:.1f}) m, "
@@ -534,6 +537,23 @@ def _box_ring(e0: float, e1: float, n0: float, n1: float, k: int = 64):
     e = np.concatenate([e0 + f * (e1 - e0), np.full(k, e1), e1 - f * (e1 - e0), np.full(k, e0)])
     n = np.concatenate([np.full(k, n0), n0 + f * (n1 - n0), np.full(k, n1), n1 - f * (n1 - n0)])
     return e, n
+
+
+def _latlon_text(lat: float, lon: float) -> str:
+    return (f"{abs(float(lat)):.5f} {'N' if lat >= 0 else 'S'} "
+            f"{abs(float(lon)):.5f} {'E' if lon >= 0 else 'W'}")
+
+
+def _extent_text(src) -> str:
+    """What a file covers, for messages: 'the DEM covers 36.70000..36.72000 N,
+    4.50000..4.47000 W' (its bounds in WGS84; with GDAL's half pixel for posts)."""
+    from rasterio.warp import transform_bounds
+
+    try:
+        w, s, e, n = transform_bounds(src.crs, "EPSG:4326", *src.bounds, densify_pts=21)
+    except Exception:  # noqa: BLE001 - a message's detail only
+        return "its extent cannot be given in WGS84"
+    return (f"the DEM covers latitude {s:.5f}..{n:.5f}, longitude {w:.5f}..{e:.5f}")
 
 
 def _first_line(exc: BaseException) -> str:
