@@ -44,9 +44,10 @@ usual void markers (:data:`VOID_MARKERS`, SRTM's -32768) and heights beyond the 
 (:data:`LOWEST_M`, :data:`HIGHEST_M`) as nodata too.
 
 Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS, a
-picture's band (red, palette...) rather than heights, a window beyond :data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
+picture's band (red, palette...) rather than heights, a window beyond
+:data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
 :meth:`DemTerrain.require_polygon`, a point or area whose bilinear support leaves the
-file's extent or touches a nodata cell.
+file's extent (the message gives the file's extent in degrees) or touches a nodata cell.
 """
 
 from __future__ import annotations
@@ -551,9 +552,9 @@ def _extent_text(src) -> str:
 
     try:
         w, s, e, n = transform_bounds(src.crs, "EPSG:4326", *src.bounds, densify_pts=21)
-    except Exception:  # noqa: BLE001 - a message's detail only
+    except Exception:  # a message's detail only
         return "its extent cannot be given in WGS84"
-    return (f"the DEM covers latitude {s:.5f}..{n:.5f}, longitude {w:.5f}..{e:.5f}")
+    return f"the DEM covers latitude {s:.5f}..{n:.5f}, longitude {w:.5f}..{e:.5f}"
 
 
 def _first_line(exc: BaseException) -> str:

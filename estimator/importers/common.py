@@ -279,8 +279,12 @@ def status_word(text: str) -> str:
 
 def text_lines(fh: IO[bytes], counts: RejectCounts) -> Iterator[tuple[int, str]]:
     """(line number, text) of a binary file's lines without their line ending; a line
-    that is not UTF-8 is counted (``not_utf8``) and skipped; blank lines are skipped."""
+    that is not UTF-8 is counted (``not_utf8``) and skipped; blank lines are skipped. A
+    UTF-8 byte order mark (Excel and Windows Notepad write one) is not part of the first
+    line: left in, it would hide the first column's name."""
     for n, raw in enumerate(fh, start=1):
+        if n == 1 and raw.startswith(b"\xef\xbb\xbf"):
+            raw = raw[3:]
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError:
