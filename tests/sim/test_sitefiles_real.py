@@ -125,7 +125,7 @@ def test_geojson_variants(tmp_path):
              "geometry": {"type": "MultiPolygon", "coordinates": [[closed]]}}]},
         "3d-unclosed-crs84": {"type": "Feature", "crs": {"type": "name", "properties": {
             "name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}, "properties": {},
-            "geometry": {"type": "Polygon", "coordinates": [[p + [12.5] for p in closed[:-1]]]}},
+            "geometry": {"type": "Polygon", "coordinates": [[[*p, 12.5] for p in closed[:-1]]]}},
     }
     for name, obj in variants.items():
         f = tmp_path / f"{name}.geojson"

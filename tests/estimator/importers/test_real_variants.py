@@ -5,12 +5,17 @@ file the tests write."""
 
 from __future__ import annotations
 
-from estimator.importers import ImportOptions, import_flight
+import pytest
+
+from estimator.importers import ImportOptions, ImportRefused, import_flight
 from estimator.logio import read_log
 from tests.estimator.importers.writers import (
+    DataFlashWriter,
+    gps_week_ms,
     write_android_csv,
     write_gnsslogger,
     write_nmea,
+    write_rosbag,
 )
 
 BOM = "\ufeff"
@@ -67,7 +72,71 @@ def test_bom_before_the_first_nmea_sentence_and_gnsslogger_header(flight, tmp_pa
     bom_gl.write_bytes((BOM + "\n".join(body) + "\n").encode())
     rtt2 = write_android_csv(tmp_path / "rtt2.csv", flight)
     gl_j, gl_log = _import(bom_gl, rtt2, tmp_path / "gl.jsonl")
-    plain_j, plain_log = _import(gl, rtt2, tmp_path / "gl_plain.jsonl")
+    _, plain_log = _import(gl, rtt2, tmp_path / "gl_plain.jsonl")
     assert gl_j["gnss"]["records_read"] == len(flight.gnss)
     assert gl_log.gnss == plain_log.gnss  # latitude and longitude from their own columns
     assert 35.0 < gl_log.gnss[0].lat_deg < 38.0 and -5.0 < gl_log.gnss[0].lon_deg < -4.0
+
+
+# ArduPilot before 4.1: no instance column; the second receiver logs GPS2 and GPA2
+OLD_GPS = "QBIHBcLLeffffB", "TimeUS,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"
+OLD_GPA = "QCCCCBCH", "TimeUS,VDop,HAcc,VAcc,SAcc,VV,SMS,Delta"
+
+
+def _old_dataflash(path, flight):
+    w = DataFlashWriter(path)
+    for k, name in enumerate(("GPS", "GPS2")):
+        w.define(129 + k, (name, *OLD_GPS))
+    for k, name in enumerate(("GPA", "GPA2")):
+        w.define(131 + k, (name, *OLD_GPA))
+    for k, g in enumerate(flight.gnss):
+        t_us = 60_000_000 + (g.t_ns - flight.t0_ns) // 1000
+        week, ms = gps_week_ms(flight.utc_ns(g.t_ns))
+        msl_cm = round((g.alt_m - 50.0) * 100)
+        lat, lon = round(g.lat_deg * 1e7), round(g.lon_deg * 1e7)
+        w.write("GPS", t_us, 3, ms, week, 12, 70, lat, lon, msl_cm, 6.5, 90.0, -0.1, 0.0, 1)
+        w.write("GPA", t_us, 110, round(g.acc_m * 100), 150, 40, 1, 0, 100)
+        if k % 2 == 0:  # the second receiver: 2e-5 degrees north, 3 m up, HAcc 4 m
+            w.write("GPS2", t_us + 3, 3, ms, week, 8, 180, lat + 200, lon, msl_cm + 300, 6.5,
+                    90.0, -0.1, 0.0, 1)
+            w.write("GPA2", t_us + 3, 110, 400, 600, 40, 1, 0, 100)
+    w.close()
+    return path
+
+
+def test_dataflash_before_instances_second_receiver_is_gps2(flight, tmp_path):
+    df = _old_dataflash(tmp_path / "old.bin", flight)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    first_j, first = _import(df, rtt, tmp_path / "first.jsonl")
+    n2 = (len(flight.gnss) + 1) // 2
+    assert first_j["gnss"]["records_read"] == len(flight.gnss)
+    assert first_j["gnss"]["other_records"] == {"GPS[1]": n2}  # counted, not silent
+    for topic in ("GPS[1]", "GPS2"):
+        out = tmp_path / f"second-{topic}.jsonl"
+        j = import_flight(df, rtt, out, ImportOptions(topic=topic, geoid_offset_m=50.0)
+                          ).to_json()
+        second = read_log(out)
+        assert j["gnss"]["stream"] == "GPS2 with GPA2"
+        assert j["gnss"]["records_read"] == n2
+        assert j["gnss"]["other_records"] == {"GPS[0]": len(flight.gnss)}
+        by_t = {g.t_ns: g for g in first.gnss}
+        pairs = [(s, by_t[s.t_ns]) for s in second.gnss if s.t_ns in by_t]
+        assert len(pairs) > 0.9 * len(second.gnss)
+        for s, f in pairs:
+            assert s.lat_deg == pytest.approx(f.lat_deg + 2e-5, abs=1e-9)
+            assert s.alt_m == pytest.approx(f.alt_m + 3.0 + 50.0, abs=1e-6)  # MSL + N
+            assert (s.acc_m, s.vacc_m) == (4.0, 6.0)
+    with pytest.raises(ImportRefused, match=r"old.bin: no GPS3 messages"):
+        import_flight(df, rtt, tmp_path / "x.jsonl", ImportOptions(topic="GPS[2]"))
+
+
+def test_a_bag_without_covariance_says_how_to_give_an_accuracy(flight, tmp_path):
+    bag = write_rosbag(tmp_path / "bag", flight, covariance=False, extra_topic=False)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    with pytest.raises(ImportRefused, match=r"bag: no usable fix .*no_accuracy=\d+\): the "
+                                            r"file gives no accuracy; give one with "
+                                            r"--gnss-acc M$"):
+        import_flight(bag, rtt, tmp_path / "x.jsonl", ImportOptions())
+    j = import_flight(bag, rtt, tmp_path / "y.jsonl", ImportOptions(gnss_acc_m=2.5)).to_json()
+    assert j["gnss"]["records_read"] == len(flight.gnss)
+    assert {g.acc_m for g in read_log(tmp_path / "y.jsonl").gnss} == {2.5}
