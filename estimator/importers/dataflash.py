@@ -110,8 +110,8 @@ def _topic(text: str | None) -> int:
         return int(t[4:-1])
     if t[3:].isdigit() and t.startswith("GPS") and int(t[3:]) >= 2:  # GPS2: older logs
         return int(t[3:]) - 1
-    raise SourceError(f"--topic {text!r}: a DataFlash log takes GPS, GPS[N] (instance N) "
-                      "or GPS2")
+    raise SourceError(f"--topic {text!r}: a DataFlash log takes GPS or GPS[N] (instance N; "
+                      "GPS2 is GPS[1])")
 
 
 def _names(df, instance: int) -> tuple[str, str]:
