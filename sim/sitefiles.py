@@ -2,17 +2,21 @@
 
 Readers for the three formats an operator has (docs/scenarios.md, docs/planner.md):
 
-- KML (Google Earth, QGIS): ``Placemark`` elements with a ``Polygon`` (its
+- KML (Google Earth, QGIS), or KMZ (Google Earth's zip: its ``doc.kml``), in the
+  encoding its XML declaration or byte order mark names: ``Placemark`` elements with a
+  ``Polygon`` (its
   ``outerBoundaryIs`` ring; holes are refused) or a ``Point`` with a ``radius_m``
   (a circle), in a ``Document``/``Folder`` tree or inside a ``MultiGeometry``;
   ``top_m`` and ``radius_m`` from the placemark's ``ExtendedData`` (``<Data
   name="top_m"><value>35</value></Data>`` or ``<SimpleData name="top_m">``).
-  Coordinates are ``lon,lat[,alt]`` tuples. Parsed with :mod:`xml.etree.ElementTree`
-  with care: a document type declaration (``<!DOCTYPE``, hence any entity) is
-  refused, so no external entity is ever resolved and no entity expands.
+  Coordinates are ``lon,lat[,alt]`` tuples (spaces beside their commas closed up).
+  Parsed with :mod:`xml.etree.ElementTree` with care: a document type declaration
+  (``<!DOCTYPE``, hence any entity) is refused, so no external entity is ever resolved
+  and no entity expands.
 - GeoJSON (RFC 7946): a ``Polygon`` (or ``MultiPolygon`` of one polygon) geometry,
   ``Feature`` or ``FeatureCollection``; ``Point`` features with a ``radius_m``
-  property are circles; ``top_m`` is a feature property. Positions are [lon, lat].
+  property are circles; ``top_m`` is a feature property; a feature whose geometry is
+  ``null`` is no shape. Positions are [lon, lat].
 - QGroundControl ``.plan``: its ``geoFence`` polygons and circles ([lat, lon]
   vertices, ``inclusion`` flags).
 

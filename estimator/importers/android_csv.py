@@ -6,7 +6,8 @@ The first line names the columns (any order, any case; extra columns are ignored
 ``distance_std_dev_mm``, ``rssi`` (dBm), ``num_attempted``, ``num_successful``, and a
 time: ``utc_ms`` (Unix time of the result in ms) and/or ``elapsed_ns`` (the phone's
 ``elapsedRealtimeNanos``). A row with another number of cells than the header, or a
-bad value, is counted and skipped.
+bad value, is counted and skipped. A UTF-8 byte order mark is dropped
+(:func:`estimator.importers.common.text_lines`).
 """
 
 from __future__ import annotations

@@ -8,7 +8,9 @@ instance ``I`` and ``TimeUS``) gives ``HAcc`` and ``VAcc`` (``acc_m``, ``vacc_m`
 in recent firmware, ``Und``: the receiver's geoid undulation N, so alt_m = Alt + Und.
 Without ``Und``, ``--geoid-offset`` gives N (else a warning); without ``HAcc``,
 acc_m = 1.5 m x HDop (as for NMEA). Instance 0 is read (``--topic GPS[1]`` picks the
-second receiver). Fixes without GPS time (``GWk`` 0) are skipped as ``no_utc``.
+second receiver; in logs before ArduPilot 4.1, without the ``I`` column, its messages
+are ``GPS2`` and ``GPA2``, also named by ``--topic GPS2``). Fixes without GPS time
+(``GWk`` 0) are skipped as ``no_utc``.
 
 GPS time runs ahead of UTC by the leap seconds since 1980 (18 s since 2017-01-01):
 :data:`LEAP_SECONDS` is the table (IERS Bulletin C; no leap second has been added
