@@ -44,8 +44,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.geometry import (
+    crossing_text,
     point_in_polygon,
     polygon_area_m2,
+    polygon_crossing,
     polygon_is_convex,
     signed_distance_to_polygon_m,
 )
@@ -141,6 +143,9 @@ class SearchArea:
         p = np.asarray(self.polygon_m, dtype=float).reshape(-1, 2)
         if len(p) < 3 or not np.all(np.isfinite(p)):
             raise ValueError("a search area needs >= 3 finite vertices")
+        crossing = polygon_crossing(p)
+        if crossing is not None:
+            raise ValueError(f"the search area: {crossing_text(crossing)}")
         if abs(polygon_area_m2(p)) < 1.0:
             raise ValueError("the search area encloses no area")
         if polygon_area_m2(p) < 0:

@@ -75,3 +75,34 @@ def test_small_polygons_route_exactly_as_before():
     route = area.route((90.0, 10.0), (10.0, 90.0))
     assert len(route) == 3
     assert route[1] == (c, c)
+
+
+def test_crossing_edges_are_found_and_refused_in_one_line(tmp_path):
+    """A ring whose vertices are out of order (two swapped: a bow tie) crosses itself;
+    it used to be planned over as if it were an area."""
+    import pytest
+
+    from estimator.geometry import polygon_crossing
+    from planner.patterns import KeepOutPolygon
+
+    bow = [(0.0, 0.0), (100.0, 100.0), (100.0, 0.0), (0.0, 90.0)]
+    k, m, x, y = polygon_crossing(bow)
+    assert (k, m) == (0, 2)  # edges 1 and 3
+    # edge 1 is y = x, edge 3 runs from (100, 0) to (0, 90): they meet at x = 900/19
+    assert (x, y) == pytest.approx((900 / 19, 900 / 19))
+    assert polygon_crossing([(0, 0), (100, 0), (100, 50), (50, 50), (50, 100), (0, 100)]) \
+        is None
+    # a 20 000-vertex wiggly circle is simple; one swapped pair of vertices is found
+    n = 20_000
+    t = 2 * np.pi * np.arange(n) / n
+    r = 555.0 * (1 + 0.002 * np.random.default_rng(1).standard_normal(n))
+    ring = np.column_stack([r * np.cos(t), r * np.sin(t)])
+    assert polygon_crossing(ring) is None
+    ring[[5000, 15000]] = ring[[15000, 5000]]
+    found = polygon_crossing(ring)
+    assert found is not None and found[0] in (4999, 5000)
+    with pytest.raises(ValueError, match=r"^the search area: its edges 1 and 3 cross at "
+                                         r"\(47\.4, 47\.4\) m: its vertices are not in order"):
+        SearchArea(tuple(bow), 5.0)
+    with pytest.raises(ValueError, match=r"^the keep-out polygon: its edges 1 and 3 cross"):
+        KeepOutPolygon(vertices_m=tuple(bow))

@@ -151,3 +151,27 @@ def test_qgc_plan_with_every_fence_kind_and_rally_points(tmp_path):
     assert [k.is_circle for k in kos] == [False, True]
     assert kos[0].vertices_deg == tuple(tuple(v) for v in hole)
     assert kos[1].center_deg == (36.7125, -4.486) and kos[1].radius_m == 30
+
+
+def test_a_bow_tie_area_or_keep_out_is_refused_where_it_is_read(tmp_path, capsys):
+    """Vertices out of order (a hand-written file with two swapped): refused with the
+    crossing edges, by the scenario loader and by osa plan, never planned over."""
+    from sim.scenario import ScenarioError, load_scenario
+    from tests.cli import one_line, status_of
+
+    bow = [RING[0], RING[2], RING[1], *RING[3:]]
+    f = tmp_path / "bow.kml"
+    f.write_text(_kml(f"<Placemark>{_polygon(_coords(bow))}</Placemark>"))
+    toml = tmp_path / "bow.toml"
+    toml.write_text('name = "bow"\n[world.origin]\nlat_deg = 36.712\nlon_deg = -4.4875\n'
+                    'h_m = 150.0\n[search]\narea_file = "bow.kml"\nstart_e_m = 0.0\n'
+                    'start_n_m = 0.0\nrandom_responders = 1\n')
+    with pytest.raises(ScenarioError, match=r"the search area: its edges 1 and 3 cross at"):
+        load_scenario(toml)
+    ok = tmp_path / "ok.kml"
+    ok.write_text(_kml(f"<Placemark>{_polygon(_coords(RING))}</Placemark>"))
+    code = status_of(["plan", "lawnmower", "--area", str(ok), "--keepout", str(f),
+                      "-o", str(tmp_path / "m.plan")])
+    assert code == 2
+    assert one_line(capsys).startswith("osa plan: --keepout: placemark 1: the keep-out polygon: "
+                                    "its edges 1 and 3 cross at")
