@@ -140,3 +140,29 @@ def test_a_bag_without_covariance_says_how_to_give_an_accuracy(flight, tmp_path)
     j = import_flight(bag, rtt, tmp_path / "y.jsonl", ImportOptions(gnss_acc_m=2.5)).to_json()
     assert j["gnss"]["records_read"] == len(flight.gnss)
     assert {g.acc_m for g in read_log(tmp_path / "y.jsonl").gnss} == {2.5}
+
+
+def test_semicolon_and_tab_separated_exports_read_as_the_comma_file(flight, tmp_path):
+    """A spreadsheet where the comma is the decimal mark (Spain, Germany...) saves "CSV"
+    with semicolons; a tab-separated export alike. Recognised from content and read to
+    the same records; a decimal comma in a number is counted as bad_type."""
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    plain = write_android_csv(tmp_path / "plain.csv", flight)
+    _, ref = _import(gnss, plain, tmp_path / "ref.jsonl")
+    text = plain.read_text()
+    for sep, name in ((";", "semi.csv"), ("\t", "tabs.txt")):
+        f = tmp_path / name
+        f.write_text(text.replace(",", sep))
+        j, got = _import(gnss, f, tmp_path / f"{name}.jsonl")
+        assert j["ranges"]["format"] == "android-csv"
+        assert got.rtt == ref.rtt and j["ranges"]["skipped"] == {}
+    lines = text.splitlines()
+    ok_row = next(ln for ln in lines[1:] if ln.split(",")[3] == "0")
+    cells = ok_row.split(",")
+    cells[4] = cells[4] + ",5"  # distance_mm "12345,5": a decimal comma
+    f = tmp_path / "decimal.csv"
+    rows = [ln.replace(",", ";") for ln in lines if ln != ok_row] + [";".join(cells)]
+    f.write_text("\n".join(rows) + "\n")
+    j, got = _import(gnss, f, tmp_path / "d.jsonl")
+    assert j["ranges"]["skipped"] == {"bad_type": 1}
+    assert len(got.rtt) == len(ref.rtt) - 1
