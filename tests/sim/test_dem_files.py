@@ -159,3 +159,40 @@ def test_hgt_tiles_one_and_three_arc_seconds_voids_and_names(tmp_path):
     with pytest.raises(DemError, match=r"valley.hgt: cannot read the DEM: .*must keep its "
                                        r"tile's name"):
         DemTerrain(renamed, (36.5, -4.5, 150.0), (-400, 400, -400, 400))
+
+
+def test_site_valley_from_an_int16_decimetre_dem_and_a_kmz_area(tmp_path):
+    """The site-valley preset with its DEM saved as tiled LZW int16 decimetres (scale
+    0.1, nodata -32768) and its area as a KMZ: the same ground to the rounding (5 cm),
+    the same area."""
+    import shutil
+    import zipfile
+    from pathlib import Path
+
+    import sim
+    from sim.scenario import load_scenario
+
+    here = Path(sim.__file__).parent / "scenarios"
+    with rasterio.open(here / "site" / "valley-dem.tif") as src:
+        profile, z = src.profile, src.read(1).astype(float)
+    profile.update(dtype="int16", nodata=-32768, tiled=True, blockxsize=64, blockysize=64,
+                   compress="lzw")
+    (tmp_path / "site").mkdir()
+    with rasterio.open(tmp_path / "site" / "dm.tif", "w", **profile) as dst:
+        dst.write(np.round(z * 10).astype("int16"), 1)
+        dst.scales = [0.1]
+    with zipfile.ZipFile(tmp_path / "site" / "area.kmz", "w", zipfile.ZIP_DEFLATED) as kmz:
+        kmz.write(here / "site" / "valley-area.kml", "doc.kml")
+    shutil.copy(here / "site" / "valley-powerline.kml", tmp_path / "site" / "pl.kml")
+    text = (here / "site-valley.toml").read_text()
+    text = (text.replace('"site/valley-dem.tif"', '"site/dm.tif"')
+            .replace('"site/valley-area.kml"', '"site/area.kmz"')
+            .replace('"site/valley-powerline.kml"', '"site/pl.kml"'))
+    assert text.count("site/dm.tif") == text.count("site/area.kmz") == 1
+    (tmp_path / "valley.toml").write_text(text)
+    ref, got = load_scenario("site-valley"), load_scenario(tmp_path / "valley.toml")
+    assert got.search.area_enu_m == ref.search.area_enu_m
+    e, n = np.meshgrid(np.linspace(-300, 500, 9), np.linspace(-200, 600, 9))
+    diff = np.asarray(got.world.terrain.height_m(e, n)) - np.asarray(
+        ref.world.terrain.height_m(e, n))
+    assert np.max(np.abs(diff)) <= 0.05 + 1e-6
