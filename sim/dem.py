@@ -43,11 +43,12 @@ Nodata cells are the file's declared nodata and NaN; a file that declares none h
 usual void markers (:data:`VOID_MARKERS`, SRTM's -32768) and heights beyond the Earth's
 (:data:`LOWEST_M`, :data:`HIGHEST_M`) as nodata too.
 
-Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS, a
-picture's band (red, palette...) rather than heights, a window beyond
-:data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
-:meth:`DemTerrain.require_polygon`, a point or area whose bilinear support leaves the
-file's extent (the message gives the file's extent in degrees) or touches a nodata cell.
+Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS or one
+pyproj cannot reach from WGS84 (a local grid), a picture's band (red, palette...)
+rather than heights, a window beyond :data:`MAX_WINDOW_CELLS`, and through
+:meth:`DemTerrain.require_points` / :meth:`DemTerrain.require_polygon`, a point or
+area whose bilinear support leaves the file's extent (the message gives the file's
+extent in degrees) or touches a nodata cell.
 """
 
 from __future__ import annotations
@@ -138,7 +139,12 @@ class DemTerrain:
             self.file_shape = (src.height, src.width)
             aff = src.transform
             self._inv = ~aff
-            self._to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
+            try:
+                self._to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
+            except Exception as exc:  # pyproj's ProjError, CRSError: any is a refusal
+                raise DemError(f"{self.name}: its coordinate reference system ({self.crs}) "
+                               f"cannot be reached from WGS84 latitude and longitude "
+                               f"({_first_line(exc)})") from None
             self.extent_text = _extent_text(src)
             self.pixel_is_point = src.tags().get("AREA_OR_POINT", "Area").lower() == "point"
             # the window: the box plus the margin, through the exact map (u = 0)

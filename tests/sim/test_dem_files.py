@@ -97,6 +97,15 @@ def test_an_unknown_vertical_unit_and_a_picture_are_refused(tmp_path):
     rgb = _write(tmp_path / "shade.tif", np.zeros((N, N), dtype="uint8"), count=3)
     with pytest.raises(DemError, match=r"^\S*shade.tif: band 1 is the red of a picture"):
         _dem(rgb)
+    # a local engineering CRS (a survey's own grid): no way from WGS84 to it
+    local = 'LOCAL_CS["site grid",UNIT["metre",1],AXIS["X",EAST],AXIS["Y",NORTH]]'
+    with rasterio.open(tmp_path / "local.tif", "w", driver="GTiff", width=N, height=N,
+                       count=1, dtype="float32", crs=rasterio.crs.CRS.from_wkt(local),
+                       transform=from_origin(0.0, 2000.0, RES_M, RES_M)) as dst:
+        dst.write(z.astype("float32"), 1)
+    with pytest.raises(DemError, match=r"^\S*local.tif: its coordinate reference system "
+                                       r"\(LOCAL_CS.*cannot be reached from WGS84"):
+        _dem(tmp_path / "local.tif")
 
 
 @pytest.mark.parametrize("declared", [True, False])
