@@ -39,9 +39,9 @@ NumPy surface, as for :class:`sim.terrain.GridTerrain`). A window of more than
 
 Values. Band 1 is read as GDAL declares it: raw x scale + offset (an int16 file of
 decimetres), in its vertical unit (metres, or feet converted; another unit is refused).
-Nodata cells are the file's declared nodata and NaN; a file that declares none has the
-usual void markers (:data:`VOID_MARKERS`, SRTM's -32768) and heights beyond the Earth's
-(:data:`LOWEST_M`, :data:`HIGHEST_M`) as nodata too.
+Nodata cells are the file's declared nodata, NaN and heights beyond the Earth's
+(:data:`LOWEST_M`, :data:`HIGHEST_M`); in a file that declares no nodata, the usual void
+markers too (:data:`VOID_MARKERS`, SRTM's -32768).
 
 Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS or one
 pyproj cannot reach from WGS84 (a local grid), a picture's band (red, palette...)
