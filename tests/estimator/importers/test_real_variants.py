@@ -166,3 +166,20 @@ def test_semicolon_and_tab_separated_exports_read_as_the_comma_file(flight, tmp_
     j, got = _import(gnss, f, tmp_path / "d.jsonl")
     assert j["ranges"]["skipped"] == {"bad_type": 1}
     assert len(got.rtt) == len(ref.rtt) - 1
+
+
+def test_gnsslogger_without_gps_fixes_names_the_providers_it_has(flight, tmp_path):
+    """A phone with the GPS provider off logs only fused (FLP) fixes: the refusal says
+    so and how to read them."""
+    gl = write_gnsslogger(tmp_path / "gl.txt", flight)
+    only_flp = tmp_path / "flp.txt"
+    only_flp.write_text("\n".join(ln for ln in gl.read_text().splitlines()
+                                  if not ln.startswith("Fix,GPS")) + "\n")
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    with pytest.raises(ImportRefused, match=r"flp.txt: no usable fix \(Fix lines of provider "
+                                            r"GPS; other records: Fix FLP=\d+.*\): fixes of "
+                                            r"FLP are there; name one with --topic$"):
+        import_flight(only_flp, rtt, tmp_path / "x.jsonl", ImportOptions())
+    j = import_flight(only_flp, rtt, tmp_path / "y.jsonl", ImportOptions(topic="FLP")
+                      ).to_json()
+    assert j["gnss"]["records_read"] == (len(flight.gnss) + 9) // 10
