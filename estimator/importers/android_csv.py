@@ -32,6 +32,7 @@ from estimator.importers.common import (
     open_file,
     status_word,
     text_lines,
+    time_integer,
 )
 
 FORMAT = "android-csv"
@@ -123,7 +124,7 @@ class Reader:
             return None if i is None else row[i]
 
         utc_ns = ms_to_ns(get("utc_ms"))
-        elapsed = integer(get("elapsed_ns"))
+        elapsed = time_integer(get("elapsed_ns"))
         if utc_ns is None and elapsed is None:
             raise Skip("missing_field")
         if (utc_ns is not None and utc_ns < 0) or (elapsed is not None and elapsed < 0):

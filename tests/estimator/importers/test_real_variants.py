@@ -183,3 +183,25 @@ def test_gnsslogger_without_gps_fixes_names_the_providers_it_has(flight, tmp_pat
     j = import_flight(only_flp, rtt, tmp_path / "y.jsonl", ImportOptions(topic="FLP")
                       ).to_json()
     assert j["gnss"]["records_read"] == (len(flight.gnss) + 9) // 10
+
+
+def test_times_a_spreadsheet_rounded_are_skipped_not_misplaced(flight, tmp_path):
+    """Excel shows a 13-digit utc_ms as 1.74972E+12 and saves it so: 1749720000000, up to
+    hours off. Such a time is skipped (rounded_time); an exponent form with every digit
+    is exact and read."""
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    plain = write_android_csv(tmp_path / "plain.csv", flight, elapsed=False)
+    lines = plain.read_text().splitlines()
+    cols = lines[0].split(",")
+    k = cols.index("utc_ms")
+    rows = [ln.split(",") for ln in lines[1:]]
+    for r in rows[:10]:  # as Excel saves them
+        r[k] = f"{int(r[k]):.5E}"
+    exact = rows[10][k]
+    rows[10][k] = f"{int(exact[0])}.{exact[1:]}E+{len(exact) - 1}"  # every digit kept
+    f = tmp_path / "excel.csv"
+    f.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    _, ref = _import(gnss, plain, tmp_path / "ref.jsonl")
+    j, got = _import(gnss, f, tmp_path / "got.jsonl")
+    assert j["ranges"]["skipped"] == {"rounded_time": 10}
+    assert got.rtt == ref.rtt[10:]  # the exact exponent form read to the same time
