@@ -121,3 +121,51 @@ def polygon_is_convex(polygon_m: ArrayLike) -> bool:
     cross = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
     scale = 1e-9 * float(np.max(np.abs(cross), initial=1.0))
     return bool(np.all(cross >= -scale) or np.all(cross <= scale))
+
+
+def polygon_crossing(polygon_m: ArrayLike, block: int = 256
+                     ) -> tuple[int, int, float, float] | None:
+    """The first two edges of a polygon's ring that cross each other (edge k runs from
+    vertex k to vertex k + 1): (k, m, x, y) with the crossing point, or None for a simple
+    polygon. Only proper crossings count (edges that touch at a vertex or overlap along a
+    line do not). Edges sorted by their x extent are tested a block at a time against
+    those whose extent can meet it: near-linear for a boundary, at worst quadratic."""
+    a = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
+    n = len(a)
+    if n < 4:
+        return None
+    b = _next_vertex(a)
+    lo, hi = np.minimum(a[:, 0], b[:, 0]), np.maximum(a[:, 0], b[:, 0])
+    order = np.argsort(lo, kind="stable")
+    lo_sorted = lo[order]
+
+    def orient(p, q, r):
+        return ((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+
+    best: tuple[int, int, float, float] | None = None
+    for s in range(0, n, block):
+        i = order[s:s + block]
+        end = int(np.searchsorted(lo_sorted, hi[i].max(), side="right"))
+        j = order[s:end]
+        ai, bi = a[i][:, None, :], b[i][:, None, :]
+        aj, bj = a[j][None, :, :], b[j][None, :, :]
+        o1, o2 = orient(ai, bi, aj), orient(ai, bi, bj)
+        o3, o4 = orient(aj, bj, ai), orient(aj, bj, bi)
+        hit = (o1 * o2 < 0) & (o3 * o4 < 0) & (hi[i][:, None] >= lo[j][None, :])
+        if not hit.any():
+            continue
+        for r, c in zip(*np.nonzero(hit), strict=True):
+            k, m = sorted((int(i[r]), int(j[c])))
+            if best is None or (k, m) < best[:2]:
+                t = o1[r, c] / (o1[r, c] - o2[r, c])
+                x, y = a[j[c]] + t * (b[j[c]] - a[j[c]])
+                best = (k, m, float(x), float(y))
+    return best
+
+
+def crossing_text(crossing: tuple[int, int, float, float]) -> str:
+    """A refusal's words for :func:`polygon_crossing`'s result (edges numbered from 1)."""
+    k, m, x, y = crossing
+    return (f"its edges {k + 1} and {m + 1} cross at ({x:.1f}, {y:.1f}) m: its vertices are "
+            "not in order round its boundary")

@@ -44,8 +44,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.geometry import (
+    crossing_text,
     point_in_polygon,
     polygon_area_m2,
+    polygon_crossing,
     polygon_is_convex,
     signed_distance_to_polygon_m,
 )
@@ -53,6 +55,41 @@ from planner.models import LinkModel
 from planner.patterns import AnyKeepOut, Geofence
 
 XY = tuple[float, float]
+SIMPLIFY_ABOVE = 100  # vertices: a ring with more gives its simplified corners as nodes
+NODE_TOLERANCE_M = 2.0  # the boundary detail routes around corners ignore (or half the margin)
+
+
+def simplify_ring(ring_m: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """A closed ring's vertices that keep it within ``tolerance_m`` of itself (the
+    Douglas-Peucker algorithm on the two halves between vertex 0 and the vertex farthest
+    from it), in their order; the ring itself when it has 4 vertices or fewer."""
+    v = np.asarray(ring_m, dtype=float).reshape(-1, 2)
+    n = len(v)
+    if n <= 4:
+        return v
+    far = int(np.argmax(np.linalg.norm(v - v[0], axis=1)))
+    keep = np.zeros(n + 1, dtype=bool)
+    keep[[0, far, n]] = True
+    closed = np.vstack([v, v[:1]])
+    stack = [(0, far), (far, n)]
+    while stack:
+        i, j = stack.pop()
+        if j - i < 2:
+            continue
+        a, b = closed[i], closed[j]
+        d = b - a
+        L = float(np.hypot(*d))
+        seg = closed[i + 1:j] - a
+        if L < 1e-12:
+            dist = np.linalg.norm(seg, axis=1)
+        else:
+            dist = np.abs(seg[:, 0] * d[1] - seg[:, 1] * d[0]) / L
+        k = int(np.argmax(dist))
+        if dist[k] > tolerance_m:
+            m = i + 1 + k
+            keep[m] = True
+            stack += [(i, m), (m, j)]
+    return v[keep[:n]]
 
 
 def pass_detection_range_m(
@@ -106,6 +143,9 @@ class SearchArea:
         p = np.asarray(self.polygon_m, dtype=float).reshape(-1, 2)
         if len(p) < 3 or not np.all(np.isfinite(p)):
             raise ValueError("a search area needs >= 3 finite vertices")
+        crossing = polygon_crossing(p)
+        if crossing is not None:
+            raise ValueError(f"the search area: {crossing_text(crossing)}")
         if abs(polygon_area_m2(p)) < 1.0:
             raise ValueError("the search area encloses no area")
         if polygon_area_m2(p) < 0:
@@ -207,8 +247,19 @@ class SearchArea:
 
     # ------------------------------------------------------------------ paths inside
     def _corners(self, margin_m: float) -> list[XY]:
-        """Polygon corners moved inwards along their bisectors (visibility-graph nodes)."""
+        """Polygon corners moved inwards along their bisectors, and points round the
+        blocking keep-outs (the visibility graph's nodes). Beyond :data:`SIMPLIFY_ABOVE`
+        vertices, the corners are those of the ring simplified to the larger of
+        :data:`NODE_TOLERANCE_M` and half the margin (:func:`simplify_ring`), moved in
+        by that much more: a finely drawn boundary
+        (thousands of vertices, metre-scale wiggles) would otherwise make a graph of
+        millions of edges, each checked along its length; the legs between nodes are
+        still checked against the true polygon."""
         v = self._ccw
+        tol = 0.0
+        if len(v) > SIMPLIFY_ABOVE:
+            tol = max(NODE_TOLERANCE_M, 0.5 * margin_m)
+            v = simplify_ring(v, tol)
         out = []
         n = len(v)
         for i in range(n):
@@ -222,7 +273,7 @@ class SearchArea:
                 continue
             bis /= nb
             cos_half = max(float(bis @ n1), 0.2)
-            q = b + bis * (1.5 * margin_m + 1.0) / cos_half
+            q = b + bis * (1.5 * margin_m + 1.0 + tol) / cos_half
             if self.contains(q[None, :], margin_m)[0]:
                 out.append((float(q[0]), float(q[1])))
         for k in self._blocking:  # around each blocking keep-out, outside its margin

@@ -34,7 +34,12 @@ from typing import Literal
 import numpy as np
 
 from estimator.geodesy import ExactENU
-from estimator.geometry import polygon_area_m2, signed_distance_to_polygon_m
+from estimator.geometry import (
+    crossing_text,
+    polygon_area_m2,
+    polygon_crossing,
+    signed_distance_to_polygon_m,
+)
 from estimator.records import Trajectory
 from planner.models import LinkModel, LogisticLink, slant_at
 
@@ -625,6 +630,9 @@ class KeepOutPolygon:
         v = np.asarray(self.vertices_m, dtype=float)
         if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3 or not np.all(np.isfinite(v)):
             raise ValueError("a keep-out polygon needs >= 3 finite (east, north) vertices")
+        crossing = polygon_crossing(v)
+        if crossing is not None:
+            raise ValueError(f"the keep-out polygon: {crossing_text(crossing)}")
         if abs(polygon_area_m2(v)) < 1.0:
             raise ValueError("the keep-out polygon encloses no area")
         _check_top(self.top_m)

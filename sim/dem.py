@@ -37,10 +37,18 @@ NumPy surface, as for :class:`sim.terrain.GridTerrain`). A window of more than
 :data:`CASADI_MAX_CELLS` cells gives the B-spline every k-th cell in each direction
 (a 1 m LiDAR model of a 2 km area: every 5th).
 
-Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS, a
-window beyond :data:`MAX_WINDOW_CELLS`, and through :meth:`DemTerrain.require_points` /
-:meth:`DemTerrain.require_polygon`, a point or area whose bilinear support leaves the
-file's extent or touches a nodata cell.
+Values. Band 1 is read as GDAL declares it: raw x scale + offset (an int16 file of
+decimetres), in its vertical unit (metres, or feet converted; another unit is refused).
+Nodata cells are the file's declared nodata, NaN and heights beyond the Earth's
+(:data:`LOWEST_M`, :data:`HIGHEST_M`); in a file that declares no nodata, the usual void
+markers too (:data:`VOID_MARKERS`, SRTM's -32768).
+
+Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS or one
+pyproj cannot reach from WGS84 (a local grid), a picture's band (red, palette...)
+rather than heights, a window beyond :data:`MAX_WINDOW_CELLS`, and through
+:meth:`DemTerrain.require_points` / :meth:`DemTerrain.require_polygon`, a point or
+area whose bilinear support leaves the file's extent (the message gives the file's
+extent in degrees) or touches a nodata cell.
 """
 
 from __future__ import annotations
@@ -59,6 +67,10 @@ from sim.terrain import bilinear, map_elementwise
 MAX_WINDOW_CELLS = 16_000_000  # 128 MB of float64: far beyond a search area at 1 m
 CASADI_MAX_CELLS = 250_000  # the CasADi B-spline takes every k-th cell beyond this
 DEFAULT_MARGIN_M = 300.0  # read this far around the scenario's box (overshoot, figures)
+# a file that declares no nodata: these raw values are voids (SRTM's -32768, ...), and so
+# is any height beyond the Earth's (below the deepest trench, above the highest summit)
+VOID_MARKERS = (-32768.0, -32767.0, -9999.0)
+LOWEST_M, HIGHEST_M = -11_000.0, 9_000.0
 _U_SPAN_M = 1000.0  # the map is fitted over u_ref +- this (metres of ENU up)
 
 
@@ -107,17 +119,33 @@ class DemTerrain:
         try:
             src = rasterio.open(self.path)
         except (OSError, rasterio.errors.RasterioError) as exc:
-            raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}") from None
+            hint = ""
+            if self.path.suffix.lower() == ".hgt" and self.path.is_file():
+                hint = (" (an SRTM .hgt tile must keep its tile's name, such as "
+                        "N36W005.hgt: the name places it)")
+            raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}{hint}") \
+                from None
         with src:
             if src.count < 1:
                 raise DemError(f"{self.name}: the file holds no raster band")
             if src.crs is None:
                 raise DemError(f"{self.name}: the file declares no coordinate reference system")
+            if src.colorinterp[0].name in _PICTURE_BANDS:
+                raise DemError(f"{self.name}: band 1 is the {src.colorinterp[0].name} of a "
+                               "picture, not heights (a hillshade or map image?)")
+            self.scale, self.offset_m, self.unit_m = _band_scaling(src, self.name)
+            self.declares_nodata = src.nodata is not None
             self.crs = src.crs.to_string()
             self.file_shape = (src.height, src.width)
             aff = src.transform
             self._inv = ~aff
-            self._to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
+            try:
+                self._to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
+            except Exception as exc:  # pyproj's ProjError, CRSError: any is a refusal
+                raise DemError(f"{self.name}: its coordinate reference system ({self.crs}) "
+                               f"cannot be reached from WGS84 latitude and longitude "
+                               f"({_first_line(exc)})") from None
+            self.extent_text = _extent_text(src)
             self.pixel_is_point = src.tags().get("AREA_OR_POINT", "Area").lower() == "point"
             # the window: the box plus the margin, through the exact map (u = 0)
             m = max(float(margin_m), 0.0)
@@ -133,7 +161,7 @@ class DemTerrain:
             r1 = min(math.ceil(wj.max()) + 1, H - 1)
             if c1 - c0 < 1 or r1 - r0 < 1:
                 raise DemError(f"{self.name}: the scenario's area lies outside the DEM's "
-                               f"extent")
+                               f"extent ({self.extent_text})")
             cells = (c1 - c0 + 1) * (r1 - r0 + 1)
             if cells > MAX_WINDOW_CELLS:
                 raise DemError(
@@ -146,6 +174,11 @@ class DemTerrain:
                 raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}") from None
         vals = np.ma.getdata(band).astype(float)
         bad = np.ma.getmaskarray(band) | ~np.isfinite(vals)
+        if not self.declares_nodata:  # the usual void markers of a file that declares none
+            bad |= np.isin(vals, VOID_MARKERS)
+        # the band's declared meaning: value = raw x scale + offset, in its vertical unit
+        vals = (vals * self.scale + self.offset_m) * self.unit_m
+        bad |= (vals < LOWEST_M) | (vals > HIGHEST_M)  # no height on Earth: a void
         if bad.all():
             raise DemError(f"{self.name}: no valid height in the scenario's window")
         self._c0, self._r0 = c0, r0
@@ -399,8 +432,10 @@ class DemTerrain:
         win_out = (i < -eps) | (j < -eps) | (i > nx - 1 + eps) | (j > ny - 1 + eps)
         if np.any(out):
             k = int(np.argmax(out))
+            lat, lon, _ = self._frame.to_geodetic(p[k, 0], p[k, 1], 0.0)
             raise DemError(f"{self.name}: {what} leaves the DEM's extent at "
-                           f"({p[k, 0]:.1f}, {p[k, 1]:.1f}) m")
+                           f"({p[k, 0]:.1f}, {p[k, 1]:.1f}) m, {_latlon_text(lat, lon)} "
+                           f"({self.extent_text})")
         if np.any(win_out):
             k = int(np.argmax(win_out))
             raise DemError(f"{self.name}: {what} reaches ({p[k, 0]:.1f}, {p[k, 1]:.1f}) m, "
@@ -421,7 +456,7 @@ class DemTerrain:
         poly = np.asarray(polygon_en, dtype=float).reshape(-1, 2)
         step = 0.25 * min(self.pixel_m)
         ring = np.vstack([poly, poly[:1]])
-        pts = [poly]
+        pts = []  # the ring once round, in order (each edge from its first vertex)
         for a, b in itertools.pairwise(ring):
             k = max(1, math.ceil(float(np.linalg.norm(b - a)) / step))
             f = (np.arange(k) / k)[:, None]
@@ -445,7 +480,8 @@ class DemTerrain:
             ci, cj = i0 + ii + 0.5, j0 + jj + 0.5
             # back to ENU for the message: Newton on the fitted map
             e, n = self._index_to_enu(ci, cj)
-            raise DemError(f"{self.name}: {what} touches nodata cells at ({e:.1f}, {n:.1f}) m")
+            raise DemError(f"{self.name}: {what} touches nodata cells at ({round(e, 1) + 0.0:.1f}, "
+                           f"{round(n, 1) + 0.0:.1f}) m")
 
     def _index_to_enu(self, i: float, j: float) -> tuple[float, float]:
         e, n = self._ec, self._nc
@@ -478,12 +514,53 @@ class DemTerrain:
         self._to_crs = Transformer.from_crs("EPSG:4326", state["_crs_wkt"], always_xy=True)
 
 
+_PICTURE_BANDS = ("red", "green", "blue", "alpha", "palette", "hue", "saturation",
+                  "lightness", "cyan", "magenta", "yellow", "black")
+# vertical units a DEM band may declare (GDAL's unit type), in metres; none means metres
+_UNITS_M = {"": 1.0, "m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0,
+            "ft": 0.3048, "foot": 0.3048, "feet": 0.3048, "international foot": 0.3048,
+            "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0, "us survey foot": 1200.0 / 3937.0,
+            "foot_us": 1200.0 / 3937.0, "us_survey_foot": 1200.0 / 3937.0}
+
+
+def _band_scaling(src, name: str) -> tuple[float, float, float]:
+    """(scale, offset, metres per unit) of band 1: GDAL's scale and offset (value = raw x
+    scale + offset, e.g. decimetres in int16) and its declared vertical unit (metres or
+    feet; another unit is refused)."""
+    scale = float(src.scales[0]) if src.scales and src.scales[0] is not None else 1.0
+    offset = float(src.offsets[0]) if src.offsets and src.offsets[0] is not None else 0.0
+    if not (math.isfinite(scale) and math.isfinite(offset)) or scale == 0.0:
+        raise DemError(f"{name}: band 1 declares scale {scale:g} and offset {offset:g}")
+    unit = (src.units[0] if src.units else None) or ""
+    key = unit.strip().lower()
+    if key not in _UNITS_M:
+        raise DemError(f"{name}: band 1's heights are in {unit!r}: use metres or feet")
+    return scale, offset, _UNITS_M[key]
+
+
 def _box_ring(e0: float, e1: float, n0: float, n1: float, k: int = 64):
     """Points along the four sides of a box (k per side)."""
     f = np.linspace(0.0, 1.0, k, endpoint=False)
     e = np.concatenate([e0 + f * (e1 - e0), np.full(k, e1), e1 - f * (e1 - e0), np.full(k, e0)])
     n = np.concatenate([np.full(k, n0), n0 + f * (n1 - n0), np.full(k, n1), n1 - f * (n1 - n0)])
     return e, n
+
+
+def _latlon_text(lat: float, lon: float) -> str:
+    return (f"{abs(float(lat)):.5f} {'N' if lat >= 0 else 'S'} "
+            f"{abs(float(lon)):.5f} {'E' if lon >= 0 else 'W'}")
+
+
+def _extent_text(src) -> str:
+    """What a file covers, for messages: 'the DEM covers 36.70000..36.72000 N,
+    4.50000..4.47000 W' (its bounds in WGS84; with GDAL's half pixel for posts)."""
+    from rasterio.warp import transform_bounds
+
+    try:
+        w, s, e, n = transform_bounds(src.crs, "EPSG:4326", *src.bounds, densify_pts=21)
+    except Exception:  # a message's detail only
+        return "its extent cannot be given in WGS84"
+    return f"the DEM covers latitude {s:.5f}..{n:.5f}, longitude {w:.5f}..{e:.5f}"
 
 
 def _first_line(exc: BaseException) -> str:

@@ -51,7 +51,12 @@ from typing import Any
 
 import numpy as np
 
-from estimator.geometry import polygon_area_m2, signed_distance_to_polygon_m
+from estimator.geometry import (
+    crossing_text,
+    polygon_area_m2,
+    polygon_crossing,
+    signed_distance_to_polygon_m,
+)
 from estimator.records import Trajectory
 from sim._config import ConfigError, check_finite, from_table, merge_tables
 from sim.clock import ClockConfig
@@ -128,6 +133,9 @@ class KeepOutZone:
         else:
             if len(self.polygon_enu_m) < 3:
                 raise ValueError(f"keep-out {self.name}: a polygon needs at least 3 vertices")
+            crossing = polygon_crossing(self.polygon_enu_m)
+            if crossing is not None:
+                raise ValueError(f"keep-out {self.name}: {crossing_text(crossing)}")
             if abs(polygon_area_m2(self.polygon_enu_m)) < 1.0:
                 raise ValueError(f"keep-out {self.name}: the polygon encloses no area")
         if self.top_m is not None:
@@ -179,6 +187,9 @@ class SearchSpec:
             check_finite(f"area_enu_m[{i}]", n)
             if math.hypot(e, n) > MAX_EXTENT_M:
                 raise ValueError(f"area_enu_m[{i}] lies beyond {MAX_EXTENT_M:.0f} m of the origin")
+        crossing = polygon_crossing(poly)
+        if crossing is not None:
+            raise ValueError(f"the search area: {crossing_text(crossing)}")
         if abs(polygon_area_m2(poly)) < 1.0:
             raise ValueError("area_enu_m encloses no area")
         check_finite("start_e_m", self.start_e_m)

@@ -2,17 +2,21 @@
 
 Readers for the three formats an operator has (docs/scenarios.md, docs/planner.md):
 
-- KML (Google Earth, QGIS): ``Placemark`` elements with a ``Polygon`` (its
+- KML (Google Earth, QGIS), or KMZ (Google Earth's zip: its ``doc.kml``), in the
+  encoding its XML declaration or byte order mark names: ``Placemark`` elements with a
+  ``Polygon`` (its
   ``outerBoundaryIs`` ring; holes are refused) or a ``Point`` with a ``radius_m``
   (a circle), in a ``Document``/``Folder`` tree or inside a ``MultiGeometry``;
   ``top_m`` and ``radius_m`` from the placemark's ``ExtendedData`` (``<Data
   name="top_m"><value>35</value></Data>`` or ``<SimpleData name="top_m">``).
-  Coordinates are ``lon,lat[,alt]`` tuples. Parsed with :mod:`xml.etree.ElementTree`
-  with care: a document type declaration (``<!DOCTYPE``, hence any entity) is
-  refused, so no external entity is ever resolved and no entity expands.
+  Coordinates are ``lon,lat[,alt]`` tuples (spaces beside their commas closed up).
+  Parsed with :mod:`xml.etree.ElementTree` with care: a document type declaration
+  (``<!DOCTYPE``, hence any entity) is refused, so no external entity is ever resolved
+  and no entity expands.
 - GeoJSON (RFC 7946): a ``Polygon`` (or ``MultiPolygon`` of one polygon) geometry,
   ``Feature`` or ``FeatureCollection``; ``Point`` features with a ``radius_m``
-  property are circles; ``top_m`` is a feature property. Positions are [lon, lat].
+  property are circles; ``top_m`` is a feature property; a feature whose geometry is
+  ``null`` is no shape. Positions are [lon, lat].
 - QGroundControl ``.plan``: its ``geoFence`` polygons and circles ([lat, lon]
   vertices, ``inclusion`` flags).
 
@@ -36,7 +40,7 @@ from typing import Any
 
 MAX_FILE_BYTES = 20_000_000
 MAX_VERTICES = 200_000
-AREA_SUFFIXES = (".kml", ".geojson", ".json", ".plan")
+AREA_SUFFIXES = (".kml", ".kmz", ".geojson", ".json", ".plan")
 
 LatLon = tuple[float, float]
 
@@ -98,7 +102,7 @@ def _height(value: Any, key: str, where: str, positive: bool = False) -> float:
     return v
 
 
-def _read(path: Path) -> str:
+def _read_bytes(path: Path) -> bytes:
     try:
         size = path.stat().st_size
     except OSError as exc:
@@ -107,14 +111,47 @@ def _read(path: Path) -> str:
         raise SiteFileError(f"{path}: {size:,} bytes, more than the {MAX_FILE_BYTES:,} a site "
                             "file may hold")
     try:
-        return path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
+        return path.read_bytes()
+    except OSError as exc:
+        raise SiteFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _read(path: Path) -> str:
+    try:
+        return _read_bytes(path).decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
         raise SiteFileError(f"{path}: cannot read: {exc}") from None
+
+
+def _kmz_kml(path: Path) -> bytes:
+    """The KML document of a KMZ (Google Earth's zip): its ``doc.kml``, else its one
+    ``.kml`` file at the top, else the first ``.kml`` in it (the others are overlays'
+    and models' files); bounded by :data:`MAX_FILE_BYTES` however it is compressed."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = [n for n in z.namelist() if n.lower().endswith(".kml")]
+            if not names:
+                raise SiteFileError(f"{path}: a KMZ without a .kml document in it")
+            top = [n for n in names if "/" not in n]
+            name = next((n for n in names if n.lower() == "doc.kml"),
+                        top[0] if top else names[0])
+            with z.open(name) as fh:
+                data = fh.read(MAX_FILE_BYTES + 1)
+    except (OSError, zipfile.BadZipFile, RuntimeError, NotImplementedError) as exc:
+        raise SiteFileError(f"{path}: not a readable KMZ (zip) file: {exc}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise SiteFileError(f"{path}: its KML holds more than the {MAX_FILE_BYTES:,} bytes a "
+                            "site file may hold")
+    return data
 
 
 # ----------------------------------------------------------------------------- KML
 
 _DOCTYPE = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
+_XML_ENCODING = re.compile(rb"^<\?xml[^>]*?encoding\s*=\s*[\"']([A-Za-z0-9._-]+)[\"']")
+_COMMA = re.compile(r"\s*,\s*")
 
 
 def _local(tag: str) -> str:
@@ -131,7 +168,9 @@ def _descendants(el: ET.Element, name: str) -> list[ET.Element]:
 
 def _kml_coords(text: str | None, where: str) -> list[LatLon]:
     out = []
-    for tok in (text or "").split():
+    # tuples are separated by whitespace; a space beside a comma ("lon, lat") is not
+    # KML, but hand-edited files have it: it is closed up first
+    for tok in _COMMA.sub(",", (text or "").strip()).split():
         parts = tok.split(",")
         if len(parts) < 2:
             raise SiteFileError(f"{where}: coordinates {tok!r} are not lon,lat[,alt]")
@@ -156,7 +195,28 @@ def _kml_extended(pm: ET.Element) -> dict[str, str]:
     return data
 
 
-def _parse_kml(text: str, source: str) -> list[GeoShape]:
+def _xml_text(data: bytes, source: str) -> str:
+    """An XML document's text: UTF-16 or UTF-8 by its byte order mark, else the encoding
+    its declaration names (ISO-8859-1, windows-1252...), else UTF-8."""
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        codec = "utf-16"
+    elif data.startswith(b"\xef\xbb\xbf"):
+        codec = "utf-8-sig"
+    else:
+        m = _XML_ENCODING.match(data.lstrip()[:200])
+        codec = m.group(1).decode("ascii") if m else "utf-8"
+    try:
+        return data.decode(codec)
+    except LookupError:
+        raise SiteFileError(f"{source}: unknown encoding {codec!r}") from None
+    except UnicodeDecodeError as exc:
+        raise SiteFileError(f"{source}: not {codec} text: {exc.reason} at byte "
+                            f"{exc.start}") from None
+
+
+def _parse_kml(data: bytes, source: str) -> list[GeoShape]:
+    """The shapes of a KML document given as bytes (:func:`_xml_text` decodes it)."""
+    text = _xml_text(data, source)
     if _DOCTYPE.search(text):
         raise SiteFileError(f"{source}: a document type declaration (DOCTYPE/ENTITY) is not "
                             "accepted in a KML file")
@@ -254,6 +314,8 @@ def _geojson_feature(f: Any, where: str) -> list[GeoShape]:
     if not isinstance(props, dict):
         raise SiteFileError(f"{where}: properties must be an object")
     name = str(props.get("name", ""))
+    if "geometry" in f and f["geometry"] is None:
+        return []  # an unlocated feature (RFC 7946 section 3.2) is no shape
     return _geojson_geometry(f.get("geometry"), props, where, name)
 
 
@@ -334,12 +396,13 @@ def read_shapes(path: str | Path) -> list[GeoShape]:
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in AREA_SUFFIXES:
-        raise SiteFileError(f"{p}: unknown site file type {suffix!r} (use .kml, .geojson, "
+        raise SiteFileError(f"{p}: unknown site file type {suffix!r} (use .kml, .kmz, .geojson, "
                             ".json or .plan)")
-    text = _read(p)
     if suffix == ".kml":
-        return _parse_kml(text, str(p))
-    obj = _json(text, str(p))
+        return _parse_kml(_read_bytes(p), str(p))
+    if suffix == ".kmz":
+        return _parse_kml(_kmz_kml(p), str(p))
+    obj = _json(_read(p), str(p))
     if suffix == ".plan":
         return _plan_shapes(obj, str(p))
     return _geojson_shapes(obj, str(p))

@@ -230,9 +230,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     site = p.add_argument_group("on a site (docs/planner.md)")
     site.add_argument("--area", metavar="FILE",
-                      help="search area: a KML or GeoJSON polygon, or a .plan whose geoFence "
-                           "holds one inclusion polygon; lawnmower and expanding-square cover "
-                           "it, the other patterns stay inside it")
+                      help="search area: a KML (or KMZ) or GeoJSON polygon, or a .plan whose "
+                           "geoFence holds one inclusion polygon; lawnmower and expanding-square "
+                           "cover it, the other patterns stay inside it")
     site.add_argument("--keepout", action="append", default=[], metavar="FILE",
                       help="keep-outs (KML/GeoJSON polygons or points with radius_m, a "
                            ".plan's exclusion fence; top_m: height above ground); repeatable")

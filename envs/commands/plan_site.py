@@ -161,8 +161,11 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
             e, n = en(*s.center_deg)
             keep_outs.append(pat.KeepOut(east_m=e, north_m=n, radius_m=s.radius_m, top_m=s.top_m))
         else:
-            keep_outs.append(pat.KeepOutPolygon(vertices_m=tuple(en(*v) for v in s.vertices_deg),
-                                                top_m=s.top_m))
+            try:
+                keep_outs.append(pat.KeepOutPolygon(
+                    vertices_m=tuple(en(*v) for v in s.vertices_deg), top_m=s.top_m))
+            except ValueError as exc:
+                raise PlanError(f"--keepout: {s.name or 'a polygon'}: {exc}") from None
     blocking = [k for k in keep_outs if k.blocks(floor, CLEARANCE_M)]
     area = None
     if area_en is not None:

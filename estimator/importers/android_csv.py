@@ -6,7 +6,10 @@ The first line names the columns (any order, any case; extra columns are ignored
 ``distance_std_dev_mm``, ``rssi`` (dBm), ``num_attempted``, ``num_successful``, and a
 time: ``utc_ms`` (Unix time of the result in ms) and/or ``elapsed_ns`` (the phone's
 ``elapsedRealtimeNanos``). A row with another number of cells than the header, or a
-bad value, is counted and skipped.
+bad value, is counted and skipped. A UTF-8 byte order mark is dropped
+(:func:`estimator.importers.common.text_lines`). The separator is the comma, or the
+semicolon or tab of a spreadsheet's export when the header line holds no comma (numbers
+keep the decimal point: a decimal comma is a ``bad_type``).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from estimator.importers.common import (
     open_file,
     status_word,
     text_lines,
+    time_integer,
 )
 
 FORMAT = "android-csv"
@@ -37,13 +41,24 @@ REQUIRED = ("bssid", "status")
 TIMES = ("utc_ms", "elapsed_ns")
 
 
+SEPARATORS = (",", ";", "\t")  # the comma; a spreadsheet's export in some locales
+
+
+def separator(header: str) -> str:
+    """The header line's separator: the comma, else the semicolon or tab it holds (a
+    spreadsheet saves "CSV" with semicolons where the comma is the decimal mark)."""
+    if "," in header:
+        return ","
+    return next((s for s in SEPARATORS[1:] if s in header), ",")
+
+
 def _names(line: str) -> list[str]:
-    return [c.strip().lower() for c in next(csv.reader([line]))]
+    return [c.strip().lower() for c in next(csv.reader([line], delimiter=separator(line)))]
 
 
 def sniff(head: bytes) -> bool:
     """Whether the file's first line is a header naming ``bssid`` and ``distance_mm``."""
-    for line in head.splitlines():
+    for line in head.removeprefix(b"\xef\xbb\xbf").splitlines():
         if line.strip():
             try:
                 names = _names(line.decode("utf-8", "replace"))
@@ -59,11 +74,13 @@ class Reader:
     def __init__(self, path: Path, options: RangesOptions) -> None:
         self.source = Source(path=path, format=FORMAT, kind=KIND, label="RangingResult rows",
                              utc_uncertainty_ns=500_000)  # utc_ms: 1 ms steps
+        self.delimiter = ","
         self.columns = self._header()
 
     def _header(self) -> dict[str, int]:
         with open_file(self.source.path) as fh:
             for _, line in text_lines(fh, Tally().counts):
+                self.delimiter = separator(line)
                 try:
                     names = _names(line)
                 except csv.Error:
@@ -88,7 +105,7 @@ class Reader:
             for _, line in lines:
                 tally.counts.lines += 1
                 try:
-                    row = next(csv.reader([line]))
+                    row = next(csv.reader([line], delimiter=self.delimiter))
                 except csv.Error:
                     tally.skip("bad_csv")
                     continue
@@ -107,7 +124,7 @@ class Reader:
             return None if i is None else row[i]
 
         utc_ns = ms_to_ns(get("utc_ms"))
-        elapsed = integer(get("elapsed_ns"))
+        elapsed = time_integer(get("elapsed_ns"))
         if utc_ns is None and elapsed is None:
             raise Skip("missing_field")
         if (utc_ns is not None and utc_ns < 0) or (elapsed is not None and elapsed < 0):

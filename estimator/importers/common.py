@@ -17,6 +17,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 from typing import IO
 
@@ -169,16 +170,49 @@ def integer(text: str | None) -> int | None:
     return int(v)
 
 
-def ms_to_ns(text: str | None) -> int | None:
-    """Milliseconds (an integer, or a decimal with a fraction) as integer nanoseconds."""
+_EXPONENT = re.compile(r"^[+-]?(\d*)(?:\.(\d*))?[eE]([+-]?\d+)$")
+
+
+def _not_rounded(text: str) -> str:
+    """``text``, unless it is written in exponent form with fewer digits than its size
+    (``1.74972E+12``: a spreadsheet's rounding of 1749723127123, off by up to hours):
+    :class:`Skip` ``rounded_time``."""
+    t = text.strip()
+    m = _EXPONENT.fullmatch(t)
+    if m and len(m.group(2) or "") < int(m.group(3)) and float(t) != 0.0:
+        raise Skip("rounded_time")
+    return t
+
+
+def time_integer(text: str | None) -> int | None:
+    """An integer time field (ns, ms): :func:`integer`, but a rounded exponent form is
+    skipped as ``rounded_time``, never read as a wrong time."""
     if text is None or not text.strip():
         return None
+    t = _not_rounded(text)
+    if _EXPONENT.fullmatch(t):
+        try:
+            d = Decimal(t)
+        except InvalidOperation:
+            raise Skip("bad_type") from None
+        if d != d.to_integral_value():
+            raise Skip("bad_type")
+        return int(d)
+    return integer(t)
+
+
+def ms_to_ns(text: str | None) -> int | None:
+    """Milliseconds (an integer, or a decimal with a fraction) as integer nanoseconds,
+    exactly; a rounded exponent form is ``rounded_time`` (:func:`time_integer`)."""
+    if text is None or not text.strip():
+        return None
+    t = _not_rounded(text)
     try:
-        return int(text.strip()) * 1_000_000
+        return int(t) * 1_000_000
     except ValueError:
-        v = number(text)
+        v = number(t)  # bad_type, non_finite
         assert v is not None
-        return round(v * 1_000_000)
+        return int((Decimal(t) * 1_000_000).to_integral_value(rounding=ROUND_HALF_EVEN))
 
 
 def float32_decimal(value: float) -> float:
@@ -279,8 +313,12 @@ def status_word(text: str) -> str:
 
 def text_lines(fh: IO[bytes], counts: RejectCounts) -> Iterator[tuple[int, str]]:
     """(line number, text) of a binary file's lines without their line ending; a line
-    that is not UTF-8 is counted (``not_utf8``) and skipped; blank lines are skipped."""
+    that is not UTF-8 is counted (``not_utf8``) and skipped; blank lines are skipped. A
+    UTF-8 byte order mark (Excel and Windows Notepad write one) is not part of the first
+    line: left in, it would hide the first column's name."""
     for n, raw in enumerate(fh, start=1):
+        if n == 1 and raw.startswith(b"\xef\xbb\xbf"):
+            raw = raw[3:]
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError:

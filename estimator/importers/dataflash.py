@@ -8,7 +8,9 @@ instance ``I`` and ``TimeUS``) gives ``HAcc`` and ``VAcc`` (``acc_m``, ``vacc_m`
 in recent firmware, ``Und``: the receiver's geoid undulation N, so alt_m = Alt + Und.
 Without ``Und``, ``--geoid-offset`` gives N (else a warning); without ``HAcc``,
 acc_m = 1.5 m x HDop (as for NMEA). Instance 0 is read (``--topic GPS[1]`` picks the
-second receiver). Fixes without GPS time (``GWk`` 0) are skipped as ``no_utc``.
+second receiver; in logs before ArduPilot 4.1, without the ``I`` column, its messages
+are ``GPS2`` and ``GPA2``, also named by ``--topic GPS2``). Fixes without GPS time
+(``GWk`` 0) are skipped as ``no_utc``.
 
 GPS time runs ahead of UTC by the leap seconds since 1980 (18 s since 2017-01-01):
 :data:`LEAP_SECONDS` is the table (IERS Bulletin C; no leap second has been added
@@ -108,7 +110,20 @@ def _topic(text: str | None) -> int:
         return 0
     if t.startswith("GPS[") and t.endswith("]") and t[4:-1].isdigit():
         return int(t[4:-1])
-    raise SourceError(f"--topic {text!r}: a DataFlash log takes GPS or GPS[N] (instance N)")
+    if t[3:].isdigit() and t.startswith("GPS") and int(t[3:]) >= 2:  # GPS2: older logs
+        return int(t[3:]) - 1
+    raise SourceError(f"--topic {text!r}: a DataFlash log takes GPS or GPS[N] (instance N; "
+                      "GPS2 is GPS[1])")
+
+
+def _names(df, instance: int) -> tuple[str, str]:
+    """The message names of receiver ``instance``: ``GPS``/``GPA`` with their ``I``
+    column (ArduPilot 4.1 on), or, in older logs without it, ``GPS``/``GPA`` for the
+    first receiver and ``GPS2``/``GPA2`` for the second."""
+    gps_fmt = df.formats[df.name_to_id["GPS"]]
+    if instance == 0 or "I" in gps_fmt.columns:
+        return "GPS", "GPA"
+    return f"GPS{instance + 1}", f"GPA{instance + 1}"
 
 
 _NUMPY = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "q": "<i8",
@@ -170,12 +185,20 @@ class Reader:
         end = max((df.offsets[t][-1] + df.formats[t].len for t in types if df.offsets[t]),
                   default=0)
         self.truncated = 0
-        gps = self._columns(df, "GPS")
-        gpa = self._columns(df, "GPA") if "GPA" in df.name_to_id else {}
+        gps_name, gpa_name = _names(df, self.instance)
+        if gps_name not in df.name_to_id:
+            raise SourceError(f"{path}: no {gps_name} messages (the second receiver of a log "
+                              "without instance numbers)")
+        receivers = [n for n in df.name_to_id if n == "GPS" or (n[:3] == "GPS" and n[3:].isdigit())]
+        older = [] if "I" in gps_fmt.columns else [n for n in receivers if n != gps_name]
+        if gps_name != "GPS":
+            self.source.label = f"{gps_name} with {gpa_name}"
+        gps = self._columns(df, gps_name)
+        gpa = self._columns(df, gpa_name) if gpa_name in df.name_to_id else {}
         if end < df.data_len - 3:  # the index stopped: read on message by message
-            more, n_bytes = self._read_on(df, end)
+            more, n_bytes = self._read_on(df, end, (gps_name, gpa_name))
             covered += n_bytes
-            for name, cols in (("GPS", gps), ("GPA", gpa)):
+            for name, cols in ((gps_name, gps), (gpa_name, gpa)):
                 rows = more[name]
                 if rows:
                     fmt = df.formats[df.name_to_id[name]]
@@ -184,16 +207,19 @@ class Reader:
                             cols[c].dtype if c in cols else float)
                         cols[c] = np.concatenate([cols[c], extra]) if c in cols else extra
         self.corrupt_bytes = max(0, df.data_len - covered)
-        inst = gps.get("I", np.zeros(len(gps["TimeUS"]), dtype=np.int64))
+        inst = gps.get("I", np.full(len(gps["TimeUS"]), self.instance, dtype=np.int64))
         self.other_instances = {int(i): int(n) for i, n in zip(
             *np.unique(inst[inst != self.instance], return_counts=True), strict=True)}
+        for name in older:  # the other receivers' messages of an older log
+            k = 0 if name == "GPS" else int(name[3:]) - 1
+            self.other_instances[k] = len(df.offsets[df.name_to_id[name]])
         mine = inst == self.instance
         self.gps = {k: v[mine] for k, v in gps.items()}
         self.n = int(mine.sum())
         # the GPA written with each GPS: same instance and TimeUS
         self.gpa_index = np.full(self.n, -1, dtype=np.int64)
         if gpa:
-            gi = gpa.get("I", np.zeros(len(gpa["TimeUS"]), dtype=np.int64))
+            gi = gpa.get("I", np.full(len(gpa["TimeUS"]), self.instance, dtype=np.int64))
             sel = np.flatnonzero(gi == self.instance)
             t = gpa["TimeUS"][sel]
             order = np.argsort(t, kind="stable")
@@ -206,11 +232,11 @@ class Reader:
         self.gpa = gpa
 
     @staticmethod
-    def _read_on(df, offset: int) -> tuple[dict[str, list[dict]], int]:
-        """GPS and GPA messages from ``offset`` on, parsed one by one by DFReader (which
-        skips bad bytes), and the bytes the messages parsed there cover."""
+    def _read_on(df, offset: int, names: tuple[str, str]) -> tuple[dict[str, list[dict]], int]:
+        """The ``names`` (GPS and GPA) messages from ``offset`` on, parsed one by one by
+        DFReader (which skips bad bytes), and the bytes the messages parsed there cover."""
         df.offset, df.remaining = offset, df.data_len - offset
-        out: dict[str, list[dict]] = {"GPS": [], "GPA": []}
+        out: dict[str, list[dict]] = {n: [] for n in names}
         n_bytes = 0
         with quiet_output():
             while (m := df.recv_msg()) is not None:

@@ -23,11 +23,11 @@ from estimator.importers.common import (
     Source,
     Stamped,
     Tally,
-    integer,
     make_fix,
     number,
     open_file,
     text_lines,
+    time_integer,
 )
 
 FORMAT = "gnsslogger"
@@ -98,8 +98,8 @@ class Reader:
             i = columns.get(name)
             return fields[i] if i is not None and i < len(fields) else None
 
-        utc_ms = integer(get("UnixTimeMillis"))
-        elapsed = integer(get("elapsedRealtimeNanos"))
+        utc_ms = time_integer(get("UnixTimeMillis"))
+        elapsed = time_integer(get("elapsedRealtimeNanos"))
         if utc_ms is None and elapsed is None:
             raise Skip("missing_field")
         if (utc_ms is not None and utc_ms < 0) or (elapsed is not None and elapsed < 0):

@@ -436,8 +436,16 @@ def _pass1(reader, step: Callable[[str], None]) -> tuple[Tally, ClockStats, _Rec
         detail = "; ".join(x for x in (f"skipped: {why}" if why else "",
                                        f"other records: {other}" if other else "") if x)
         what = "fix" if src.kind == "gnss" else "ranging result"
+        hint = ""
+        if src.kind == "gnss" and c.rejected.get("no_accuracy", 0) == max(
+                c.rejected.values(), default=0) > 0:
+            hint = ": the file gives no accuracy; give one with --gnss-acc M"
+        providers = sorted(k[4:] for k in c.unknown_types if k.startswith("Fix ")
+                           and k != "Fix (no provider)")
+        if src.format == "gnsslogger" and providers:
+            hint = f": fixes of {', '.join(providers)} are there; name one with --topic"
         raise ImportRefused(f"{src.path}: no usable {what} ({src.label}"
-                            + (f"; {detail}" if detail else "") + ")")
+                            + (f"; {detail}" if detail else "") + ")" + hint)
     return tally, stats, again
 
 

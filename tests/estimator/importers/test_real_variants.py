@@ -1,0 +1,207 @@
+"""Recorder files as phones, spreadsheets and loggers leave them: a UTF-8 byte order mark
+(Excel's "CSV UTF-8", Windows Notepad), CRLF line endings, columns reordered and extra
+ones, several talkers in one NMEA file. Each imports to the same records as the plain
+file the tests write."""
+
+from __future__ import annotations
+
+import pytest
+
+from estimator.importers import ImportOptions, ImportRefused, import_flight
+from estimator.logio import read_log
+from tests.estimator.importers.writers import (
+    DataFlashWriter,
+    gps_week_ms,
+    write_android_csv,
+    write_gnsslogger,
+    write_nmea,
+    write_rosbag,
+)
+
+BOM = "\ufeff"
+
+
+def _import(gnss, rtt, out):
+    report = import_flight(gnss, rtt, out, ImportOptions())
+    return report.to_json(), read_log(out)
+
+
+def test_a_byte_order_mark_hides_no_column(flight, tmp_path):
+    """With a BOM the first column's name read "\\ufeffutc_ms": the file lost its UTC
+    column, was joined on the phone's clock alone and warned that it had no UTC."""
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    plain = write_android_csv(tmp_path / "plain.csv", flight)
+    text = plain.read_text(encoding="utf-8")
+    lines = text.splitlines()
+    cols = lines[0].split(",")
+    assert cols[0] == "utc_ms"
+    # Excel's export: BOM, CRLF, the columns in another order and one more column
+    order = list(reversed(range(len(cols))))
+    rows = [",".join([*(cols[i].upper() for i in order), "note"])]
+    rows += [",".join([*(r.split(",")[i] for i in order), "x"]) for r in lines[1:]]
+    excel = tmp_path / "excel.csv"
+    excel.write_bytes((BOM + "\r\n".join(rows) + "\r\n").encode("utf-8"))
+    ref_j, ref = _import(gnss, plain, tmp_path / "ref.jsonl")
+    got_j, got = _import(gnss, excel, tmp_path / "got.jsonl")
+    assert got_j["warnings"] == ref_j["warnings"] == []
+    assert got_j["time"]["utc_offsets_s"] == ref_j["time"]["utc_offsets_s"]
+    assert "ranges" in got_j["time"]["utc_offsets_s"]
+    assert got.rtt == ref.rtt and len(got.rtt) == len(flight.rtt)
+    assert got_j["ranges"]["skipped"] == {}
+
+
+def test_bom_before_the_first_nmea_sentence_and_gnsslogger_header(flight, tmp_path):
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    nmea = write_nmea(tmp_path / "plain.nmea", flight)
+    bom_nmea = tmp_path / "bom.nmea"
+    bom_nmea.write_bytes(BOM.encode() + nmea.read_bytes())
+    ref_j, ref = _import(nmea, rtt, tmp_path / "ref.jsonl")
+    got_j, got = _import(bom_nmea, rtt, tmp_path / "got.jsonl")
+    assert got_j["gnss"]["records_read"] == ref_j["gnss"]["records_read"] == len(flight.gnss)
+    assert got_j["gnss"]["other_records"] == ref_j["gnss"]["other_records"]
+    assert got.gnss == ref.gnss
+    # GnssLogger whose first line is its Fix column comment (columns in its own order)
+    gl = write_gnsslogger(tmp_path / "gl.txt", flight)
+    lines = [ln for ln in gl.read_text().splitlines() if ln.startswith(("# Fix", "Fix,GPS"))]
+    head = lines[0].removeprefix("# ").split(",")
+    swap = list(range(len(head)))
+    swap[2], swap[3] = 3, 2  # longitude before latitude
+    body = ["# " + ",".join(head[i] for i in swap)]
+    body += [",".join(ln.split(",")[i] for i in swap) for ln in lines[1:]]
+    bom_gl = tmp_path / "bom_gl.txt"
+    bom_gl.write_bytes((BOM + "\n".join(body) + "\n").encode())
+    rtt2 = write_android_csv(tmp_path / "rtt2.csv", flight)
+    gl_j, gl_log = _import(bom_gl, rtt2, tmp_path / "gl.jsonl")
+    _, plain_log = _import(gl, rtt2, tmp_path / "gl_plain.jsonl")
+    assert gl_j["gnss"]["records_read"] == len(flight.gnss)
+    assert gl_log.gnss == plain_log.gnss  # latitude and longitude from their own columns
+    assert 35.0 < gl_log.gnss[0].lat_deg < 38.0 and -5.0 < gl_log.gnss[0].lon_deg < -4.0
+
+
+# ArduPilot before 4.1: no instance column; the second receiver logs GPS2 and GPA2
+OLD_GPS = "QBIHBcLLeffffB", "TimeUS,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"
+OLD_GPA = "QCCCCBCH", "TimeUS,VDop,HAcc,VAcc,SAcc,VV,SMS,Delta"
+
+
+def _old_dataflash(path, flight):
+    w = DataFlashWriter(path)
+    for k, name in enumerate(("GPS", "GPS2")):
+        w.define(129 + k, (name, *OLD_GPS))
+    for k, name in enumerate(("GPA", "GPA2")):
+        w.define(131 + k, (name, *OLD_GPA))
+    for k, g in enumerate(flight.gnss):
+        t_us = 60_000_000 + (g.t_ns - flight.t0_ns) // 1000
+        week, ms = gps_week_ms(flight.utc_ns(g.t_ns))
+        msl_cm = round((g.alt_m - 50.0) * 100)
+        lat, lon = round(g.lat_deg * 1e7), round(g.lon_deg * 1e7)
+        w.write("GPS", t_us, 3, ms, week, 12, 70, lat, lon, msl_cm, 6.5, 90.0, -0.1, 0.0, 1)
+        w.write("GPA", t_us, 110, round(g.acc_m * 100), 150, 40, 1, 0, 100)
+        if k % 2 == 0:  # the second receiver: 2e-5 degrees north, 3 m up, HAcc 4 m
+            w.write("GPS2", t_us + 3, 3, ms, week, 8, 180, lat + 200, lon, msl_cm + 300, 6.5,
+                    90.0, -0.1, 0.0, 1)
+            w.write("GPA2", t_us + 3, 110, 400, 600, 40, 1, 0, 100)
+    w.close()
+    return path
+
+
+def test_dataflash_before_instances_second_receiver_is_gps2(flight, tmp_path):
+    df = _old_dataflash(tmp_path / "old.bin", flight)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    first_j, first = _import(df, rtt, tmp_path / "first.jsonl")
+    n2 = (len(flight.gnss) + 1) // 2
+    assert first_j["gnss"]["records_read"] == len(flight.gnss)
+    assert first_j["gnss"]["other_records"] == {"GPS[1]": n2}  # counted, not silent
+    for topic in ("GPS[1]", "GPS2"):
+        out = tmp_path / f"second-{topic}.jsonl"
+        j = import_flight(df, rtt, out, ImportOptions(topic=topic, geoid_offset_m=50.0)
+                          ).to_json()
+        second = read_log(out)
+        assert j["gnss"]["stream"] == "GPS2 with GPA2"
+        assert j["gnss"]["records_read"] == n2
+        assert j["gnss"]["other_records"] == {"GPS[0]": len(flight.gnss)}
+        by_t = {g.t_ns: g for g in first.gnss}
+        pairs = [(s, by_t[s.t_ns]) for s in second.gnss if s.t_ns in by_t]
+        assert len(pairs) > 0.9 * len(second.gnss)
+        for s, f in pairs:
+            assert s.lat_deg == pytest.approx(f.lat_deg + 2e-5, abs=1e-9)
+            assert s.alt_m == pytest.approx(f.alt_m + 3.0 + 50.0, abs=1e-6)  # MSL + N
+            assert (s.acc_m, s.vacc_m) == (4.0, 6.0)
+    with pytest.raises(ImportRefused, match=r"old.bin: no GPS3 messages"):
+        import_flight(df, rtt, tmp_path / "x.jsonl", ImportOptions(topic="GPS[2]"))
+
+
+def test_a_bag_without_covariance_says_how_to_give_an_accuracy(flight, tmp_path):
+    bag = write_rosbag(tmp_path / "bag", flight, covariance=False, extra_topic=False)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    with pytest.raises(ImportRefused, match=r"bag: no usable fix .*no_accuracy=\d+\): the "
+                                            r"file gives no accuracy; give one with "
+                                            r"--gnss-acc M$"):
+        import_flight(bag, rtt, tmp_path / "x.jsonl", ImportOptions())
+    j = import_flight(bag, rtt, tmp_path / "y.jsonl", ImportOptions(gnss_acc_m=2.5)).to_json()
+    assert j["gnss"]["records_read"] == len(flight.gnss)
+    assert {g.acc_m for g in read_log(tmp_path / "y.jsonl").gnss} == {2.5}
+
+
+def test_semicolon_and_tab_separated_exports_read_as_the_comma_file(flight, tmp_path):
+    """A spreadsheet where the comma is the decimal mark (Spain, Germany...) saves "CSV"
+    with semicolons; a tab-separated export alike. Recognised from content and read to
+    the same records; a decimal comma in a number is counted as bad_type."""
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    plain = write_android_csv(tmp_path / "plain.csv", flight)
+    _, ref = _import(gnss, plain, tmp_path / "ref.jsonl")
+    text = plain.read_text()
+    for sep, name in ((";", "semi.csv"), ("\t", "tabs.txt")):
+        f = tmp_path / name
+        f.write_text(text.replace(",", sep))
+        j, got = _import(gnss, f, tmp_path / f"{name}.jsonl")
+        assert j["ranges"]["format"] == "android-csv"
+        assert got.rtt == ref.rtt and j["ranges"]["skipped"] == {}
+    lines = text.splitlines()
+    ok_row = next(ln for ln in lines[1:] if ln.split(",")[3] == "0")
+    cells = ok_row.split(",")
+    cells[4] = cells[4] + ",5"  # distance_mm "12345,5": a decimal comma
+    f = tmp_path / "decimal.csv"
+    rows = [ln.replace(",", ";") for ln in lines if ln != ok_row] + [";".join(cells)]
+    f.write_text("\n".join(rows) + "\n")
+    j, got = _import(gnss, f, tmp_path / "d.jsonl")
+    assert j["ranges"]["skipped"] == {"bad_type": 1}
+    assert len(got.rtt) == len(ref.rtt) - 1
+
+
+def test_gnsslogger_without_gps_fixes_names_the_providers_it_has(flight, tmp_path):
+    """A phone with the GPS provider off logs only fused (FLP) fixes: the refusal says
+    so and how to read them."""
+    gl = write_gnsslogger(tmp_path / "gl.txt", flight)
+    only_flp = tmp_path / "flp.txt"
+    only_flp.write_text("\n".join(ln for ln in gl.read_text().splitlines()
+                                  if not ln.startswith("Fix,GPS")) + "\n")
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    with pytest.raises(ImportRefused, match=r"flp.txt: no usable fix \(Fix lines of provider "
+                                            r"GPS; other records: Fix FLP=\d+.*\): fixes of "
+                                            r"FLP are there; name one with --topic$"):
+        import_flight(only_flp, rtt, tmp_path / "x.jsonl", ImportOptions())
+    j = import_flight(only_flp, rtt, tmp_path / "y.jsonl", ImportOptions(topic="FLP")
+                      ).to_json()
+    assert j["gnss"]["records_read"] == (len(flight.gnss) + 9) // 10
+
+
+def test_times_a_spreadsheet_rounded_are_skipped_not_misplaced(flight, tmp_path):
+    """Excel shows a 13-digit utc_ms as 1.74972E+12 and saves it so: 1749720000000, up to
+    hours off. Such a time is skipped (rounded_time); an exponent form with every digit
+    is exact and read."""
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    plain = write_android_csv(tmp_path / "plain.csv", flight, elapsed=False)
+    lines = plain.read_text().splitlines()
+    cols = lines[0].split(",")
+    k = cols.index("utc_ms")
+    rows = [ln.split(",") for ln in lines[1:]]
+    for r in rows[:10]:  # as Excel saves them
+        r[k] = f"{int(r[k]):.5E}"
+    exact = rows[10][k]
+    rows[10][k] = f"{int(exact[0])}.{exact[1:]}E+{len(exact) - 1}"  # every digit kept
+    f = tmp_path / "excel.csv"
+    f.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    _, ref = _import(gnss, plain, tmp_path / "ref.jsonl")
+    j, got = _import(gnss, f, tmp_path / "got.jsonl")
+    assert j["ranges"]["skipped"] == {"rounded_time": 10}
+    assert got.rtt == ref.rtt[10:]  # the exact exponent form read to the same time

@@ -1,0 +1,207 @@
+"""DEM files as real users have them (sim/dem.py): holes inside the area, a band's scale,
+offset and vertical unit, void markers of files that declare no nodata, pictures
+instead of heights, tiled and compressed files, misnamed SRTM tiles. Each checked
+against the plane the file was made from, or refused in one line naming the file."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+from pyproj import Transformer
+from rasterio.transform import from_origin
+
+from estimator.geodesy import ExactENU
+from sim.dem import DemError, DemTerrain
+
+LAT0, LON0, H0 = 36.7105, -4.4905, 150.0
+UTM = "EPSG:32630"
+RES_M, N = 20.0, 100  # a 2 km square of 20 m cells centred on the origin
+SQUARE = np.array([(-300.0, -300.0), (300.0, -300.0), (300.0, 300.0), (-300.0, 300.0)])
+X0, Y0 = Transformer.from_crs("EPSG:4326", UTM, always_xy=True).transform(LON0, LAT0)
+WEST, NORTH = X0 - N / 2 * RES_M, Y0 + N / 2 * RES_M
+TRANSFORM = from_origin(WEST, NORTH, RES_M, RES_M)
+
+
+def _plane(x, y):
+    """Heights (m) of a plane in UTM metres: 300 m at the origin, 5 % east, 2 % north."""
+    return 300.0 + 0.05 * (x - X0) + 0.02 * (y - Y0)
+
+
+def _cells():
+    xs = WEST + RES_M * (np.arange(N) + 0.5)
+    ys = NORTH - RES_M * (np.arange(N) + 0.5)
+    return np.meshgrid(xs, ys)
+
+
+def _write(path, values, *, nodata=None, scales=None, offsets=None, units=None, count=1,
+           **kw):
+    with rasterio.open(path, "w", driver="GTiff", width=N, height=N, count=count,
+                       dtype=values.dtype, crs=UTM, transform=TRANSFORM, nodata=nodata,
+                       **kw) as dst:
+        for b in range(1, count + 1):
+            dst.write(values, b)
+        if scales:
+            dst.scales = scales
+        if offsets:
+            dst.offsets = offsets
+        if units:
+            dst.units = units
+    return path
+
+
+def _max_error_m(dem) -> float:
+    """Largest |DEM height - plane| at 200 ground points of the area (through the exact
+    geodesy and pyproj, independently of the DEM's own fitted map)."""
+    rng = np.random.default_rng(3)
+    e, n = rng.uniform(-450, 450, 200), rng.uniform(-450, 450, 200)
+    u = np.asarray(dem.height_m(e, n))
+    lat, lon, h = ExactENU(LAT0, LON0, H0).to_geodetic(e, n, u)
+    x, y = Transformer.from_crs("EPSG:4326", UTM, always_xy=True).transform(lon, lat)
+    return float(np.max(np.abs(np.asarray(h) - _plane(np.asarray(x), np.asarray(y)))))
+
+
+def _dem(path):
+    return DemTerrain(path, (LAT0, LON0, H0), (-450, 450, -450, 450), margin_m=100.0)
+
+
+@pytest.mark.parametrize("kind", ["decimetres", "offset", "feet", "us-feet", "tiled"])
+def test_scale_offset_unit_and_tiling_give_metres(tmp_path, kind):
+    """A band's declared scale, offset and unit make its values metres (without them an
+    int16 file of decimetres read 10 x too high, feet 3.3 x)."""
+    X, Y = _cells()
+    z = _plane(X, Y)
+    if kind == "decimetres":  # int16 decimetres, LZW with a horizontal predictor
+        f = _write(tmp_path / "dm.tif", np.round(z * 10).astype("int16"), scales=[0.1],
+                   compress="lzw", predictor=2)
+    elif kind == "offset":
+        f = _write(tmp_path / "off.tif", np.round((z - 100.0) * 100).astype("int16"),
+                   scales=[0.01], offsets=[100.0])
+    elif kind == "feet":
+        f = _write(tmp_path / "ft.tif", (z / 0.3048).astype("float64"), units=["ft"])
+    elif kind == "us-feet":
+        f = _write(tmp_path / "usft.tif", (z * 3937.0 / 1200.0).astype("float64"),
+                   units=["US survey foot"])
+    else:
+        f = _write(tmp_path / "tiled.tif", z.astype("float32"), tiled=True, blockxsize=32,
+                   blockysize=32, compress="deflate", predictor=3)
+    assert _max_error_m(_dem(f)) < 0.01
+
+
+def test_an_unknown_vertical_unit_and_a_picture_are_refused(tmp_path):
+    X, Y = _cells()
+    z = _plane(X, Y)
+    f = _write(tmp_path / "fathoms.tif", z.astype("float32"), units=["fathom"])
+    with pytest.raises(DemError, match=r"^\S*fathoms.tif: band 1's heights are in 'fathom'"):
+        _dem(f)
+    rgb = _write(tmp_path / "shade.tif", np.zeros((N, N), dtype="uint8"), count=3)
+    with pytest.raises(DemError, match=r"^\S*shade.tif: band 1 is the red of a picture"):
+        _dem(rgb)
+    # a local engineering CRS (a survey's own grid): no way from WGS84 to it
+    local = 'LOCAL_CS["site grid",UNIT["metre",1],AXIS["X",EAST],AXIS["Y",NORTH]]'
+    with rasterio.open(tmp_path / "local.tif", "w", driver="GTiff", width=N, height=N,
+                       count=1, dtype="float32", crs=rasterio.crs.CRS.from_wkt(local),
+                       transform=from_origin(0.0, 2000.0, RES_M, RES_M)) as dst:
+        dst.write(z.astype("float32"), 1)
+    with pytest.raises(DemError, match=r"^\S*local.tif: its coordinate reference system "
+                                       r"\(LOCAL_CS.*cannot be reached from WGS84"):
+        _dem(tmp_path / "local.tif")
+
+
+@pytest.mark.parametrize("declared", [True, False])
+def test_a_hole_inside_the_area_is_refused(tmp_path, declared):
+    """One nodata cell well inside the area, away from its boundary: refused, at the
+    hole (its four cells share the pixel at (+10, -10) m). Without a declared nodata,
+    SRTM's -32768 is a void all the same."""
+    X, Y = _cells()
+    z = np.round(_plane(X, Y)).astype("int16")
+    z[50, 50] = -9999 if declared else -32768
+    f = _write(tmp_path / "holed.tif", z, nodata=-9999 if declared else None)
+    dem = _dem(f)
+    dem.require_polygon([(-300, -300), (-100, -300), (-100, -100)], "a corner")  # clear
+    with pytest.raises(DemError, match=r"holed.tif: the area touches nodata cells at") as exc:
+        dem.require_polygon(SQUARE, "the area")
+    e, n = (float(v) for v in str(exc.value).rsplit("(", 1)[1].split(")")[0].split(","))
+    assert abs(e - 10.0) <= 20.0 and abs(n + 10.0) <= 20.0
+
+
+def test_nan_holes_and_an_area_across_the_edge(tmp_path):
+    X, Y = _cells()
+    z = _plane(X, Y).astype("float32")
+    z[60, 40] = np.nan
+    f = _write(tmp_path / "nan.tif", z)
+    dem = _dem(f)
+    with pytest.raises(DemError, match=r"nan.tif: the area touches nodata"):
+        dem.require_polygon(SQUARE, "the area")
+    # an area from the middle to 400 m beyond the east edge (1 km from the origin)
+    with pytest.raises(DemError, match=r"nan.tif: the area leaves the DEM's extent at"):
+        DemTerrain(f, (LAT0, LON0, H0), (0, 1400, -200, 200)).require_polygon(
+            [(0, -200), (1400, -200), (1400, 200), (0, 200)], "the area")
+
+
+def test_hgt_tiles_one_and_three_arc_seconds_voids_and_names(tmp_path):
+    """SRTM 1" (3601 posts) and 3" (1201) tiles: a plane in post indices; a void
+    (-32768) inside the area is refused; a tile renamed from its N..W.. name is refused
+    with a hint."""
+    for n_posts in (3601, 1201):
+        j, i = np.mgrid[0:n_posts, 0:n_posts]
+        per_deg = n_posts - 1
+        scale = 1200.0 / per_deg  # the same metres per degree for both tiles
+        vals = (100 + scale * (i + 2 * j)).round().astype(">i2")
+        path = tmp_path / f"{n_posts}" / "N36W005.hgt"
+        path.parent.mkdir()
+        vals.tofile(path)
+        dem = DemTerrain(path, (36.5, -4.5, 150.0), (-400, 400, -400, 400))
+        rng = np.random.default_rng(5)
+        e, n = rng.uniform(-400, 400, 100), rng.uniform(-400, 400, 100)
+        u = np.asarray(dem.height_m(e, n))
+        lat, lon, h = ExactENU(36.5, -4.5, 150.0).to_geodetic(e, n, u)
+        col, row = (np.asarray(lon) + 5.0) * per_deg, (37.0 - np.asarray(lat)) * per_deg
+        assert np.max(np.abs(np.asarray(h) - (100 + scale * (col + 2 * row)))) < 0.51
+    vals[600, 600] = -32768  # the 3" tile's post at (36.5 N, 4.5 W)
+    vals.tofile(path)
+    with pytest.raises(DemError, match=r"N36W005.hgt: the area touches nodata"):
+        DemTerrain(path, (36.5, -4.5, 150.0), (-400, 400, -400, 400)).require_polygon(
+            SQUARE, "the area")
+    renamed = tmp_path / "valley.hgt"
+    renamed.write_bytes(path.read_bytes())
+    with pytest.raises(DemError, match=r"valley.hgt: cannot read the DEM: .*must keep its "
+                                       r"tile's name"):
+        DemTerrain(renamed, (36.5, -4.5, 150.0), (-400, 400, -400, 400))
+
+
+def test_site_valley_from_an_int16_decimetre_dem_and_a_kmz_area(tmp_path):
+    """The site-valley preset with its DEM saved as tiled LZW int16 decimetres (scale
+    0.1, nodata -32768) and its area as a KMZ: the same ground to the rounding (5 cm),
+    the same area."""
+    import shutil
+    import zipfile
+    from pathlib import Path
+
+    import sim
+    from sim.scenario import load_scenario
+
+    here = Path(sim.__file__).parent / "scenarios"
+    with rasterio.open(here / "site" / "valley-dem.tif") as src:
+        profile, z = src.profile, src.read(1).astype(float)
+    profile.update(dtype="int16", nodata=-32768, tiled=True, blockxsize=64, blockysize=64,
+                   compress="lzw")
+    (tmp_path / "site").mkdir()
+    with rasterio.open(tmp_path / "site" / "dm.tif", "w", **profile) as dst:
+        dst.write(np.round(z * 10).astype("int16"), 1)
+        dst.scales = [0.1]
+    with zipfile.ZipFile(tmp_path / "site" / "area.kmz", "w", zipfile.ZIP_DEFLATED) as kmz:
+        kmz.write(here / "site" / "valley-area.kml", "doc.kml")
+    shutil.copy(here / "site" / "valley-powerline.kml", tmp_path / "site" / "pl.kml")
+    text = (here / "site-valley.toml").read_text()
+    text = (text.replace('"site/valley-dem.tif"', '"site/dm.tif"')
+            .replace('"site/valley-area.kml"', '"site/area.kmz"')
+            .replace('"site/valley-powerline.kml"', '"site/pl.kml"'))
+    assert text.count("site/dm.tif") == text.count("site/area.kmz") == 1
+    (tmp_path / "valley.toml").write_text(text)
+    ref, got = load_scenario("site-valley"), load_scenario(tmp_path / "valley.toml")
+    assert got.search.area_enu_m == ref.search.area_enu_m
+    e, n = np.meshgrid(np.linspace(-300, 500, 9), np.linspace(-200, 600, 9))
+    diff = np.asarray(got.world.terrain.height_m(e, n)) - np.asarray(
+        ref.world.terrain.height_m(e, n))
+    assert np.max(np.abs(diff)) <= 0.05 + 1e-6

@@ -1,0 +1,177 @@
+"""Site files as Google Earth, QGIS and hand editing leave them (sim/sitefiles.py):
+KMZ zips, encodings, nesting, coordinates written loosely, unlocated GeoJSON features,
+clockwise and unclosed rings, QGroundControl plans with every kind of fence. Each read
+to the same vertices as the plain file, or refused in one line naming the file."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import pytest
+
+from sim.sitefiles import SiteFileError, read_area, read_keepouts
+
+# (lon, lat) of a hexagon near the site-valley preset, open ring
+RING = [(-4.4896584, 36.7080101), (-4.4821132, 36.7131071), (-4.4835854, 36.7156415),
+        (-4.4868831, 36.7160018), (-4.4921991, 36.7124106), (-4.4923922, 36.7106333)]
+WANT = tuple((la, lo) for lo, la in RING)
+KML_NS = 'xmlns="http://www.opengis.net/kml/2.2" xmlns:gx="http://www.google.com/kml/ext/2.2"'
+
+
+def _coords(ring, sep=" ", alt=True, close=True):
+    pts = [*ring, ring[0]] if close else list(ring)
+    return sep.join(f"{lo},{la}" + (",0" if alt else "") for lo, la in pts)
+
+
+def _kml(body: str, decl: str = '<?xml version="1.0" encoding="UTF-8"?>') -> str:
+    return f"{decl}\n<kml {KML_NS}>{body}</kml>\n"
+
+
+def _polygon(coords: str, extra: str = "") -> str:
+    return (f"<Polygon>{extra}<outerBoundaryIs><LinearRing><coordinates>{coords}"
+            "</coordinates></LinearRing></outerBoundaryIs></Polygon>")
+
+
+NAMED = "<name><![CDATA[Área de búsqueda <b>1</b>]]></name>"
+GOOGLE_EARTH = _kml(
+    "<Document><name>search.kmz</name><Style id=\"a\"><PolyStyle><color>7f00ff00</color>"
+    "</PolyStyle></Style><Folder><name>site</name><Folder><Placemark><name>start</name>"
+    "<Point><coordinates>-4.487,36.712,0</coordinates></Point></Placemark>"
+    "<Placemark><LineString><coordinates>-4.487,36.712 -4.486,36.713</coordinates>"
+    f"</LineString></Placemark><Placemark>{NAMED}<styleUrl>#a</styleUrl><MultiGeometry>"
+    + _polygon("\n\t\t" + _coords(RING, sep="\n\t\t") + "\n\t",
+               "<extrude>1</extrude><gx:altitudeMode>relativeToSeaFloor</gx:altitudeMode>")
+    + "</MultiGeometry></Placemark></Folder></Folder></Document>")
+
+
+@pytest.mark.parametrize("variant", [
+    "google-earth", "kmz", "kmz-nested", "clockwise-unclosed-2d", "spaces-after-commas",
+    "latin-1", "utf-16", "no-namespace"])
+def test_kml_variants_read_the_same_polygon(tmp_path, variant):
+    if variant == "google-earth":  # folders, styles, a label, a path, MultiGeometry, gx
+        f = tmp_path / "area.kml"
+        f.write_text(GOOGLE_EARTH, encoding="utf-8")
+    elif variant in ("kmz", "kmz-nested"):  # Google Earth's "Save Place As" default
+        f = tmp_path / "area.kmz"
+        with zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED) as z:
+            if variant == "kmz":
+                z.writestr("doc.kml", GOOGLE_EARTH)
+            else:
+                z.writestr("files/readme.txt", "overlay")
+                z.writestr("site/area.kml", GOOGLE_EARTH)
+    elif variant == "clockwise-unclosed-2d":
+        f = tmp_path / "cw.kml"
+        f.write_text(_kml(f"<Placemark>{_polygon(_coords(RING[::-1], alt=False, close=False))}"
+                          "</Placemark>"))
+        assert read_area(f) == WANT[::-1]
+        return
+    elif variant == "spaces-after-commas":  # "lon, lat, alt": not KML, but hand-written
+        f = tmp_path / "loose.kml"
+        f.write_text(_kml("<Placemark>" + _polygon(
+            "  " + "   ".join(f"{lo}, {la} ,0" for lo, la in [*RING, RING[0]]) + " ")
+            + "</Placemark>"))
+    elif variant == "latin-1":  # an encoding declared and used (an older QGIS export)
+        f = tmp_path / "latin.kml"
+        f.write_bytes(_kml(f"<Placemark>{NAMED}{_polygon(_coords(RING))}</Placemark>",
+                           '<?xml version="1.0" encoding="ISO-8859-1"?>').encode("latin-1"))
+    elif variant == "utf-16":  # Windows tools, with a byte order mark
+        f = tmp_path / "wide.kml"
+        f.write_bytes(_kml(f"<Placemark>{NAMED}{_polygon(_coords(RING))}</Placemark>",
+                           '<?xml version="1.0" encoding="UTF-16"?>').encode("utf-16"))
+    else:
+        f = tmp_path / "bare.kml"
+        f.write_text(f"<kml><Placemark>{_polygon(_coords(RING))}</Placemark></kml>")
+    assert read_area(f) == WANT
+
+
+def test_kml_and_kmz_refusals_are_one_line(tmp_path):
+    holed = tmp_path / "holed.kml"
+    holed.write_text(_kml("<Placemark><Polygon><outerBoundaryIs><LinearRing><coordinates>"
+                          + _coords(RING) + "</coordinates></LinearRing></outerBoundaryIs>"
+                          "<innerBoundaryIs><LinearRing><coordinates>-4.488,36.7115 "
+                          "-4.4865,36.7115 -4.4865,36.7125 -4.488,36.7115</coordinates>"
+                          "</LinearRing></innerBoundaryIs></Polygon></Placemark>"))
+    cases = [(holed, r"holed.kml: placemark .*polygons with holes are not supported")]
+    empty = tmp_path / "empty.kmz"
+    with zipfile.ZipFile(empty, "w") as z:
+        z.writestr("image.png", b"\x89PNG")
+    cases.append((empty, r"empty.kmz: a KMZ without a .kml document"))
+    notzip = tmp_path / "plain.kmz"
+    notzip.write_text(GOOGLE_EARTH)
+    cases.append((notzip, r"plain.kmz: not a readable KMZ \(zip\) file"))
+    bomb = tmp_path / "bomb.kmz"  # 30 MB of blanks in a few kB: bounded, not inflated
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("doc.kml", " " * 30_000_000)
+    cases.append((bomb, r"bomb.kmz: its KML holds more than the 20,000,000 bytes"))
+    wrong = tmp_path / "wrong.kml"
+    wrong.write_bytes(_kml(f"<Placemark>{NAMED}{_polygon(_coords(RING))}</Placemark>")
+                      .encode("latin-1"))  # declared UTF-8, written in Latin-1
+    cases.append((wrong, r"wrong.kml: not UTF-8 text: invalid start byte at byte \d+$"))
+    for path, message in cases:
+        with pytest.raises(SiteFileError, match=message) as exc:
+            read_area(path)
+        assert "\n" not in str(exc.value)
+
+
+def test_geojson_variants(tmp_path):
+    closed = [[lo, la] for lo, la in [*RING, RING[0]]]
+    variants = {
+        "fc-with-unlocated-and-label": {"type": "FeatureCollection", "features": [
+            {"type": "Feature", "properties": {"name": "note"}, "geometry": None},
+            {"type": "Feature", "properties": {"name": "start"},
+             "geometry": {"type": "Point", "coordinates": [-4.487, 36.712]}},
+            {"type": "Feature", "properties": None, "bbox": [-4.5, 36.7, -4.48, 36.72],
+             "geometry": {"type": "MultiPolygon", "coordinates": [[closed]]}}]},
+        "3d-unclosed-crs84": {"type": "Feature", "crs": {"type": "name", "properties": {
+            "name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}, "properties": {},
+            "geometry": {"type": "Polygon", "coordinates": [[[*p, 12.5] for p in closed[:-1]]]}},
+    }
+    for name, obj in variants.items():
+        f = tmp_path / f"{name}.geojson"
+        f.write_text(json.dumps(obj))
+        assert read_area(f) == WANT, name
+
+
+def test_qgc_plan_with_every_fence_kind_and_rally_points(tmp_path):
+    hole = [[36.7115, -4.488], [36.7115, -4.4865], [36.7125, -4.4865], [36.7125, -4.488]]
+    plan = {"fileType": "Plan", "version": 1, "groundStation": "QGroundControl",
+            "mission": {"version": 2, "firmwareType": 12, "vehicleType": 2, "items": [],
+                        "plannedHomePosition": [36.711, -4.487, 100]},
+            "geoFence": {"version": 2, "polygons": [
+                {"inclusion": True, "polygon": [[la, lo] for lo, la in RING], "version": 1},
+                {"inclusion": False, "polygon": hole, "version": 1}],
+                "circles": [{"circle": {"center": [36.7125, -4.486], "radius": 30},
+                             "inclusion": False, "version": 1}]},
+            "rallyPoints": {"version": 2, "points": [[36.711, -4.487, 50]]}}
+    f = tmp_path / "site.plan"
+    f.write_text(json.dumps(plan, indent=4))
+    assert read_area(f) == WANT
+    kos = read_keepouts(f)
+    assert [k.is_circle for k in kos] == [False, True]
+    assert kos[0].vertices_deg == tuple(tuple(v) for v in hole)
+    assert kos[1].center_deg == (36.7125, -4.486) and kos[1].radius_m == 30
+
+
+def test_a_bow_tie_area_or_keep_out_is_refused_where_it_is_read(tmp_path, capsys):
+    """Vertices out of order (a hand-written file with two swapped): refused with the
+    crossing edges, by the scenario loader and by osa plan, never planned over."""
+    from sim.scenario import ScenarioError, load_scenario
+    from tests.cli import one_line, status_of
+
+    bow = [RING[0], RING[2], RING[1], *RING[3:]]
+    f = tmp_path / "bow.kml"
+    f.write_text(_kml(f"<Placemark>{_polygon(_coords(bow))}</Placemark>"))
+    toml = tmp_path / "bow.toml"
+    toml.write_text('name = "bow"\n[world.origin]\nlat_deg = 36.712\nlon_deg = -4.4875\n'
+                    'h_m = 150.0\n[search]\narea_file = "bow.kml"\nstart_e_m = 0.0\n'
+                    'start_n_m = 0.0\nrandom_responders = 1\n')
+    with pytest.raises(ScenarioError, match=r"the search area: its edges 1 and 3 cross at"):
+        load_scenario(toml)
+    ok = tmp_path / "ok.kml"
+    ok.write_text(_kml(f"<Placemark>{_polygon(_coords(RING))}</Placemark>"))
+    code = status_of(["plan", "lawnmower", "--area", str(ok), "--keepout", str(f),
+                      "-o", str(tmp_path / "m.plan")])
+    assert code == 2
+    assert one_line(capsys).startswith("osa plan: --keepout: placemark 1: the keep-out polygon: "
+                                    "its edges 1 and 3 cross at")
