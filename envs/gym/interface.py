@@ -18,8 +18,7 @@ the truth) and the :class:`planner.observation.SearchMission` (what the operator
 Reward of one decision (all terms from the estimator, the vehicle and the link model):
 ``information_weight * information + detection_bonus * newly detected + coverage_bonus *
 newly covered share - time_cost_per_s * dt - leave_penalty * (leaving the area)``, where
-information
-is the increase of
+information is the increase of
 ``sum_b 0.5 (log det P0 - log det P_b)`` over the detected responders b (P_b the
 estimate's 3 x 3 position covariance, P0 the prior before any estimate): the reduction of
 1/2 log det of the covariance, the D-optimal objective the CasADi planner maximises,
