@@ -151,7 +151,8 @@ def curve(model: str, path: str) -> None:
     ax[0].plot(steps, ret, color="C2")
     warm = [float(r["time/total_timesteps"]) for r in rows if r.get("train/critic_warmup") == "1"]
     if warm:  # --critic-warmup: the rollouts whose update fitted only the value head
-        ax[0].axvspan(0, max(warm), color="0.85", label="critic warm-up (actor frozen)")
+        ax[0].axvspan(0, max(warm), color="0.85",
+                      label="critic warm-up: the clone flies, unchanged")
         ax[0].legend(loc="upper right", fontsize=8)
     ax[0].set_xlabel("training steps (decisions)")
     ax[0].set_ylabel("mean return, last 100 training episodes")
