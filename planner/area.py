@@ -241,6 +241,14 @@ class SearchArea:
     def route(self, a: Sequence[float], b: Sequence[float], margin_m: float | None = None
               ) -> list[XY]:
         """Shortest path from a to b that stays inside (a, b included); straight if it can."""
+        path = self._route(a, b, margin_m)
+        return path if path is not None else [(float(a[0]), float(a[1])),
+                                              (float(b[0]), float(b[1]))]
+
+    def _route(self, a: Sequence[float], b: Sequence[float], margin_m: float | None = None
+               ) -> list[XY] | None:
+        """:meth:`route`, or None when no inside route was found (a or b outside, or b
+        cut off from a by keep-outs)."""
         m = self.margin_m if margin_m is None else margin_m
         pa = (float(a[0]), float(a[1]))
         pb = (float(b[0]), float(b[1]))
@@ -282,21 +290,30 @@ class SearchArea:
                     prev[j] = i
                     heapq.heappush(heap, (nd, j))
         if 1 not in prev:
-            return [pa, pb]  # no inside route (a or b outside): the caller checks
+            return None  # no inside route (a or b outside, or b cut off): the caller checks
         path = [1]
         while path[-1] != 0:
             path.append(prev[path[-1]])
         return [nodes[i] for i in reversed(path)]
 
     def join(self, waypoints: Sequence[Sequence[float]]) -> list[XY]:
-        """Waypoints joined pairwise by :meth:`route` (duplicates dropped)."""
+        """Waypoints joined pairwise by :meth:`route` (duplicates dropped). A waypoint
+        that cannot be reached from an inside point (cut off by keep-outs: no inside
+        route, and the straight leg leaves the area) is dropped: a path through it would
+        be refused whole, and the search would stand still."""
         out: list[XY] = []
         for w in waypoints:
             w2 = (float(w[0]), float(w[1]))
             if not out:
                 out.append(w2)
                 continue
-            leg = self.route(out[-1], w2)
+            leg = self._route(out[-1], w2)
+            if leg is None:
+                straight = np.array([out[-1], w2])
+                if (self.contains(straight[:1], 0.0)[0]
+                        and not self.path_inside(straight, 0.0)):
+                    continue
+                leg = [out[-1], w2]
             out.extend(leg[1:])
         return out
 

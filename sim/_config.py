@@ -114,6 +114,12 @@ def from_table(cls: type, table: dict[str, Any], where: str, base: Any = None) -
     if unknown:
         known = ", ".join(sorted(fields))
         raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {known})")
+    if base is None:
+        missing = [n for n, f in fields.items() if n not in table
+                   and f.default is dataclasses.MISSING
+                   and f.default_factory is dataclasses.MISSING]
+        if missing:
+            raise ConfigError(f"{where + ': ' if where else ''}missing key {missing[0]!r}")
     kwargs = {}
     for name, value in table.items():
         kwargs[name] = _convert(hints[name], value, f"{where}.{name}" if where else name)

@@ -247,6 +247,8 @@ class AgentSpec:
             raise ValueError(f"agent kind {self.kind!r} is not 'uav' or 'ground'")
         if self.kind == "ground" and self.vehicle.ground_height_m is None:
             raise ValueError("a ground agent needs vehicle.ground_height_m")
+        if (self.start_e_m is None) != (self.start_n_m is None):
+            raise ValueError(f"agent {self.name}: give both start_e_m and start_n_m, or neither")
         for v in (self.start_e_m, self.start_n_m):
             if v is not None:
                 check_finite("agent start", v)
@@ -380,11 +382,43 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
         target: str | Path = parent
         if parent.endswith(".toml") and not Path(parent).is_absolute():
             target = base_dir / parent
-        base, _, _ = _read_toml(target, (*chain, source))
+        base, _, parent_dir = _read_toml(target, (*chain, source))
+        base = _anchor_files(base, parent_dir)  # the parent's files, not this file's
         base.pop("name", None)
         table = merge_tables(base, table)
     table.setdefault("name", stem)
     return table, source, base_dir
+
+
+def _anchor_files(table: dict, base_dir: Path) -> dict:
+    """``table`` with its relative file names (the DEM, a grid file, the area's file,
+    the keep-outs' files) made absolute against ``base_dir``, the folder of the file
+    that names them, so that a scenario extending it from elsewhere still finds them."""
+
+    def anchored(v: Any) -> Any:
+        if isinstance(v, str) and v and not Path(v).is_absolute():
+            return str(base_dir / v)
+        return v
+
+    out = dict(table)
+    world = out.get("world")
+    if isinstance(world, dict) and isinstance(world.get("terrain"), dict):
+        terrain = dict(world["terrain"])
+        for k in ("path", "file"):
+            if k in terrain:
+                terrain[k] = anchored(terrain[k])
+        out["world"] = {**world, "terrain": terrain}
+    search = out.get("search")
+    if isinstance(search, dict):
+        search = dict(search)
+        if "area_file" in search:
+            search["area_file"] = anchored(search["area_file"])
+        if isinstance(search.get("keepout"), list):
+            search["keepout"] = [
+                {**k, "file": anchored(k["file"])} if isinstance(k, dict) and "file" in k
+                else k for k in search["keepout"]]
+        out["search"] = search
+    return out
 
 
 def _terrain(table: dict, base_dir: Path) -> Terrain:
@@ -416,6 +450,10 @@ def _terrain(table: dict, base_dir: Path) -> Terrain:
                 raise ConfigError(f"world.terrain: unknown key {sorted(t)[0]!r}")
             try:
                 arr = np.array(heights, dtype=float)
+            except (TypeError, ValueError):
+                raise ConfigError("world.terrain.heights_m: expected rows of numbers, all of "
+                                  "the same length") from None
+            try:
                 return GridTerrain(arr, **{k: float(v) for k, v in geo.items()})
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"world.terrain.heights_m: {exc}") from exc
@@ -621,6 +659,11 @@ def _search(table: Any, origin: Origin, base_dir: Path) -> SearchSpec:
         t["area_enu_m"] = [list(v) for v in _geo_to_enu(origin, [list(v) for v in verts],
                                                         "search.area_file")]
     keep = _keepouts(t.pop("keepout"), origin, base_dir) if "keepout" in t else ()
+    fields = {f.name for f in dataclasses.fields(SearchSpec)} - {"keepouts"}
+    unknown = sorted(set(t) - fields)
+    if unknown:  # the file's names: keepout tables, the area in degrees or a file
+        known = ", ".join(sorted(fields | {"area_geo", "area_file", "keepout"}))
+        raise ConfigError(f"search: unknown key {unknown[0]!r} (known: {known})")
     spec = from_table(SearchSpec, t, "search")
     if not keep:
         return spec
@@ -672,6 +715,10 @@ def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[Agen
     for i, a in enumerate(raw):
         where = f"agents[{i}]"
         t = dict(a)
+        known = ("gnss", "kind", "name", "start_e_m", "start_n_m", "vehicle")
+        unknown = sorted(set(t) - set(known))
+        if unknown:
+            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(known)})")
         kind = t.pop("kind", "uav")
         if kind not in ("uav", "ground"):
             raise ConfigError(f"{where}.kind: {kind!r} is not 'uav' or 'ground'")
@@ -685,8 +732,11 @@ def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[Agen
             raise ConfigError(f"{where}.name: {name!r} is used twice")
         names.add(name)
         rest = from_table(_AgentStart, t, where)
-        out.append(AgentSpec(name=name, kind=kind, vehicle=veh, gnss=gn,
-                             start_e_m=rest.start_e_m, start_n_m=rest.start_n_m))
+        try:
+            out.append(AgentSpec(name=name, kind=kind, vehicle=veh, gnss=gn,
+                                 start_e_m=rest.start_e_m, start_n_m=rest.start_n_m))
+        except ValueError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
     return tuple(out)
 
 
@@ -762,6 +812,9 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
         if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
             raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "
                               "true): with it off the terrain hides nothing")
+        if search is not None:
+            _check_search_height(scenario)
+            _check_agent_starts(scenario)
         if dem is not None:
             dem_terrain = _dem_terrain(*dem, origin, scenario)
             scenario = dataclasses.replace(scenario, world=dataclasses.replace(
@@ -779,6 +832,52 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
     except ConfigError as exc:
         raise ScenarioError(f"{source}: {exc}") from exc
     return scenario
+
+
+HEIGHT_SIGMAS = 4.0  # the search height clears this many sigmas of the vertical error
+
+
+def min_search_height_m(scenario: Scenario) -> float:
+    """The lowest search height the scenario's UAVs can hold: the autopilot flies on its
+    GNSS (sim.stepper: the receiver's slowly varying bias moves the true height off the
+    commanded one), so the height must clear :data:`HEIGHT_SIGMAS` sigmas of that
+    vertical error (bias and tracking wander, the largest ``[randomise]
+    gnss_bias_scale`` included) and at least 2 m."""
+    r = scenario.randomise
+    scale = r.gnss_bias_scale[1] if r is not None and r.gnss_bias_scale is not None else 1.0
+    sigma = max((math.hypot(a.gnss.bias_sigma_v_m * scale, a.vehicle.tracking_sigma_m)
+                 for a in scenario.agents if a.kind == "uav"), default=0.0)
+    return max(2.0, HEIGHT_SIGMAS * sigma)
+
+
+def _check_search_height(scenario: Scenario) -> None:
+    """Refuse a search height the UAVs' vertical navigation error would fly into the
+    ground (ConfigError naming the keys)."""
+    s = scenario.search
+    floor = min_search_height_m(scenario)
+    if s is not None and s.height_m < floor:
+        raise ConfigError(
+            f"search.height_m: {s.height_m:g} m is below {floor:.1f} m, "
+            f"{HEIGHT_SIGMAS:g} sigmas of the vertical GNSS error the autopilot flies on "
+            "(gnss.bias_sigma_v_m, times the largest randomise.gnss_bias_scale): fly higher "
+            "or use preset = \"rtk\"")
+
+
+def _check_agent_starts(scenario: Scenario) -> None:
+    """An agent's own start obeys the search start's rules: inside the area, outside
+    every keep-out (ConfigError naming the agent)."""
+    s = scenario.search
+    for i, a in enumerate(scenario.agents_):
+        if s is None or a.start_e_m is None:  # both or neither (AgentSpec)
+            continue
+        e, n = scenario.start_enu_m(i)
+        if not s.contains(e, n):
+            raise ConfigError(f"agents[{i}]: {a.name}'s start ({e:g}, {n:g}) is outside the "
+                              "search area")
+        for k in s.keepouts:
+            if k.contains(e, n):
+                raise ConfigError(f"agents[{i}]: {a.name}'s start ({e:g}, {n:g}) is inside "
+                                  f"keep-out {k.name}")
 
 
 MAX_VEHICLE_SAMPLES = 3_000_000  # 6 h at the default 20 Hz is 432 000

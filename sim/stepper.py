@@ -19,6 +19,7 @@ order :data:`REPLAY_ORDER` sorts them in.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import math
@@ -227,6 +228,11 @@ class Stepper:
         the segment is done within :attr:`ARRIVE_M` of its end."""
         a = self.agent(agent)
         nav = self.navigation_position_m(agent)
+        h_walk = a.spec.vehicle.ground_height_m
+        if h_walk is not None:  # a walker follows the path's ground track at its own height
+            traj = dataclasses.replace(traj, enu_m=np.column_stack(
+                [traj.enu_m[:, :2], np.full(len(traj.enu_m), h_walk)]), height_ref="terrain")
+            nav = (nav[0], nav[1], a.vehicle._p[2])  # its height is the ground's, not GNSS's
         # the path is flown on the autopilot's estimate: start the leg where it believes
         speed = math.hypot(a.vehicle._v[0], a.vehicle._v[1])
         g = path_guidance(traj, self.world, a.spec.vehicle, start_speed_mps=speed, from_m=nav,

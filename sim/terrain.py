@@ -224,6 +224,9 @@ class HillsTerrain:
         return concave, convex
 
 
+BSPLINE_MIN_NODES = 4  # CasADi's cubic B-spline interpolant: nodes per axis at least
+
+
 @dataclass(frozen=True, eq=False)
 class GridTerrain:
     """Heights on a regular grid, ``heights_m[i_n, i_e]`` at (e0 + i_e s, n0 + i_n s).
@@ -280,9 +283,20 @@ class GridTerrain:
 
             h = self.heights_m
             ny, nx = h.shape
-            ge = (self.e0_m + self.spacing_m * np.arange(nx)).tolist()
-            gn = (self.n0_m + self.spacing_m * np.arange(ny)).tolist()
-            lut = ca.interpolant("terrain", "bspline", [ge, gn], h.T.ravel(order="F").tolist())
+            ge = self.e0_m + self.spacing_m * np.arange(nx)
+            gn = self.n0_m + self.spacing_m * np.arange(ny)
+            if min(nx, ny) < BSPLINE_MIN_NODES:  # CasADi's cubic B-spline needs 4 nodes an
+                # axis: a smaller grid's cells are split (its nodes kept), the new nodes
+                # on its own bilinear surface
+                def split(g: np.ndarray) -> np.ndarray:
+                    k = math.ceil((BSPLINE_MIN_NODES - 1) / (len(g) - 1))
+                    return np.linspace(g[0], g[-1], (len(g) - 1) * k + 1)
+
+                ge, gn = split(ge), split(gn)
+                E, N = np.meshgrid(ge, gn)
+                h = self.height_m(E, N)
+            lut = ca.interpolant("terrain", "bspline", [ge.tolist(), gn.tolist()],
+                                 np.asarray(h).T.ravel(order="F").tolist())
             e, n = ca.MX.sym("e"), ca.MX.sym("n")
             f = ca.Function("terrain_height", [e, n], [lut(ca.vertcat(e, n))])
             object.__setattr__(self, "_ca_interp", f)

@@ -483,6 +483,12 @@ class Multirotor:
             if cfg.ground_height_m is not None:
                 wv[:, 2] = 0.0
             out += wv
+            if cfg.ground_height_m is None and 4.0 * cfg.tracking_sigma_m > UNDERGROUND_TOLERANCE_M:
+                # a wander this wide would reach the ground from near it (on it at
+                # take-off): the controller does not push the vehicle into the ground
+                # (a state below it stays, for the check)
+                g = self.world.ground_m(out[:, 0], out[:, 1])
+                out[:, 2] = np.maximum(out[:, 2], np.minimum(rows[:, 3], g))
         if cfg.ground_height_m is not None:
             out[:, 2] = self.world.ground_m(out[:, 0], out[:, 1]) + cfg.ground_height_m
         self.state_log.extend(rows)
@@ -530,6 +536,8 @@ class Multirotor:
                 x, y, z = st[:3].tolist()
                 if nav_l is not None:
                     bx, by, bz = nav_l[j]
+                    if walker:  # a walker's height is the ground's: no GNSS height error
+                        bz = 0.0
                     cx, cy, cz = command(x + bx, y + by, z + bz, dt)
                 else:
                     cx, cy, cz = command(x, y, z, dt)

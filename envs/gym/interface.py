@@ -433,7 +433,8 @@ class WaypointActions:
     """``osa/Waypoint-v0``: ``Box(-1, 1, (3,))``, the next waypoint relative to the
     vehicle: east and north times the reach of one decision (speed x period), height
     above the terrain changed by up to ``climb_m`` within the altitude band (the
-    adaptive policy's: 20 m below to 25 m above the search height, at least 10 m).
+    adaptive policy's: 20 m below to 25 m above the search height, at least 10 m, and
+    not below the search height when a keep-out is flown over).
     A waypoint beyond the area's margin is moved to the nearest point inside it (so the
     vehicle slides along the edge instead of stopping there); such a request costs
     ``leave_penalty`` times the share of the reach it lies outside. The vehicle flies to
@@ -455,7 +456,10 @@ class WaypointActions:
         self.enc = encoder
         self.speed = self.speed_override or mission.speed_mps
         band = self.cfg.adaptive.agl_band_m
-        self.band = (max(10.0, mission.height_m + band[0]), mission.height_m + band[1])
+        # a keep-out flown over (a power line): never below the search height, as the
+        # adaptive policy (docs/search.md)
+        floor = mission.area.min_height_m or 0.0
+        self.band = (max(10.0, mission.height_m + band[0], floor), mission.height_m + band[1])
         self.penalty = 0.0  # of the last decision: share of the reach outside the area
         area = mission.area
         hp = area.halfplanes  # inside with the margin: n . q - c >= margin on every edge

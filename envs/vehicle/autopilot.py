@@ -54,7 +54,7 @@ from envs.vehicle.flight import (
     stopping_point,
 )
 from envs.vehicle.geofence import Fence, FenceGuard
-from envs.vehicle.mission import ABSOLUTE_FRAMES, TERRAIN_FRAMES
+from envs.vehicle.mission import ABSOLUTE_FRAMES, TERRAIN_FRAMES, has_position
 from envs.vehicle.modes import ModeMachine, Result
 from envs.vehicle.params import Params
 from envs.vehicle.px4 import Mode
@@ -336,9 +336,11 @@ class Autopilot:
 
     # ------------------------------------------------------------------ geometry
     def item_position(self, w: WireItem, here: Vec3 | None = None) -> Vec3:
-        """An item's ENU target; lat = lon = 0 means the current position (``here``)."""
+        """An item's ENU target; no latitude and longitude (lat = lon = 0, or INT32_MAX:
+        :func:`envs.vehicle.mission.has_position`) means the current position
+        (``here``)."""
         here = here or self._pos
-        if w.x == 0 and w.y == 0:
+        if not has_position(w):
             e, n = here[0], here[1]
             lat, lon = self.geodetic(here)[:2]
         else:

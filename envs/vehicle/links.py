@@ -3,9 +3,15 @@
 :class:`Links` opens one endpoint per connection URL and keeps the links that talk
 through them, each with an id (the first element of a :data:`Peer`):
 
-- ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``: one pymavlink
-  connection, one link (``udpin`` answers the address that wrote last, as pymavlink
-  does);
+- ``udpout:HOST:PORT``, ``tcp:HOST:PORT``: one pymavlink connection, one link;
+- ``udpin:HOST:PORT``: a socket bound there; every address that writes to it is a link
+  of its own (:class:`UdpPeer`), like a TCP client: it gets the telemetry and the answers
+  to its own requests, so several ground stations may share the port (pymavlink 2.4's
+  own ``udpin`` sends every message to every address that wrote: each ground station
+  also got the others' mission requests and acknowledgements, and one MAVLink 1
+  ground station made the whole port MAVLink 1). An address silent for
+  :data:`UDP_PEER_TIMEOUT_S` is forgotten, except the last one that wrote (a script
+  that sent once and only listens keeps its telemetry);
 - ``tcpin:HOST:PORT``: a listening socket that accepts every ground station that
   connects; each client is a link of its own, with its own parser and encoder, so each
   gets the telemetry and the answers to its own requests. Sockets never block the
@@ -15,8 +21,18 @@ through them, each with an id (the first element of a :data:`Peer`):
   (pymavlink's own ``tcpin`` serves one client at a time: an idle one would lock the
   others out.)
 
-MAVSDK's ``udpin://``, ``udpout://``, ``tcp://`` forms are accepted too
-(:func:`vehicle_url`).
+MAVSDK's ``udpin://``, ``udpout://``, ``tcp://`` forms are accepted too, and its
+``udp://:PORT`` (no host: listen on every interface) (:func:`vehicle_url`).
+
+Framing (:class:`Framing`): a link speaks MAVLink 2 until its ground station shows it
+reads only MAVLink 1, as PX4 (MAV_PROTO_VER 0) and ArduPilot negotiate it: a ground
+station that can read MAVLink 2 switches to it on the first MAVLink 2 frame it hears
+(QGroundControl, Mission Planner, pymavlink's ``mavutil``; MAVSDK always sends 2), so
+one still writing MAVLink 1 :data:`MAVLINK1_AFTER_S` after it was first heard (and
+greeted in MAVLink 2), and never MAVLink 2, gets MAVLink 1 frames from then on, until
+it writes a MAVLink 2 frame. On a MAVLink 1 link, messages with an id above 255 (MAVLink 2 only:
+TUNNEL, PROTOCOL_VERSION...) are not sent, and extension fields are left out; a
+PROTOCOL_VERSION asked for goes in MAVLink 2 framing all the same, as PX4 sends it.
 """
 
 from __future__ import annotations
@@ -36,6 +52,9 @@ TCP_BUFFER_BYTES = 1 << 20  # per TCP client: what it has not read yet, at most
 TCP_SEND_BUFFER_BYTES = 1 << 16  # the kernel's send buffer per TCP client (SO_SNDBUF)
 TCP_BACKLOG = 8
 MAX_MESSAGES_PER_POLL = 1000  # per link and poll: a flood never starves the loop
+MAVLINK1_AFTER_S = 2.0  # wall seconds a ground station has to switch to MAVLink 2
+UDP_PEER_TIMEOUT_S = 60.0  # wall seconds of silence after which a udpin address is dropped
+MAX_UDP_PEERS = 256  # addresses per udpin port; beyond, the one silent longest is dropped
 
 _SCHEMES = {"udpin://": "udpin:", "udpout://": "udpout:", "udp://": "udpin:",
             "tcpin://": "tcpin:", "tcp://": "tcp:", "tcpout://": "tcp:"}
@@ -57,15 +76,71 @@ def vehicle_url(url: str) -> str:
         raise ConnectionURLError(
             f"unsupported connection URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, "
             "tcpin:HOST:PORT or tcp:HOST:PORT")
-    host, _, port = u.split(":", 1)[1].rpartition(":")
+    scheme, rest = u.split(":", 1)
+    host, _, port = rest.rpartition(":")
     try:
         p = int(port)
     except ValueError:
         raise ConnectionURLError(f"bad connection URL {url!r}: port {port!r} "
                                  "is not a number") from None
+    if not host and scheme in ("udpin", "udp", "tcpin") and 0 < p < 65536:
+        return f"{scheme}:0.0.0.0:{p}"  # MAVSDK's "udp://:14540": every interface
     if not host or not 0 < p < 65536:
         raise ConnectionURLError(f"bad connection URL {url!r}: expected HOST:PORT")
     return u
+
+
+def is_mavlink1(msg: Any) -> bool:
+    """Whether a received message came in MAVLink 1 framing."""
+    buf = msg.get_msgbuf()
+    return bool(buf) and buf[0] == mavlink.PROTOCOL_MARKER_V1
+
+
+class Versions:
+    """What the vehicle knows of each ground station's MAVLink (by system and component
+    id, on whatever link): when it was first heard and whether it ever sent MAVLink 2."""
+
+    MAX_SOURCES = 1024
+
+    def __init__(self) -> None:
+        self.first_heard: dict[tuple[int, int], float] = {}
+        self.speaks_2: set[tuple[int, int]] = set()
+
+    def reads_only_1(self, source: tuple[int, int], mavlink1: bool, now: float) -> bool:
+        """Record a frame of ``source``; whether it is known to read MAVLink 1 only (it
+        still writes MAVLink 1 :data:`MAVLINK1_AFTER_S` after it was first heard, and never
+        wrote MAVLink 2)."""
+        if len(self.first_heard) >= self.MAX_SOURCES:
+            self.first_heard.clear()
+            self.speaks_2.clear()
+        first = self.first_heard.setdefault(source, now)
+        if not mavlink1:
+            self.speaks_2.add(source)
+            return False
+        return source not in self.speaks_2 and now - first >= MAVLINK1_AFTER_S
+
+
+class Framing:
+    """The MAVLink version a link's ground station reads (see the module docstring):
+    ``heard(source, mavlink1, now, versions)`` for every frame received (``source``:
+    system and component id); ``mavlink1`` says how to send. A ground station that ever
+    sent a MAVLink 2 frame reads MAVLink 2: when it starts again in MAVLink 1
+    (QGroundControl restarted) it is sent MAVLink 2, so it switches back."""
+
+    def __init__(self) -> None:
+        self.mavlink1 = False
+
+    def heard(self, source: tuple[int, int], mavlink1: bool, now: float,
+              versions: Versions) -> None:
+        only_1 = versions.reads_only_1(source, mavlink1, now)
+        if not mavlink1:
+            self.mavlink1 = False
+        elif only_1:
+            self.mavlink1 = True
+
+    def can_send(self, msg_id: int, mavlink2: bool = False) -> bool:
+        """Whether message ``msg_id`` can go on this link (``mavlink2``: forced)."""
+        return msg_id <= 255 or mavlink2 or not self.mavlink1
 
 
 class MavPort:
@@ -94,6 +169,7 @@ class MavPort:
         self.url = url
         self.mav = self.conn.mav
         self.closed = False
+        self.framing = Framing()
 
     def fileno(self) -> int | None:
         return self.conn.fd
@@ -113,6 +189,81 @@ class MavPort:
             self.conn.close()
 
 
+class UdpListener:
+    """A ``udpin:HOST:PORT`` port: a bound socket; each address that writes is a
+    :class:`UdpPeer` (see the module docstring)."""
+
+    def __init__(self, url: str, sysid: int, compid: int) -> None:
+        host, _, port = vehicle_url(url).split(":", 1)[1].rpartition(":")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((host, int(port)))  # no SO_REUSEADDR: a port in use is an error
+            sock.setblocking(False)
+        except OSError as exc:
+            sock.close()
+            raise ConnectionURLError(f"cannot listen on {url}: {exc.strerror or exc}") from None
+        self.url = url
+        self.sock = sock
+        self.sysid, self.compid = sysid, compid
+        self.peers: dict[tuple, UdpPeer] = {}
+        self.latest: tuple | None = None  # the address that wrote last
+
+    def fileno(self) -> int | None:
+        return self.sock.fileno()
+
+    def read(self) -> list[tuple[tuple, bytes]]:
+        """(address, datagram) for what is waiting (at most MAX_MESSAGES_PER_POLL)."""
+        out = []
+        for _ in range(MAX_MESSAGES_PER_POLL):
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:  # e.g. an ICMP error of an earlier send: not ours to end
+                continue
+            out.append((addr, data))
+            self.latest = addr
+        return out
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.close()
+
+
+class UdpPeer:
+    """One address writing to a ``udpin`` port: a link with its own parser, encoder and
+    framing; what it sent waits in :attr:`pending` until :meth:`receive`."""
+
+    def __init__(self, listener: UdpListener, address: tuple, now: float | None) -> None:
+        self.listener = listener
+        self.address = address
+        self.url = f"udp peer {address[0]}:{address[1]}"
+        self.pending: list[bytes] = []
+        self.last_rx = now
+        self.closed = False
+        self.mav = mavlink.MAVLink(self, srcSystem=listener.sysid, srcComponent=listener.compid)
+        self.mav.robust_parsing = True
+        self.framing = Framing()
+
+    def fileno(self) -> int | None:
+        return None if self.closed else self.listener.fileno()
+
+    def write(self, buf: bytes) -> None:
+        if not self.closed:
+            with contextlib.suppress(OSError):
+                self.listener.sock.sendto(buf, self.address)
+
+    def receive(self) -> Iterator[Any]:
+        pending, self.pending = self.pending, []
+        for data in pending:
+            yield from self.mav.parse_buffer(data) or ()
+
+    def close(self) -> None:
+        self.closed = True
+        if self.listener.peers.get(self.address) is self:
+            del self.listener.peers[self.address]
+
+
 class TcpClient:
     """One ground station connected to a ``tcpin`` port (non-blocking; see the module
     docstring). ``mav`` encodes into its buffer (``write``) and parses what it sends."""
@@ -130,6 +281,7 @@ class TcpClient:
         self.closed = False
         self.mav = mavlink.MAVLink(self, srcSystem=sysid, srcComponent=compid)
         self.mav.robust_parsing = True
+        self.framing = Framing()
 
     def fileno(self) -> int | None:
         return None if self.closed else self.sock.fileno()
@@ -219,7 +371,7 @@ class TcpListener:
             self.sock.close()
 
 
-Link = MavPort | TcpClient
+Link = MavPort | TcpClient | UdpPeer
 
 
 class Links:
@@ -227,29 +379,60 @@ class Links:
 
     def __init__(self, urls: Sequence[str], sysid: int, compid: int) -> None:
         self.links: dict[int, Link] = {}
-        self.listeners: list[TcpListener] = []
+        self.listeners: list[TcpListener | UdpListener] = []
         self._ids = itertools.count()
         self.sent = 0
+        self.gone: list[int] = []  # ids of links closed since the last take_gone()
+        self.versions = Versions()  # each ground station's MAVLink, across links
         try:
             for url in urls:
-                if vehicle_url(url).startswith("tcpin:"):
+                scheme = vehicle_url(url).split(":", 1)[0]
+                if scheme == "tcpin":
                     self.listeners.append(TcpListener(url, sysid, compid))
+                elif scheme in ("udpin", "udp"):
+                    self.listeners.append(UdpListener(url, sysid, compid))
                 else:
                     self.links[next(self._ids)] = MavPort(url, sysid, compid)
         except BaseException:
             self.close()
             raise
 
-    def poll(self) -> Iterator[tuple[int, Any]]:
-        """(link id, message) for everything received; new TCP clients are accepted."""
+    def poll(self, now: float | None = None) -> Iterator[tuple[int, Any]]:
+        """(link id, message) for everything received; new TCP clients are accepted;
+        each link's framing follows what it hears (``now``: wall seconds)."""
         for lst in self.listeners:
-            for client in lst.accept():
-                self.links[next(self._ids)] = client
+            if isinstance(lst, TcpListener):
+                for client in lst.accept():
+                    self.links[next(self._ids)] = client
+                continue
+            for addr, data in lst.read():
+                peer = lst.peers.get(addr)
+                if peer is None:
+                    if len(lst.peers) >= MAX_UDP_PEERS:  # a flood of addresses: bounded
+                        min(lst.peers.values(), key=lambda q: q.last_rx or 0.0).close()
+                    peer = lst.peers[addr] = UdpPeer(lst, addr, now)
+                    self.links[next(self._ids)] = peer
+                peer.pending.append(data)
+                peer.last_rx = now
+            if now is not None:  # forget the silent ones (never the last that wrote)
+                for addr, peer in list(lst.peers.items()):
+                    if addr != lst.latest and peer.last_rx is not None \
+                            and now - peer.last_rx > UDP_PEER_TIMEOUT_S:
+                        peer.close()
         for k, link in list(self.links.items()):
             for msg in link.receive():
+                if now is not None and msg.get_type() != "BAD_DATA":
+                    link.framing.heard((msg.get_srcSystem(), msg.get_srcComponent()),
+                                       is_mavlink1(msg), now, self.versions)
                 yield k, msg
             if link.closed:
                 del self.links[k]
+                self.gone.append(k)
+
+    def take_gone(self) -> list[int]:
+        """The ids of the links closed since the last call."""
+        gone, self.gone = self.gone, []
+        return gone
 
     def fds(self) -> list[int] | None:
         """The file descriptors to wait on (None: a link has none, sleep instead)."""
@@ -259,31 +442,40 @@ class Links:
             return None
         return [fd for fd in fds if fd is not None]
 
+    @staticmethod
+    def _send(link: Link, msg: Any, mavlink2: bool = False) -> int:
+        """Send ``msg`` on ``link`` in its framing; 1 if sent."""
+        if not link.framing.can_send(msg.id, mavlink2):
+            return 0
+        with contextlib.suppress(OSError):
+            link.mav.send(msg, force_mavlink1=link.framing.mavlink1 and not mavlink2)
+            return 1
+        return 0
+
     def broadcast(self, msg: Any) -> None:
         """``msg`` on every link."""
         if msg is None:
             return
         for link in list(self.links.values()):
-            with contextlib.suppress(OSError):
-                link.mav.send(msg)
-                self.sent += 1
+            self.sent += self._send(link, msg)
 
-    def send(self, peer: Peer, msg: Any) -> None:
-        """``msg`` on the link of ``peer`` (gone: nothing)."""
+    def send(self, peer: Peer, msg: Any, *, mavlink2: bool = False) -> None:
+        """``msg`` on the link of ``peer`` (gone: nothing); ``mavlink2``: in MAVLink 2
+        framing whatever the link's."""
         link = self.links.get(peer[0])
         if msg is None or link is None:
             return
-        with contextlib.suppress(OSError):
-            link.mav.send(msg)
-            self.sent += 1
+        self.sent += self._send(link, msg, mavlink2)
 
     def send_args(self, peer: Peer, name: str, args: tuple) -> None:
         """``<name>_send(target system, target component, *args)`` to ``peer``."""
         link = self.links.get(peer[0])
-        if link is None:
+        if link is None or not link.framing.can_send(
+                getattr(mavlink, f"MAVLink_{name}_message").id):
             return
         with contextlib.suppress(OSError):
-            getattr(link.mav, f"{name}_send")(peer[1], peer[2], *args)
+            getattr(link.mav, f"{name}_send")(peer[1], peer[2], *args,
+                                              force_mavlink1=link.framing.mavlink1)
             self.sent += 1
 
     def close(self) -> None:

@@ -14,21 +14,33 @@ from collections.abc import Sequence
 
 from pymavlink.dialects.v20.common import (
     MAV_CMD_CONDITION_YAW,
+    MAV_CMD_DO_CONTROL_VIDEO,
     MAV_CMD_DO_DIGICAM_CONTROL,
+    MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
     MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+    MAV_CMD_DO_GRIPPER,
+    MAV_CMD_DO_LAND_START,
+    MAV_CMD_DO_MOUNT_CONFIGURE,
     MAV_CMD_DO_MOUNT_CONTROL,
+    MAV_CMD_DO_SET_ACTUATOR,
     MAV_CMD_DO_SET_CAM_TRIGG_DIST,
     MAV_CMD_DO_SET_CAM_TRIGG_INTERVAL,
     MAV_CMD_DO_SET_ROI,
     MAV_CMD_DO_SET_ROI_LOCATION,
     MAV_CMD_DO_SET_ROI_NONE,
+    MAV_CMD_DO_SET_ROI_WPNEXT_OFFSET,
     MAV_CMD_DO_SET_SERVO,
+    MAV_CMD_DO_TRIGGER_CONTROL,
+    MAV_CMD_DO_WINCH,
     MAV_CMD_IMAGE_START_CAPTURE,
     MAV_CMD_IMAGE_STOP_CAPTURE,
     MAV_CMD_NAV_DELAY,
     MAV_CMD_NAV_LOITER_TIME,
     MAV_CMD_NAV_LOITER_TURNS,
     MAV_CMD_NAV_LOITER_UNLIM,
+    MAV_CMD_NAV_ROI,
+    MAV_CMD_OBLIQUE_SURVEY,
+    MAV_CMD_SET_CAMERA_FOCUS,
     MAV_CMD_SET_CAMERA_MODE,
     MAV_CMD_SET_CAMERA_ZOOM,
     MAV_CMD_VIDEO_START_CAPTURE,
@@ -75,14 +87,19 @@ NAV_COMMANDS = frozenset({MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LOITER_UNLIM, MAV_CM
 TIMED_COMMANDS = frozenset({MAV_CMD_NAV_DELAY})
 # DO_ commands that change the flight
 DO_COMMANDS = frozenset({MAV_CMD_DO_JUMP, MAV_CMD_DO_CHANGE_SPEED})
-# payload commands stored and passed over without effect (camera, gimbal, servo)
+# payload commands stored and passed over without effect (camera, gimbal, servo, ROI,
+# winch, gripper; the landing marker DO_LAND_START): every such command PX4's mission
+# takes (mavlink_mission.cpp), so a QGroundControl plan with them is not refused
 IGNORED_COMMANDS = frozenset({
     MAV_CMD_CONDITION_YAW, MAV_CMD_DO_SET_SERVO, MAV_CMD_DO_SET_ROI_LOCATION,
     MAV_CMD_DO_SET_ROI_NONE, MAV_CMD_DO_SET_ROI, MAV_CMD_DO_DIGICAM_CONTROL,
     MAV_CMD_DO_MOUNT_CONTROL, MAV_CMD_DO_SET_CAM_TRIGG_DIST, MAV_CMD_DO_SET_CAM_TRIGG_INTERVAL,
     MAV_CMD_SET_CAMERA_MODE, MAV_CMD_SET_CAMERA_ZOOM, MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
     MAV_CMD_IMAGE_START_CAPTURE, MAV_CMD_IMAGE_STOP_CAPTURE, MAV_CMD_VIDEO_START_CAPTURE,
-    MAV_CMD_VIDEO_STOP_CAPTURE})
+    MAV_CMD_VIDEO_STOP_CAPTURE, MAV_CMD_NAV_ROI, MAV_CMD_DO_SET_ROI_WPNEXT_OFFSET,
+    MAV_CMD_DO_MOUNT_CONFIGURE, MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MAV_CMD_SET_CAMERA_FOCUS,
+    MAV_CMD_DO_CONTROL_VIDEO, MAV_CMD_DO_TRIGGER_CONTROL, MAV_CMD_OBLIQUE_SURVEY,
+    MAV_CMD_DO_WINCH, MAV_CMD_DO_GRIPPER, MAV_CMD_DO_SET_ACTUATOR, MAV_CMD_DO_LAND_START})
 MISSION_COMMANDS = NAV_COMMANDS | TIMED_COMMANDS | DO_COMMANDS | IGNORED_COMMANDS
 # frames of a positioned item: global absolute (0, 5), relative to home (3, 6), above
 # terrain (10, 11); position-less items (DO_, NAV_DELAY, RTL) take any frame, as PX4
@@ -98,6 +115,14 @@ FENCE_VERTEX = (MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
 FENCE_CIRCLE = (MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION)
 
 MAX_ALTITUDE_M = 10_000.0  # |altitude| of a positioned item or command, at most
+# x or y INT32_MAX: "not set" (MAVLink: INT32_MAX in an integer param is the NaN of a
+# float one; a float MISSION_ITEM's NaN is stored so); x = y = 0 too (older senders)
+UNSET_E7 = 2**31 - 1
+
+
+def has_position(w: WireItem) -> bool:
+    """Whether an item carries a latitude and longitude (else: where the vehicle is)."""
+    return not ((w.x == 0 and w.y == 0) or w.x == UNSET_E7 or w.y == UNSET_E7)
 
 # storage sizes (PX4's dataman on a Pixhawk 6: 2000 items, 64 fence vertices... raised a
 # little for fences: a keep-in polygon and some keep-out circles)
@@ -108,9 +133,10 @@ CAPACITY = {MAV_MISSION_TYPE_MISSION: 2000, MAV_MISSION_TYPE_FENCE: 256,
 def _check_position(w: WireItem) -> int:
     if w.frame not in GLOBAL_FRAMES:
         return MAV_MISSION_UNSUPPORTED_FRAME
-    if not -900_000_000 <= w.x <= 900_000_000:
+    unset = w.x == UNSET_E7 and w.y == UNSET_E7  # no position: here
+    if not unset and not -900_000_000 <= w.x <= 900_000_000:
         return MAV_MISSION_INVALID_PARAM5_X
-    if not -1_800_000_000 <= w.y <= 1_800_000_000:
+    if not unset and not -1_800_000_000 <= w.y <= 1_800_000_000:
         return MAV_MISSION_INVALID_PARAM6_Y
     if not math.isfinite(w.z) or abs(w.z) > MAX_ALTITUDE_M:
         return MAV_MISSION_INVALID_PARAM7

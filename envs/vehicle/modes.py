@@ -174,7 +174,9 @@ class ModeMachine:
         if not self.armed:
             return MAV_RESULT_TEMPORARILY_REJECTED, "takeoff denied: disarmed"
         if not ap.landed:
-            return MAV_RESULT_TEMPORARILY_REJECTED, "takeoff denied: already flying"
+            # idempotent, as MAVLink asks (a take-off sent again because its ACK was lost
+            # must not fail): ACCEPTED, nothing changes
+            return MAV_RESULT_ACCEPTED, "takeoff: already flying"
         if math.isfinite(alt_amsl_m):
             rel = alt_amsl_m - ap.home.alt_m
         else:

@@ -9,12 +9,23 @@ drops a transfer that makes no progress for ``timeout_s`` (wall clock; PX4: 250 
 and 5 s). A resent last item after the final ACK is acknowledged again (the ACK was
 lost), a resent earlier item is answered with a request for the one expected, an
 item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE. One upload per
-list at a time: a second ground station gets MAV_MISSION_DENIED while one runs.
+list at a time: a second ground station gets MAV_MISSION_DENIED while one runs. A ground
+station is its MAVLink identity (system and component), as PX4 keeps it: the same one
+starting again on another link (it reconnected, its old TCP connection half-open)
+restarts its own upload; an upload whose link is gone (a TCP client that hung up) is
+dropped at once (:meth:`MissionServer.forget_link`).
+Items are asked for in the form the ground station speaks, as PX4 does: MISSION_REQUEST_INT,
+or the legacy MISSION_REQUEST to one that last sent a float MISSION_ITEM or asked with
+MISSION_REQUEST, or started the upload in MAVLink 1 framing (a MAVLink 1-era ground
+station may know no other); a MISSION_ACK MAV_MISSION_UNSUPPORTED from the uploader
+switches to the other form, as PX4 negotiates it.
 
 Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_ITEM_INT)
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
 float MISSION_ITEM, as PX4 does); the mission's current item carries ``current=1``.
 MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
+Partial lists (MISSION_WRITE_PARTIAL_LIST, MISSION_REQUEST_PARTIAL_LIST) are refused
+with MAV_MISSION_UNSUPPORTED.
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ from typing import Any
 from pymavlink.dialects.v20.common import (
     MAV_MISSION_ACCEPTED,
     MAV_MISSION_DENIED,
+    MAV_MISSION_ERROR,
     MAV_MISSION_INVALID_SEQUENCE,
     MAV_MISSION_NO_SPACE,
     MAV_MISSION_OPERATION_CANCELLED,
@@ -35,7 +47,7 @@ from pymavlink.dialects.v20.common import (
     MAV_MISSION_UNSUPPORTED,
 )
 
-from envs.vehicle.mission import CAPACITY, check_item, check_list
+from envs.vehicle.mission import CAPACITY, UNSET_E7, check_item, check_list
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
@@ -51,6 +63,8 @@ class _Upload:
     items: list[WireItem]
     activity_s: float
     requested_s: float
+    float_form: bool = False  # ask with the legacy MISSION_REQUEST
+    legacy_guess: bool = False  # float form from what the peer did before
 
 
 @dataclass(frozen=True)
@@ -79,6 +93,7 @@ class MissionServer:
         self._last: dict[int, _Commit] = {}
         self.refused: list[tuple[int, int]] = []  # (mission_type, MAV_MISSION_RESULT)
         self.commits: dict[int, int] = {t: 0 for t in CAPACITY}  # accepted lists per type
+        self._float_peers: set[Peer] = set()  # last spoke the float forms
 
     # ------------------------------------------------------------------ helpers
     def _ack(self, peer: Peer, result: int, mission_type: int) -> None:
@@ -91,7 +106,17 @@ class MissionServer:
 
     def _request(self, rx: _Upload) -> None:
         rx.requested_s = self.clock()
-        self.send(rx.peer, "mission_request_int", (len(rx.items), rx.mission_type))
+        name = "mission_request" if rx.float_form else "mission_request_int"
+        self.send(rx.peer, name, (len(rx.items), rx.mission_type))
+
+    def _speaks(self, peer: Peer, float_form: bool) -> None:
+        """``peer`` was heard in the float (legacy) or the INT form."""
+        if float_form:
+            if len(self._float_peers) >= 1024:
+                self._float_peers.clear()
+            self._float_peers.add(peer)
+        else:
+            self._float_peers.discard(peer)
 
     def _commit(self, peer: Peer, mission_type: int, items: list[WireItem]) -> None:
         current = 0
@@ -108,13 +133,15 @@ class MissionServer:
         return bool(self._rx)
 
     # ------------------------------------------------------------------ upload
-    def on_count(self, peer: Peer, count: int, mission_type: int) -> None:
+    def on_count(self, peer: Peer, count: int, mission_type: int, *,
+                 mavlink1: bool = False) -> None:
+        """MISSION_COUNT (``mavlink1``: it came in MAVLink 1 framing)."""
         now = self.clock()
         if mission_type not in CAPACITY:
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
             return
         rx = self._rx.get(mission_type)
-        if rx is not None and rx.peer != peer and now - rx.activity_s < self.timeout_s:
+        if rx is not None and rx.peer[1:] != peer[1:] and now - rx.activity_s < self.timeout_s:
             self._ack(peer, MAV_MISSION_DENIED, mission_type)  # another ground station's upload
             return
         if count > CAPACITY[mission_type]:
@@ -128,16 +155,25 @@ class MissionServer:
         if rx is not None and rx.peer == peer and rx.count == count and not rx.items:
             self._request(rx)  # the count again: our request was lost
             return
-        rx = _Upload(peer, mission_type, count, [], now, now)
+        guess = peer in self._float_peers and not mavlink1
+        rx = _Upload(peer, mission_type, count, [], now, now,
+                     float_form=mavlink1 or guess, legacy_guess=guess)
         self._rx[mission_type] = rx
         self._request(rx)
 
-    def on_item(self, peer: Peer, w: WireItem) -> None:
+    def on_item(self, peer: Peer, w: WireItem, *, float_form: bool = False) -> None:
+        """One uploaded item (``float_form``: it came as a legacy MISSION_ITEM)."""
+        self._speaks(peer, float_form)
         rx = self._rx.get(w.mission_type)
+        if rx is not None and rx.peer == peer:
+            rx.float_form = float_form
         if rx is None or rx.peer != peer:
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
                 self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
+                return
+            if rx is None:
+                self._wrong_type(peer, w)
             return
         n = len(rx.items)
         if w.seq < n:
@@ -163,6 +199,15 @@ class MissionServer:
         self._commit(peer, rx.mission_type, rx.items)
         self._ack(peer, MAV_MISSION_ACCEPTED, rx.mission_type)
 
+    def _wrong_type(self, peer: Peer, w: WireItem) -> None:
+        """An item answering this ground station's pending request (its sequence) but
+        for another list (a script that left ``mission_type`` at 0 in a fence upload):
+        that transfer ends with MAV_MISSION_ERROR at once, as PX4 answers it, instead of
+        re-requests until the timeout. The held list stays."""
+        for t, rx in list(self._rx.items()):
+            if rx.peer == peer and t != w.mission_type and w.seq == len(rx.items):
+                self._refuse(peer, MAV_MISSION_ERROR, t)
+
     def on_item_int(self, peer: Peer, msg: Any) -> None:
         self.on_item(peer, WireItem.from_msg(msg))
 
@@ -173,16 +218,39 @@ class MissionServer:
                      current=int(msg.current), autocontinue=int(msg.autocontinue),
                      param1=float(msg.param1), param2=float(msg.param2),
                      param3=float(msg.param3), param4=float(msg.param4),
-                     x=deg_to_e7(x) if math.isfinite(x) else 2**31 - 1,
-                     y=deg_to_e7(y) if math.isfinite(y) else 2**31 - 1, z=float(msg.z),
+                     x=deg_to_e7(x) if math.isfinite(x) else UNSET_E7,
+                     y=deg_to_e7(y) if math.isfinite(y) else UNSET_E7, z=float(msg.z),
                      mission_type=int(getattr(msg, "mission_type", 0)))
-        self.on_item(peer, w)
+        self.on_item(peer, w, float_form=True)
+
+    def refuse_partial(self, peer: Peer, mission_type: int) -> None:
+        """MISSION_WRITE_PARTIAL_LIST / MISSION_REQUEST_PARTIAL_LIST (ArduPilot's; PX4
+        leaves them unanswered, a ground station would wait): MAV_MISSION_UNSUPPORTED at
+        once; nothing held changes."""
+        self.refused.append((mission_type, MAV_MISSION_UNSUPPORTED))
+        self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
 
     def on_ack(self, peer: Peer, result: int, mission_type: int) -> None:
-        """A ground station's MISSION_ACK: a non-zero one cancels its upload."""
+        """A ground station's MISSION_ACK during its upload: MAV_MISSION_UNSUPPORTED says
+        it does not speak the form it was asked in (MAVSDK answers a MISSION_REQUEST so):
+        ask again in the other form, as PX4 does; any other non-zero one cancels."""
         rx = self._rx.get(mission_type)
-        if rx is not None and rx.peer == peer and result != MAV_MISSION_ACCEPTED:
-            del self._rx[mission_type]
+        if rx is None or rx.peer != peer or result == MAV_MISSION_ACCEPTED:
+            return
+        if result == MAV_MISSION_UNSUPPORTED:
+            rx.float_form = not rx.float_form
+            rx.legacy_guess = False  # it told: no more guessing
+            self._speaks(peer, rx.float_form)
+            self._request(rx)
+            return
+        del self._rx[mission_type]
+
+    def forget_link(self, link: int) -> None:
+        """The link ``link`` is gone: its uploads end (no one to tell)."""
+        for t, rx in list(self._rx.items()):
+            if rx.peer[0] == link:
+                del self._rx[t]
+        self._float_peers = {p for p in self._float_peers if p[0] != link}
 
     def tick(self) -> None:
         """Re-request unanswered items; drop stalled uploads."""
@@ -191,6 +259,10 @@ class MissionServer:
             if now - rx.activity_s > self.timeout_s:
                 self._refuse(rx.peer, MAV_MISSION_OPERATION_CANCELLED, t)
             elif now - rx.requested_s > self.retry_s:
+                if rx.legacy_guess and not rx.items:
+                    # asked in the float form on memory alone and not answered: this
+                    # ground station may have moved on to the INT form; alternate
+                    rx.float_form = not rx.float_form
                 self._request(rx)
 
     # ------------------------------------------------------------------ download
@@ -208,6 +280,7 @@ class MissionServer:
 
     def on_request(self, peer: Peer, seq: int, mission_type: int, *,
                    float_form: bool = False) -> None:
+        self._speaks(peer, float_form)
         items = self.held.get(mission_type)
         if items is None:
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)

@@ -2,10 +2,11 @@
 
 :class:`VirtualVehicle` realises the scenario's world for a seed
 (:func:`sim.realise`), flies its first agent with the :class:`Autopilot` and talks
-MAVLink 2 on one or more ports (:mod:`envs.vehicle.links`: ``udpin:HOST:PORT``: the
-vehicle listens and answers whoever wrote last; ``udpout:HOST:PORT``: it sends there,
-as PX4 SITL to QGroundControl's 14550; ``tcpin:HOST:PORT``: any number of ground
-stations connect; ``tcp:HOST:PORT``). Each loop iteration (about 50 per wall second)
+MAVLink 2 (1 to a ground station that reads only 1) on one or more ports
+(:mod:`envs.vehicle.links`: ``udpin:HOST:PORT``: the vehicle listens, each address
+that writes is answered on its own; ``udpout:HOST:PORT``: it sends there, as PX4 SITL
+to QGroundControl's 14550; ``tcpin:HOST:PORT``: any number of ground stations
+connect; ``tcp:HOST:PORT``). Each loop iteration (about 50 per wall second)
 it reads every link, advances simulated time to ``speedup`` x the elapsed wall time
 in steps of at most ``step_s`` (``speedup=inf``: one step per iteration, as fast as
 it can), publishes the autopilot's events and the telemetry streams that are due, and
@@ -20,7 +21,9 @@ station heard for the first time gets a HEARTBEAT at once (it need not wait a se
 discover the vehicle). Every
 COMMAND_LONG and COMMAND_INT is answered with a COMMAND_ACK, malformed ones too (NaN
 or out-of-range parameters: DENIED; a command it does not know: UNSUPPORTED; one that
-fails: FAILED). Any message from another system keeps the ground-station link alive;
+fails: FAILED). Any message from another system keeps the ground-station link alive
+(another component of its own system, a companion computer, is answered too but is no
+ground station);
 after COM_DL_LOSS_T wall seconds of silence the autopilot's link-loss rule applies.
 """
 
@@ -54,8 +57,12 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_NAV_TAKEOFF,
     MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
     MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_REQUEST_PROTOCOL_VERSION,
     MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_MODE_FLAG_AUTO_ENABLED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+    MAV_MODE_FLAG_GUIDED_ENABLED,
+    MAV_MODE_FLAG_MANUAL_INPUT_ENABLED,
     MAV_PARAM_TYPE_REAL32,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
@@ -73,8 +80,14 @@ from pymavlink.dialects.v20.common import (
 )
 
 from envs.vehicle.autopilot import Autopilot
-from envs.vehicle.links import ConnectionURLError, Links
-from envs.vehicle.mission import GLOBAL_FRAMES, MAX_ALTITUDE_M, RELATIVE_FRAMES, TERRAIN_FRAMES
+from envs.vehicle.links import ConnectionURLError, Links, is_mavlink1
+from envs.vehicle.mission import (
+    GLOBAL_FRAMES,
+    MAX_ALTITUDE_M,
+    RELATIVE_FRAMES,
+    TERRAIN_FRAMES,
+    UNSET_E7,
+)
 from envs.vehicle.params import Params
 from envs.vehicle.protocol import MissionServer, Peer
 from envs.vehicle.px4 import (
@@ -85,7 +98,7 @@ from envs.vehicle.px4 import (
     mode_name,
 )
 from envs.vehicle.relay import RecordRelay
-from envs.vehicle.telemetry import REQUESTABLE, Telemetry
+from envs.vehicle.telemetry import MAVLINK_MSG_ID_PROTOCOL_VERSION, REQUESTABLE, Telemetry
 from envs.vehicle.terrain import REQUEST_BLOCKS_E, REQUEST_BLOCKS_N
 from estimator.records import GnssFix
 from planner.mavlink import mavutil
@@ -335,7 +348,9 @@ class VirtualVehicle:
         self.stats.sent = self.links.sent
 
     def _send_msg(self, peer: Peer, msg: Any) -> None:
-        self.links.send(peer, msg)
+        # PROTOCOL_VERSION in MAVLink 2 framing on any link (as PX4: the handshake)
+        self.links.send(peer, msg, mavlink2=getattr(msg, "id", None)
+                        == MAVLINK_MSG_ID_PROTOCOL_VERSION)
         self.stats.sent = self.links.sent
 
     def _ack(self, peer: Peer, command: int, result: int) -> None:
@@ -368,28 +383,33 @@ class VirtualVehicle:
 
     # ------------------------------------------------------------------ receiving
     def _receive(self, now: float) -> None:
-        for link, msg in self.links.poll():
+        for link, msg in self.links.poll(now):
             self._dispatch(link, msg, now)
+        for link in self.links.take_gone():  # a TCP client hung up
+            self.protocol.forget_link(link)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             return
         src = (msg.get_srcSystem(), msg.get_srcComponent())
-        if src[0] == self.sysid:
+        if src == (self.sysid, self.compid):  # its own messages, looped back
             return
         self.stats.received += 1
-        self._link.last_rx_wall = now
         here = (link, *src)
         if here not in self._link.peers:  # a new ground station: it hears from us at once
             if len(self._link.peers) >= MAX_PEERS:
                 self._link.peers.clear()
             self._link.peers.add(here)
             self._send_msg(here, self.telemetry.heartbeat())
-        if not self._link.seen or self._link.lost:
-            if self._link.lost:
-                self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
-            self._link.seen, self._link.lost = True, False
+        # another component of its own system (a companion computer) is served but is
+        # no ground station: it does not keep the ground-station link alive
+        if src[0] != self.sysid:
+            self._link.last_rx_wall = now
+            if not self._link.seen or self._link.lost:
+                if self._link.lost:
+                    self.autopilot.text(MAV_SEVERITY_WARNING, "ground station regained")
+                self._link.seen, self._link.lost = True, False
         target = getattr(msg, "target_system", 0)
         if target not in (0, self.sysid):
             return
@@ -417,7 +437,8 @@ class VirtualVehicle:
 
     # mission protocol
     def _on_mission_count(self, peer: Peer, msg: Any) -> None:
-        self.protocol.on_count(peer, int(msg.count), int(getattr(msg, "mission_type", 0)))
+        self.protocol.on_count(peer, int(msg.count), int(getattr(msg, "mission_type", 0)),
+                               mavlink1=is_mavlink1(msg))
 
     def _on_mission_item_int(self, peer: Peer, msg: Any) -> None:
         self.protocol.on_item_int(peer, msg)
@@ -434,6 +455,12 @@ class VirtualVehicle:
     def _on_mission_request(self, peer: Peer, msg: Any) -> None:
         self.protocol.on_request(peer, int(msg.seq), int(getattr(msg, "mission_type", 0)),
                                  float_form=True)
+
+    def _on_mission_write_partial_list(self, peer: Peer, msg: Any) -> None:
+        """Partial lists (ArduPilot's) are refused at once, never left unanswered."""
+        self.protocol.refuse_partial(peer, int(getattr(msg, "mission_type", 0)))
+
+    _on_mission_request_partial_list = _on_mission_write_partial_list
 
     def _on_mission_clear_all(self, peer: Peer, msg: Any) -> None:
         self.protocol.on_clear_all(peer, int(getattr(msg, "mission_type", 0)))
@@ -512,6 +539,18 @@ class VirtualVehicle:
         """Accepted without effect: the database is the scenario's terrain."""
         self.terrain_data_ignored += 1
 
+    def _on_log_request_list(self, peer: Peer, msg: Any) -> None:
+        """The autopilot keeps no logs (the phone's log is ``--log``): one LOG_ENTRY with
+        ``num_logs`` 0, as the log protocol answers an empty list."""
+        self._send_msg(peer, mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0))
+
+    def _on_ping(self, peer: Peer, msg: Any) -> None:
+        """A PING request (targets 0) is answered to its sender with its time and
+        sequence (the ping microservice; PX4 answers it too)."""
+        if msg.target_system == 0 and msg.target_component == 0:
+            self._send_msg(peer, mavlink.MAVLink_ping_message(int(msg.time_usec), int(msg.seq),
+                                                              peer[1], peer[2]))
+
     def _on_timesync(self, peer: Peer, msg: Any) -> None:
         if msg.tc1 == 0:
             self._send_msg(peer, mavlink.MAVLink_timesync_message(
@@ -527,6 +566,9 @@ class VirtualVehicle:
         p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z]
         if msg.x == 0 and msg.y == 0:
             p[4] = p[5] = math.nan
+        for k, v in ((4, msg.x), (5, msg.y)):  # INT32_MAX: not set (the NaN of an int)
+            if v == UNSET_E7:
+                p[k] = math.nan
         self._command(peer, int(msg.command), [float(v) for v in p], int(msg.frame))
 
     def _on_set_mode(self, peer: Peer, msg: Any) -> None:
@@ -624,9 +666,11 @@ class VirtualVehicle:
                 ok = self.telemetry.streams.set_interval(msg_id, p[1])
                 return (MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED), "", None
         if cmd in (MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                   MAV_CMD_GET_HOME_POSITION):
+                   MAV_CMD_GET_HOME_POSITION, MAV_CMD_REQUEST_PROTOCOL_VERSION):
             msg_id = {MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: MAVLINK_MSG_ID_AUTOPILOT_VERSION,
-                      MAV_CMD_GET_HOME_POSITION: MAVLINK_MSG_ID_HOME_POSITION}.get(cmd, int(p[0]))
+                      MAV_CMD_GET_HOME_POSITION: MAVLINK_MSG_ID_HOME_POSITION,
+                      MAV_CMD_REQUEST_PROTOCOL_VERSION: MAVLINK_MSG_ID_PROTOCOL_VERSION,
+                      }.get(cmd, int(p[0]))
             if msg_id in REQUESTABLE:
                 return MAV_RESULT_ACCEPTED, "", self.telemetry.build(msg_id)
         return MAV_RESULT_UNSUPPORTED, "", None
@@ -634,7 +678,15 @@ class VirtualVehicle:
     def _set_mode(self, p: list[float]) -> tuple[int, str]:
         base = int(p[0]) if math.isfinite(p[0]) and 0 <= p[0] <= 255 else 0
         if not base & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return MAV_RESULT_DENIED, "mode change without a custom mode"
+            # the base mode alone, as PX4 reads it: AUTO_ENABLED is AUTO.MISSION, manual
+            # input with GUIDED is POSCTL, manual input without it needs sticks
+            if base & MAV_MODE_FLAG_AUTO_ENABLED:
+                return self.autopilot.set_mode(Mode.MISSION)
+            if base & MAV_MODE_FLAG_MANUAL_INPUT_ENABLED:
+                if base & MAV_MODE_FLAG_GUIDED_ENABLED:
+                    return self.autopilot.set_mode(Mode.POSCTL)
+                return MAV_RESULT_DENIED, f"base mode {base} (manual) not supported"
+            return MAV_RESULT_DENIED, f"mode change to base mode {base}: no mode in it"
         if not all(math.isfinite(x) and 0 <= x <= 255 for x in p[1:3]):
             return MAV_RESULT_DENIED, f"mode change to main mode {p[1]:g}, sub mode {p[2]:g}"
         main, sub = int(p[1]), int(p[2])

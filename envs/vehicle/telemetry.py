@@ -1,36 +1,44 @@
 """Telemetry: the messages the vehicle publishes, built from the autopilot's state.
 
 Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUDE
-10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT
-1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz; TERRAIN_REPORT for its own position
-1 Hz, as ArduPilot), on the simulated clock (as PX4 SITL
-with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL changes them (also simulated
-time) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most once per
-simulation step (0.2 s of simulated time up to a speed-up of 10, then up to 1 s from
-50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz of wall
-time (it keeps ground stations' links alive whatever the speed-up) and at once on a
-change of mode or arming.
+10 Hz, VFR_HUD 4 Hz, GPS_RAW_INT / SYS_STATUS / EXTENDED_SYS_STATE / MISSION_CURRENT /
+ALTITUDE / LOCAL_POSITION_NED 1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz;
+TERRAIN_REPORT for its own position 1 Hz, as ArduPilot; GPS_GLOBAL_ORIGIN 0.1 Hz: the
+local frame of LOCAL_POSITION_NED and HOME_POSITION is the world's ENU frame, as NED),
+on the simulated clock (as PX4 SITL with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL
+changes them (also simulated time; ATTITUDE_QUATERNION is off until asked for, as in
+PX4's normal mode) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most
+once per simulation step (0.2 s of simulated time up to a speed-up of 10, then up to
+1 s from 50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz
+of wall time (it keeps ground stations' links alive whatever the speed-up) and at once
+on a change of mode or arming.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
+import struct
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from pymavlink.dialects.v20.common import (
     MAV_AUTOPILOT_PX4,
     MAV_STATE_ACTIVE,
     MAV_STATE_STANDBY,
     MAV_TYPE_QUADROTOR,
+    MAVLINK_MSG_ID_ALTITUDE,
     MAVLINK_MSG_ID_ATTITUDE,
+    MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
     MAVLINK_MSG_ID_AUTOPILOT_VERSION,
     MAVLINK_MSG_ID_BATTERY_STATUS,
     MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
     MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
     MAVLINK_MSG_ID_GPS_RAW_INT,
     MAVLINK_MSG_ID_HEARTBEAT,
     MAVLINK_MSG_ID_HOME_POSITION,
+    MAVLINK_MSG_ID_LOCAL_POSITION_NED,
     MAVLINK_MSG_ID_MISSION_CURRENT,
     MAVLINK_MSG_ID_SYS_STATUS,
     MAVLINK_MSG_ID_TERRAIN_REPORT,
@@ -47,6 +55,33 @@ from sim.realisation import Realisation
 
 mavlink = mavutil.mavlink
 
+MAVLINK_MSG_ID_PROTOCOL_VERSION = 300  # minimal.xml; not in pymavlink 2.4's dialects
+
+
+class ProtocolVersionMessage(mavlink.MAVLink_message):
+    """PROTOCOL_VERSION (300, MAVLink 2 only; pymavlink's common dialect lacks it): the
+    versions spoken, for the handshake of MAV_CMD_REQUEST_PROTOCOL_VERSION / REQUEST_MESSAGE
+    (every node should answer it, the MAVLink specification says). Hashes of the
+    definitions are zeros (unknown)."""
+
+    id = MAVLINK_MSG_ID_PROTOCOL_VERSION
+    msgname = "PROTOCOL_VERSION"
+    fieldnames: ClassVar[list[str]] = ["version", "min_version", "max_version",
+                                       "spec_version_hash", "library_version_hash"]
+    CRC_EXTRA = 217  # of the message definition (minimal.xml)
+
+    def __init__(self, version: int = 200, min_version: int = 100,
+                 max_version: int = 200) -> None:
+        super().__init__(self.id, self.msgname)
+        self._fieldnames = self.fieldnames
+        self.version, self.min_version, self.max_version = version, min_version, max_version
+        self.spec_version_hash = self.library_version_hash = bytes(8)
+
+    def pack(self, mav: object, force_mavlink1: bool = False) -> bytes:
+        payload = struct.pack("<HHH8s8s", self.version, self.min_version, self.max_version,
+                              self.spec_version_hash, self.library_version_hash)
+        return self._pack(mav, self.CRC_EXTRA, payload, force_mavlink1=force_mavlink1)
+
 
 # message id -> default rate (Hz of simulated time)
 DEFAULT_RATES_HZ = {
@@ -60,9 +95,17 @@ DEFAULT_RATES_HZ = {
     MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
     MAVLINK_MSG_ID_TERRAIN_REPORT: 1.0,
+    MAVLINK_MSG_ID_ALTITUDE: 1.0,
+    MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1.0,
+    MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: 0.1,
 }
-REQUESTABLE = frozenset({*DEFAULT_RATES_HZ, MAVLINK_MSG_ID_HEARTBEAT,
-                         MAVLINK_MSG_ID_AUTOPILOT_VERSION})
+# streams a ground station may turn on (SET_MESSAGE_INTERVAL), off by default as in
+# PX4's normal mode (MAVSDK's Telemetry.set_rate_attitude_quaternion)
+OFF_BY_DEFAULT = frozenset({MAVLINK_MSG_ID_ATTITUDE_QUATERNION})
+STREAMABLE = frozenset({*DEFAULT_RATES_HZ, *OFF_BY_DEFAULT})
+REQUESTABLE = frozenset({*STREAMABLE, MAVLINK_MSG_ID_HEARTBEAT,
+                         MAVLINK_MSG_ID_AUTOPILOT_VERSION, MAVLINK_MSG_ID_PROTOCOL_VERSION})
+UNKNOWN_TERRAIN_M = -1001.0  # ALTITUDE.altitude_terrain below -1000: unknown
 
 CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
@@ -106,8 +149,24 @@ ENDURANCE_S = 40 * 60.0  # battery: linear drain over 40 min of flight (no fails
 GRAVITY = 9.80665
 
 
+def _quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of the body-to-NED rotation of ZYX Euler angles (rad), as
+    ATTITUDE_QUATERNION carries it."""
+    cr, sr = math.cos(roll / 2.0), math.sin(roll / 2.0)
+    cp, sp = math.cos(pitch / 2.0), math.sin(pitch / 2.0)
+    cy, sy = math.cos(yaw / 2.0), math.sin(yaw / 2.0)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+
+
 def _wrap_pi(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _default_interval_s(msg_id: int) -> float:
+    """A stream's default interval (simulated seconds; inf: off)."""
+    rate = DEFAULT_RATES_HZ.get(msg_id)
+    return 1.0 / rate if rate else math.inf
 
 
 @dataclass
@@ -115,17 +174,18 @@ class Streams:
     """Which messages stream at which interval (simulated seconds) and when next."""
 
     interval_s: dict[int, float] = field(
-        default_factory=lambda: {k: 1.0 / v for k, v in DEFAULT_RATES_HZ.items()})
+        default_factory=lambda: {k: _default_interval_s(k)
+                                 for k in (*DEFAULT_RATES_HZ, *sorted(OFF_BY_DEFAULT))})
     next_s: dict[int, float] = field(default_factory=dict)
 
     def set_interval(self, msg_id: int, interval_us: float) -> bool:
         """MAV_CMD_SET_MESSAGE_INTERVAL: -1 stops, 0 restores the default."""
-        if msg_id not in DEFAULT_RATES_HZ:
+        if msg_id not in STREAMABLE:
             return False
         if interval_us < 0:
             self.interval_s[msg_id] = math.inf
         elif interval_us == 0:
-            self.interval_s[msg_id] = 1.0 / DEFAULT_RATES_HZ[msg_id]
+            self.interval_s[msg_id] = _default_interval_s(msg_id)
         else:
             self.interval_s[msg_id] = max(interval_us * 1e-6, 1e-3)
         self.next_s.pop(msg_id, None)
@@ -182,6 +242,10 @@ class Telemetry:
                 self._time_ms(), deg_to_e7(lat), deg_to_e7(lon), round(alt * 1000.0),
                 round((p[2] - ap.home.enu[2]) * 1000.0),
                 _cms(v[1]), _cms(v[0]), _cms(-v[2]), round(hdg * 100.0) % 36000)
+        if msg_id == MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
+            q = _quaternion(*self._attitude())
+            return mavlink.MAVLink_attitude_quaternion_message(self._time_ms(), *q, 0.0, 0.0,
+                                                               0.0)
         if msg_id == MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch, yaw = self._attitude()
             return mavlink.MAVLink_attitude_message(self._time_ms(), roll, pitch, yaw,
@@ -226,6 +290,25 @@ class Telemetry:
         if msg_id == MAVLINK_MSG_ID_TERRAIN_REPORT:
             p = ap.position
             return _terrain_report(ap.terrain.report_below(p, ap.geodetic(p)))
+        if msg_id == MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            # the local frame is the world's ENU frame (origin: GPS_GLOBAL_ORIGIN), NED
+            p, v = ap.position, ap.velocity
+            return mavlink.MAVLink_local_position_ned_message(
+                self._time_ms(), p[1], p[0], -p[2], v[1], v[0], -v[2])
+        if msg_id == MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            f = ap.frame
+            return mavlink.MAVLink_gps_global_origin_message(
+                deg_to_e7(f.lat0_deg), deg_to_e7(f.lon0_deg), round(f.h0_m * 1000.0),
+                int(ap.t_s * 1e6))
+        if msg_id == MAVLINK_MSG_ID_ALTITUDE:
+            p = ap.position
+            lat, lon, alt = ap.geodetic(p)
+            ground = ap.terrain.height_m(lat, lon)
+            above = alt - ground if math.isfinite(ground) else UNKNOWN_TERRAIN_M
+            return mavlink.MAVLink_altitude_message(
+                int(ap.t_s * 1e6), alt, alt, p[2], alt - ap.home.alt_m, above, -1.0)
+        if msg_id == MAVLINK_MSG_ID_PROTOCOL_VERSION:
+            return ProtocolVersionMessage()  # MAVLink 2 spoken, 1 understood
         if msg_id == MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return mavlink.MAVLink_autopilot_version_message(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),

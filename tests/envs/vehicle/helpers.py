@@ -94,15 +94,16 @@ SEARCH_SCENARIO = str(__import__("pathlib").Path(__file__).parent / "data" / "se
 
 
 class Gcs:
-    """A pymavlink ground station (system 255/190) with bounded waits."""
+    """A pymavlink ground station (system 255/190 unless told) with bounded waits."""
 
-    def __init__(self, url: str, timeout_s: float = 5.0) -> None:
+    def __init__(self, url: str, timeout_s: float = 5.0, source_system: int = 255) -> None:
         import time
 
         from planner.mavlink import mavutil
 
         self.mavlink = mavutil.mavlink
-        self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190)
+        self.conn = mavutil.mavlink_connection(url, source_system=source_system,
+                                               source_component=190)
         self._hb = 0.0
         self.messages: list = []
         deadline = time.monotonic() + timeout_s

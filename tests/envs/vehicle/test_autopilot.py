@@ -245,7 +245,8 @@ def test_command_results() -> None:
     fly(ap, 5.0)
     assert ap.disarm()[0] == MAV_RESULT_DENIED  # in the air
     assert ap.disarm(force=True)[0] == MAV_RESULT_DENIED
-    assert ap.takeoff()[0] == MAV_RESULT_TEMPORARILY_REJECTED  # already flying
+    # already flying: ACCEPTED and nothing changes (MAVLink's idempotent TAKEOFF)
+    assert ap.takeoff(ap.home.alt_m + 30.0) == (MAV_RESULT_ACCEPTED, "takeoff: already flying")
     assert ap.change_speed(-3.0)[0] == MAV_RESULT_DENIED
     assert ap.set_current(5)[0] == MAV_RESULT_DENIED
     s = fly(ap, 20.0)

@@ -118,13 +118,12 @@ def test_mavsdk_mission_action_and_telemetry() -> None:
         assert off_m(seen[-1]) < 10.0
         assert seen[-1].relative_altitude_m == pytest.approx(25.0, abs=1.5)
         assert telemetry.in_air()
-        # Action: hold, then a take-off in the air is refused, then return and land
+        # Action: hold, then a take-off in the air is accepted and changes nothing
+        # (MAVLink: TAKEOFF when flying is idempotent), then return and land
         action.hold()
         assert _until(lambda: telemetry.flight_mode().name == "HOLD", 3.0)
-        from mavsdk.plugins.action import ActionError
-
-        with pytest.raises(ActionError):
-            action.takeoff()
+        action.takeoff()
+        assert telemetry.flight_mode().name == "HOLD" and rv.autopilot.mode.name == "LOITER"
         action.return_to_launch()
         assert _until(lambda: telemetry.flight_mode().name == "RETURN_TO_LAUNCH", 3.0)
         assert _until(lambda: not telemetry.armed(), 40.0)

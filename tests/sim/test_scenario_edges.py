@@ -1,0 +1,92 @@
+"""Scenario files at the edges of what the loader accepts (the seeds sweep): each is
+flown or refused with one line naming the file and the key, never a traceback."""
+
+from __future__ import annotations
+
+import pytest
+
+from sim.scenario import ScenarioError, load_scenario, min_search_height_m
+
+BASE = """
+[world.origin]
+lat_deg = 36.715
+lon_deg = -4.478
+h_m = 140.0
+
+[search]
+area_enu_m = [[-250.0, -250.0], [250.0, -250.0], [250.0, 250.0], [-250.0, 250.0]]
+start_e_m = 0.0
+start_n_m = -240.0
+budget_s = 60.0
+random_responders = 1
+"""
+
+
+def write(tmp_path, text: str, name: str = "edge.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text, message", [
+    # the autopilot flies on its GNSS: 2.5 m sigma of vertical bias (standalone) cannot
+    # hold 5 m above the ground (it flew 1.2 m into it on seed 0 of search-random-los)
+    (BASE.replace("budget_s", "height_m = 5.0\nbudget_s"),
+     "search.height_m: 5 m is below 10.0 m"),
+    (BASE + "\n[randomise]\ngnss_bias_scale = [0.5, 20.0]\n",
+     "search.height_m: 45 m is below 200.0 m"),
+    (BASE.replace("start_e_m = 0.0\n", ""), "search: missing key 'start_e_m'"),
+    (BASE.replace("budget_s", "budgett_s"), "search: unknown key 'budgett_s'"),
+    (BASE + '\n[world.terrain]\nkind = "grid"\ne0_m = 0\nn0_m = 0\nspacing_m = 10\n'
+            'heights_m = [[0.0, 1.0], [2.0]]\n',
+     "world.terrain.heights_m: expected rows of numbers, all of the same length"),
+    (BASE + '\n[[agents]]\nname = "a"\nspeed = 3.0\n',
+     "agents[0]: unknown key 'speed' (known: gnss, kind, name, start_e_m, start_n_m, vehicle)"),
+    (BASE + '\n[[agents]]\nname = "a"\n[[agents]]\nname = "b"\nstart_e_m = 30.0\n',
+     "agents[1]: agent b: give both start_e_m and start_n_m, or neither"),
+    (BASE + '\n[[agents]]\nname = "a"\n[[agents]]\nname = "b"\nstart_e_m = 3000.0\n'
+            'start_n_m = -240.0\n',
+     "agents[1]: b's start (3000, -240) is outside the search area"),
+    (BASE + '\n[[search.keepout]]\ncircle_enu_m = [60.0, -240.0, 10.0]\n'
+            '[[agents]]\nname = "a"\n[[agents]]\nname = "b"\nstart_e_m = 60.0\n'
+            'start_n_m = -240.0\n',
+     "agents[1]: b's start (60, -240) is inside keep-out keepout[0]"),
+])
+def test_a_bad_value_is_one_line_naming_the_file_and_the_key(tmp_path, text, message):
+    p = write(tmp_path, text)
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(p)
+    msg = str(exc.value)
+    assert msg.startswith(f"{p}: ") and message in msg and "\n" not in msg, msg
+
+
+def test_an_unknown_search_key_lists_the_file_names_of_the_keys(tmp_path):
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(write(tmp_path, BASE.replace("budget_s", "budgett_s")))
+    known = str(exc.value).split("(known: ")[1]
+    assert "keepout," in known and "keepouts" not in known and "area_geo" in known
+
+
+def test_the_search_height_floor_follows_the_vertical_gnss_error(tmp_path):
+    rtk = load_scenario(write(tmp_path, BASE.replace("budget_s", "height_m = 3.0\nbudget_s")
+                              + '\n[gnss]\npreset = "rtk"\n'))
+    assert rtk.search.height_m == 3.0 and min_search_height_m(rtk) == 2.0
+    sa = load_scenario(write(tmp_path, BASE, "sa.toml"))
+    # 4 x hypot(2.5 m bias, 0.15 m wander)
+    assert min_search_height_m(sa) == pytest.approx(4 * (2.5**2 + 0.15**2) ** 0.5, abs=1e-12)
+    for name in ("search-random-los", "search-five-mixed", "site-valley",
+                 "suite/r5-h30-sa-u4"):
+        sc = load_scenario(name)
+        assert sc.search.height_m >= min_search_height_m(sc), name
+
+
+def test_a_variant_of_a_site_preset_finds_the_presets_files(tmp_path):
+    """``extends = "site-valley"`` from another folder: the preset's DEM, area and
+    keep-out files are the preset's (before: looked for beside the variant, exit 2)."""
+    p = write(tmp_path, 'extends = "site-valley"\nname = "short"\n[search]\nbudget_s = 300.0\n')
+    variant, preset = load_scenario(p), load_scenario("site-valley")
+    assert variant.search.budget_s == 300.0
+    assert variant.search.area_enu_m == preset.search.area_enu_m
+    assert variant.keepouts == preset.keepouts and len(variant.keepouts) > 1
+    e, n = 100.0, 50.0
+    assert variant.world.ground_m(e, n) == preset.world.ground_m(e, n)
