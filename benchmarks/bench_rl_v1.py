@@ -8,12 +8,14 @@ the number localised, the mean horizontal error of the final estimates (the
 truth, for evaluation only), and whether the flight ended at take-off (within
 ``HOME_M`` horizontally of where it started) with a responder heard but not
 localised (``home_unlocalised``: issue 20 asks that a trained policy never does).
-Paired two-sided exact sign tests compare each policy with ``adaptive`` on the time
-(ties dropped). ``--model`` (repeatable) adds ``ppo:PATH`` policies. ``--curve MODEL``
-draws the learning curve of an ``osa train`` folder (``progress.csv`` and ``validation.json``).
+Paired two-sided exact sign tests (ties dropped) and Wilcoxon signed-rank tests (zero
+differences dropped) compare each policy with ``adaptive`` on the time. ``--model``
+(repeatable) adds ``ppo:PATH`` policies; ``--skip N`` flies test worlds N, N + 1, ...
+(rows of more worlds join with ``--table A.json B.json``). ``--curve MODEL`` draws the
+learning curve of an ``osa train`` folder (``progress.csv`` and ``validation.json``).
 
     python benchmarks/bench_rl_v1.py --model MODEL --seeds 20 --json rows.json
-    python benchmarks/bench_rl_v1.py --table rows.json
+    python benchmarks/bench_rl_v1.py --table rows.json [more.json ...]
     python benchmarks/bench_rl_v1.py --curve MODEL --figure curve.png
 """
 
@@ -92,13 +94,25 @@ def sign_test_two_sided(wins: int, losses: int) -> float:
     return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n)
 
 
+def wilcoxon_two_sided(x: np.ndarray, y: np.ndarray) -> float:
+    """The two-sided Wilcoxon signed-rank p of paired ``x`` and ``y`` (zero differences
+    dropped; 1 when every pair ties)."""
+    from scipy.stats import wilcoxon
+
+    d = np.asarray(x, dtype=float) - np.asarray(y, dtype=float)
+    if not np.any(d != 0):
+        return 1.0
+    return float(wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+
+
 def table(rows: list[dict], budget: float) -> str:
     pols = list(dict.fromkeys(r["policy"] for r in rows))
     by = {p: sorted((r for r in rows if r["policy"] == p), key=lambda r: r["seed"])
           for p in pols}
     w0 = max(11, *(len(p) + 1 for p in pols))
     out = [f"{'policy':<{w0}}{'all localised':>14}{'responders':>11}{'median t_all':>13}"
-           f"{'median err':>11}{'home+heard':>11}{'vs adaptive (faster/slower/tie, p)':>37}"]
+           f"{'median err':>11}{'home+heard':>11}{'vs adaptive (faster/slower/tie, p)':>37}"
+           f"{'Wilcoxon p':>11}"]
     for p in pols:
         rs = by[p]
         t = np.array([r["t_all_s"] for r in rs])
@@ -107,13 +121,17 @@ def table(rows: list[dict], budget: float) -> str:
         errs = [r["err_h_m"] for r in rs if r["err_h_m"] is not None]
         hov = [r["home_unlocalised"] for r in rs if "home_unlocalised" in r]
         home = f"{sum(hov)}/{len(hov)}" if hov else "-"
-        cmp = ""
+        cmp, wil = "", ""
         if "adaptive" in by and p != "adaptive":
+            if [r["seed"] for r in by["adaptive"]] != [r["seed"] for r in rs]:
+                raise ValueError(f"{p} and adaptive flew different worlds")
             a = np.array([r["t_all_s"] for r in by["adaptive"]])
             w, lo, ti = int((t < a).sum()), int((t > a).sum()), int((t == a).sum())
             cmp = f"{w}/{lo}/{ti}, p = {sign_test_two_sided(w, lo):.2g}"
+            wil = f"{wilcoxon_two_sided(t, a):.2g}"
         out.append(f"{p:<{w0}}{100 * done:>13.0f}%{100 * loc:>10.0f}%{np.median(t):>12.0f}s"
-                   f"{(f'{np.median(errs):.2f} m' if errs else '-'):>11}{home:>11}{cmp:>37}")
+                   f"{(f'{np.median(errs):.2f} m' if errs else '-'):>11}{home:>11}{cmp:>37}"
+                   f"{wil:>11}")
     return "\n".join(out)
 
 
@@ -130,20 +148,33 @@ def curve(model: str, path: str) -> None:
     ret = [float(r["rollout/ep_rew_mean"]) for r in rows]
     val = json.loads((d / "validation.json").read_text())
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    ax[0].plot(steps, ret)
+    ax[0].plot(steps, ret, color="C2")
+    warm = [float(r["time/total_timesteps"]) for r in rows if r.get("train/critic_warmup") == "1"]
+    if warm:  # --critic-warmup: the rollouts whose update fitted only the value head
+        ax[0].axvspan(0, max(warm), color="0.85",
+                      label="critic warm-up: the clone flies, unchanged")
+        ax[0].legend(loc="upper right", fontsize=8)
     ax[0].set_xlabel("training steps (decisions)")
     ax[0].set_ylabel("mean return, last 100 training episodes")
+    ax[0].set_title("training (stochastic policy)", fontsize=10)
     ax[0].grid(alpha=0.3)
     vs = [v["steps"] for v in val]
-    ax[1].plot(vs, [v["median_time_s"] for v in val], "o-", label="median time (s)")
+    # two y-axes: each axis, its ticks and its line in one colour, and one legend for both
+    h1 = ax[1].plot(vs, [v["median_time_s"] for v in val], "o-", color="C0",
+                    label="median time to localise all (s, left axis)")
     ax[1].set_xlabel("training steps (decisions)")
-    ax[1].set_ylabel("validation: median time to localise all (s)")
+    ax[1].set_ylabel("median time to localise all (s)", color="C0")
+    ax[1].tick_params(axis="y", colors="C0")
     ax[1].set_ylim(0, 1.05 * max(v["median_time_s"] for v in val))
+    ax[1].set_title(f"validation ({val[0]['worlds']} worlds, deterministic policy)",
+                    fontsize=10)
     ax2 = ax[1].twinx()
-    ax2.plot(vs, [100 * v["localised"] for v in val], "s--", color="C1",
-             label="worlds all localised (%)")
-    ax2.set_ylabel("validation worlds all localised (%)")
+    h2 = ax2.plot(vs, [100 * v["localised"] for v in val], "s--", color="C1",
+                  label="worlds all localised (%, right axis)")
+    ax2.set_ylabel("worlds all localised (%)", color="C1")
+    ax2.tick_params(axis="y", colors="C1")
     ax2.set_ylim(0, 100)
+    ax[1].legend(handles=[*h1, *h2], loc="lower left", fontsize=8)
     ax[1].grid(alpha=0.3)
     from matplotlib.ticker import MaxNLocator
 
@@ -158,17 +189,19 @@ def curve(model: str, path: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="search-five-mixed")
-    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--seeds", type=int, default=20, help="test worlds to fly")
+    ap.add_argument("--skip", type=int, default=0, help="skip the first N test worlds")
     ap.add_argument("--model", action="append", default=[],
                     help="an osa train folder, flown as ppo:PATH (repeat for several)")
     ap.add_argument("--policies", default="adaptive,heuristic,random")
     ap.add_argument("--json", default=None, help="write the rows here")
     ap.add_argument("--curve", default=None, metavar="MODEL", help="draw MODEL's curve")
     ap.add_argument("--figure", default=None)
-    ap.add_argument("--table", default=None, metavar="JSON", help="print the table of rows")
+    ap.add_argument("--table", nargs="+", default=None, metavar="JSON",
+                    help="print the table of the rows of these files (one table)")
     a = ap.parse_args()
     if a.table:
-        rows = json.loads(Path(a.table).read_text())
+        rows = [r for f in a.table for r in json.loads(Path(f).read_text())]
         print(table(rows, sim.load_scenario(a.scenario).search.budget_s))
         return
     if a.curve:
@@ -176,7 +209,7 @@ def main() -> None:
         return
     sc = sim.load_scenario(a.scenario)
     pols = [p for p in a.policies.split(",") if p] + [f"ppo:{m}" for m in a.model]
-    rows = [fly(sc, p, s) for p in pols for s in split_seeds("test", a.seeds)]
+    rows = [fly(sc, p, s) for p in pols for s in split_seeds("test", a.skip + a.seeds)[a.skip:]]
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     print(f"{a.scenario}: {a.seeds} test worlds, budget {sc.search.budget_s:.0f} s "

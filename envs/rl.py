@@ -51,6 +51,8 @@ class TrainSettings:
     imitate_rounds: int = 0  # DAgger rounds after the first fit
     imitate_learning_rate: float = 3e-4  # Adam's rate while imitating (whatever PPO's)
     init: Path | None = None  # a model folder whose weights and statistics start the training
+    imitation_coef: float = 0.0  # PPO: the imitation term's weight, annealed to 0 (envs.ppo)
+    critic_warmup: int = 0  # PPO: updates that fit only the value head first (envs.ppo)
 
 
 def curriculum_level(curriculum: tuple[float, float], progress: float) -> float:
@@ -253,6 +255,8 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
         "steps": int(model.num_timesteps),
         **({"curriculum": list(settings.curriculum)} if settings.curriculum else {}),
         **({"init": str(settings.init)} if settings.init is not None else {}),
+        **({"imitation_coef": settings.imitation_coef} if settings.imitation_coef else {}),
+        **({"critic_warmup": settings.critic_warmup} if settings.critic_warmup else {}),
         **({"validation": extra} if extra else {}),
     }
     env.close()
@@ -275,7 +279,8 @@ def check_init(folder: Path, env_id: str, algo: str, env_kwargs: dict) -> str | 
         env = make_env(env_id, env_kwargs).unwrapped
         config = env.config.to_json()
         env.close()
-        rewards = ("detection_bonus", "coverage_bonus", "time_cost_per_s", "leave_penalty")
+        rewards = ("information_weight", "detection_bonus", "coverage_bonus", "time_cost_per_s",
+                   "leave_penalty")
         if {k: v for k, v in meta.get("config", {}).items() if k not in rewards} != \
                 {k: v for k, v in config.items() if k not in rewards}:
             return (f"{folder} was trained with other env settings (observation and "
@@ -345,7 +350,8 @@ def imitate(model, venv, settings: TrainSettings) -> dict:
     ``imitate_rounds`` rounds, the clone itself flies as many episodes (its
     deterministic action), the teacher labels every state it visited, and the network
     is fitted again on everything gathered: the clone learns what to do in the states
-    its own mistakes lead to (DAgger). Returns what it did."""
+    its own mistakes lead to (DAgger). Returns what it did and the dataset (the raw
+    observations, one array per key, and the teacher's labels)."""
     import torch
     from stable_baselines3.common.utils import obs_as_tensor
 
@@ -405,9 +411,10 @@ def imitate(model, venv, settings: TrainSettings) -> dict:
         rounds.append({"flown_by": "teacher" if k == 0 else "clone", "episodes": got[3],
                        "decisions": len(got[1]), "loss": history, "agreement": agree})
     first = rounds[0]
-    return {"episodes": first["episodes"], "decisions": first["decisions"],
-            "epochs": len(first["loss"]), "loss": first["loss"],
-            "agreement": rounds[-1]["agreement"], "rounds": rounds}
+    report = {"episodes": first["episodes"], "decisions": first["decisions"],
+              "epochs": len(first["loss"]), "loss": first["loss"],
+              "agreement": rounds[-1]["agreement"], "rounds": rounds}
+    return report, ({key: np.stack([x[key] for x in raw]) for key in raw[0]}, np.array(labels))
 
 
 @dataclass
@@ -456,6 +463,14 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     gamma = algo_kw.get("gamma", 0.99)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, clip_obs=10.0, gamma=gamma)
     cls = algo_class(settings.algo)
+    if settings.imitation_coef or settings.critic_warmup:
+        if settings.algo != "PPO":
+            raise ValueError("the imitation term and the critic warm-up are PPO's")
+        from envs.ppo import GuidedPPO
+
+        cls = GuidedPPO
+        algo_kw.update(imitation_coef=settings.imitation_coef,
+                       critic_warmup=settings.critic_warmup, imitation_seed=settings.seed)
     model = cls("MultiInputPolicy", venv, seed=settings.seed, device="cpu", verbose=0,
                 policy_kwargs=settings.policy_kwargs, **algo_kw)
     formats = ["csv"]
@@ -472,8 +487,10 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
     t0 = time.perf_counter()
     try:
         if settings.imitate_episodes:
-            imitated = imitate(model, venv, settings)
+            imitated, data = imitate(model, venv, settings)
             (out / "imitation.json").write_text(json.dumps(imitated, indent=1))
+            if settings.imitation_coef:
+                model.set_imitation_data(*data, venv.normalize_obs)
         model.learn(total_timesteps=settings.steps, callback=cbs)
         if settings.eval_every and (not val.history or val.history[-1]["steps"]
                                     < model.num_timesteps - settings.eval_every // 2):

@@ -33,15 +33,37 @@ PPO_DEFAULTS = dict(n_steps=256, batch_size=128, n_epochs=10, gamma=0.995, gae_l
                     clip_range=0.2)  # docs/rl.md
 
 
-REWARD_WEIGHTS = ("time_cost_per_s", "localised_bonus", "detection_bonus", "coverage_bonus",
-                  "leave_penalty")  # the env arguments --reward sets (docs/rl.md "Rewards")
+REWARD_WEIGHTS = ("time_cost_per_s", "localised_bonus", "information_weight", "detection_bonus",
+                  "coverage_bonus", "leave_penalty")  # what --reward sets (docs/rl.md "Rewards")
+
+REWARD_PRESETS = ("metric",)
 
 
-def reward_weights(items: list[str], env_id: str) -> tuple[str | None, dict]:
-    """``--reward NAME=X`` items as env keywords: (why they cannot be, or None; them)."""
+def preset_weights(preset: str, env_id: str) -> dict:
+    """The reward weights of ``--reward-preset``. ``metric``: every term but time off, so
+    an episode's return is ``-time_cost_per_s`` times the time until the estimator
+    judges every expected responder localised (the episode's end), or the budget: the
+    metric of the recipe's sign test (docs/rl.md)."""
+    if preset != "metric":
+        raise ValueError(f"unknown reward preset {preset!r}")
+    out = {"information_weight": 0.0, "detection_bonus": 0.0, "coverage_bonus": 0.0,
+           "leave_penalty": 0.0}
+    if env_id == "osa/Search-v1":
+        out["localised_bonus"] = 0.0
+    return out
+
+
+def reward_weights(items: list[str], env_id: str, preset: str | None = None
+                   ) -> tuple[str | None, dict]:
+    """``--reward-preset`` then ``--reward NAME=X`` items (which override it) as env
+    keywords: (why they cannot be, or None; them)."""
     from envs.gym.team import TEAM_ENV_ID
 
     out: dict = {}
+    if preset is not None:
+        if env_id == TEAM_ENV_ID:
+            return f"--reward-preset: not for {TEAM_ENV_ID}", out
+        out.update(preset_weights(preset, env_id))
     for item in items:
         name, _, value = item.partition("=")
         if name not in REWARD_WEIGHTS:
@@ -112,6 +134,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a reward weight of the env (repeatable): "
                    f"{', '.join(REWARD_WEIGHTS)} (localised_bonus: osa/Search-v1); "
                    "default: the env's")
+    p.add_argument("--reward-preset", choices=REWARD_PRESETS, default=None,
+                   help="metric: every reward term but time off (the return is minus "
+                   "time_cost_per_s times the time until every expected responder is "
+                   "localised); --reward items apply on top")
+    p.add_argument("--imitation-coef", type=float, default=0.0, metavar="X",
+                   help="PPO with --imitate: add X times the cross-entropy to the "
+                   "hand-written policy's labels (the DAgger dataset) to every update, X "
+                   "falling linearly to 0 over the training (default 0: none)")
+    p.add_argument("--critic-warmup", type=non_negative_int, default=0, metavar="K",
+                   help="PPO: the first K updates fit only the value head (the actor "
+                   "frozen; default 0)")
     p.add_argument("--learning-rate", type=float, default=None, metavar="LR",
                    help="PPO: the learning rate at the start, falling linearly to 0 "
                    "(default 3e-4)")
@@ -191,6 +224,14 @@ def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
     if args.dagger and not args.imitate:
         return "--dagger: needs --imitate N (the episodes of each round)", kw
     kw["imitate_episodes"], kw["imitate_rounds"] = args.imitate, args.dagger
+    if args.imitation_coef:
+        if not (math.isfinite(args.imitation_coef) and args.imitation_coef > 0):
+            return f"--imitation-coef: expected a number >= 0, got {args.imitation_coef!r}", kw
+        if not args.imitate:
+            return "--imitation-coef: needs --imitate N (the dataset it keeps the policy near)", kw
+    if (args.imitation_coef or args.critic_warmup) and args.algo.upper() != "PPO":
+        return f"{'--imitation-coef' if args.imitation_coef else '--critic-warmup'}: PPO only", kw
+    kw["imitation_coef"], kw["critic_warmup"] = args.imitation_coef, args.critic_warmup
     algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
     for name, value, key in (("--learning-rate", args.learning_rate, "learning_rate"),
                              ("--ent-coef", args.ent_coef, "ent_coef")):
@@ -224,8 +265,10 @@ def run(args: argparse.Namespace) -> int:
         return _fail("--scheduler runs the tasks of a --sweep FILE")
     if args.sweep is not None:
         if args.curriculum or args.imitate or args.learning_rate is not None or \
-                args.ent_coef is not None or args.init is not None or args.reward:
+                args.ent_coef is not None or args.init is not None or args.reward or \
+                args.reward_preset or args.imitation_coef or args.critic_warmup:
             return _fail("--sweep: --curriculum, --imitate, --dagger, --init, --reward, "
+                         "--reward-preset, --imitation-coef, --critic-warmup, "
                          "--learning-rate and --ent-coef are for one training, not a sweep")
         return run_sweep(args, task)
     problem = check_task(task)
@@ -239,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
         env_kwargs["scenario"] = args.scenario
     if args.env == TEAM_ENV_ID:
         env_kwargs["uavs"] = args.uavs or 2
-    problem, weights = reward_weights(args.reward, args.env)
+    problem, weights = reward_weights(args.reward, args.env, args.reward_preset)
     if problem:
         return _fail(problem)
     env_kwargs.update(weights)

@@ -82,6 +82,7 @@ class SearchEnvBase(gym.Env):
         decision_period_s: float = 5.0,
         max_responders: int = 3,
         coverage_cells: int = 8,
+        information_weight: float = 1.0,
         detection_bonus: float = 1.0,
         coverage_bonus: float = 5.0,
         time_cost_per_s: float = 0.01,
@@ -92,7 +93,8 @@ class SearchEnvBase(gym.Env):
         self.config, self.loop_config = env_settings(
             render_mode, self.metadata["render_modes"], seed_split, mode,
             decision_period_s=decision_period_s, max_responders=max_responders,
-            coverage_cells=coverage_cells, detection_bonus=detection_bonus,
+            coverage_cells=coverage_cells, information_weight=information_weight,
+            detection_bonus=detection_bonus,
             coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
             leave_penalty=leave_penalty)
         self.scenario = search_scenario(scenario)
@@ -155,7 +157,7 @@ class SearchEnvBase(gym.Env):
     def _compute_reward(self, changes: dict) -> float:
         c = self.config
         terms = {
-            "information": float(changes["information"]),
+            "information": c.information_weight * float(changes["information"]),
             "detection": c.detection_bonus * changes["detected"],
             "coverage": c.coverage_bonus * changes["covered"],
             "time": -c.time_cost_per_s * changes["dt_s"],

@@ -16,9 +16,9 @@ the truth) and the :class:`planner.observation.SearchMission` (what the operator
   adds observation keys of its own.
 
 Reward of one decision (all terms from the estimator, the vehicle and the link model):
-``information + detection_bonus * newly detected + coverage_bonus * newly covered
-share - time_cost_per_s * dt - leave_penalty * (leaving the area)``, where information
-is the increase of
+``information_weight * information + detection_bonus * newly detected + coverage_bonus *
+newly covered share - time_cost_per_s * dt - leave_penalty * (leaving the area)``, where
+information is the increase of
 ``sum_b 0.5 (log det P0 - log det P_b)`` over the detected responders b (P_b the
 estimate's 3 x 3 position covariance, P0 the prior before any estimate): the reduction of
 1/2 log det of the covariance, the D-optimal objective the CasADi planner maximises,
@@ -73,6 +73,7 @@ class EnvConfig:
     decision_period_s: float = 5.0  # flight between two actions
     max_responders: int = 3  # responder slots in the observation
     coverage_cells: int = 8  # the coverage map is cells x cells over the area's box
+    information_weight: float = 1.0  # times the information gained (0: the term off)
     detection_bonus: float = 1.0  # per responder heard for the first time
     coverage_bonus: float = 5.0  # for covering the whole area once (the search map)
     time_cost_per_s: float = 0.01  # per second of flight
@@ -94,8 +95,8 @@ class EnvConfig:
     def to_json(self) -> dict:
         """The settings a trained model needs to meet the same observation and actions."""
         return {k: getattr(self, k) for k in (
-            "decision_period_s", "max_responders", "coverage_cells", "detection_bonus",
-            "coverage_bonus",
+            "decision_period_s", "max_responders", "coverage_cells", "information_weight",
+            "detection_bonus", "coverage_bonus",
             "time_cost_per_s", "leave_penalty", "prior_sigma_h_m", "prior_sigma_z_m",
             "cov_floor_m2")}
 

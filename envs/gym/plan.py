@@ -63,8 +63,9 @@ class PlanEnv(SearchEnvBase):
     gymnasium.make("osa/Search-v1", scenario="search-random-los", seed_split="train",
                    actions=None, sectors=3, level=1.0, localised_bonus=5.0,
                    decision_period_s=5.0, max_responders=5, coverage_cells=6,
-                   detection_bonus=1.0, coverage_bonus=5.0, time_cost_per_s=0.01,
-                   leave_penalty=1.0, mode="robust", render_mode=None, rerun_path=None)
+                   information_weight=1.0, detection_bonus=1.0, coverage_bonus=5.0,
+                   time_cost_per_s=0.01, leave_penalty=1.0, mode="robust", render_mode=None,
+                   rerun_path=None)
     ```
 
     ``actions``: a :class:`PlanActions` (else one with ``sectors``); ``level``: the

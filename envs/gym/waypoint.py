@@ -57,7 +57,7 @@ class WaypointEnv(SearchEnvBase):
     ```python
     gymnasium.make("osa/Waypoint-v0", scenario="search-random-los", seed_split="train",
                    decision_period_s=5.0, max_responders=3, coverage_cells=8,
-                   detection_bonus=1.0, coverage_bonus=5.0,
+                   information_weight=1.0, detection_bonus=1.0, coverage_bonus=5.0,
                    time_cost_per_s=0.01, leave_penalty=1.0,
                    mode="robust", render_mode=None, rerun_path=None)
     ```
