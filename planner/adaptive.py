@@ -38,6 +38,13 @@ from planner.observation import (
 from planner.patterns import KeepOut, KeepOutPolygon
 
 
+def band_floor_m(mission: SearchMission, below_m: float) -> float:
+    """The bottom of an altitude band reaching ``below_m`` (negative: down) from the
+    search height: never below 10 m, nor below the area's ``min_height_m`` (a keep-out
+    flown over: never below the search height, docs/search.md)."""
+    return max(10.0, mission.height_m + below_m, mission.area.min_height_m or 0.0)
+
+
 @dataclass(frozen=True, kw_only=True)
 class AdaptiveConfig:
     """Parameters of the adaptive policy (our choices; documented in the README)."""
@@ -229,11 +236,8 @@ class Manoeuvres:
         m, c = self.mission, self.cfg
         assert r.mean_enu_m is not None
         (cx, cy), radius = self.inside_center(r.mean_enu_m[:2], c.close_radius_m)
-        lo = max(10.0, m.height_m + c.close_climb_m[0])
-        if m.area.min_height_m is not None:  # a keep-out is flown over: never below it
-            lo = max(lo, m.area.min_height_m)
-        return self.helix((cx, cy), radius, lo, m.height_m + c.close_climb_m[1],
-                          c.close_turns, a, "close")
+        return self.helix((cx, cy), radius, band_floor_m(m, c.close_climb_m[0]),
+                          m.height_m + c.close_climb_m[1], c.close_turns, a, "close")
 
     def orbit(self, center: Sequence[float], radius: float, a: AgentView,
               turns: float = 1.0) -> Trajectory:
@@ -322,11 +326,9 @@ class AdaptivePolicy:
         from planner.scoring import ScoringConfig
 
         m, c = self.mission, self.cfg
-        lo = max(10.0, m.height_m + c.agl_band_m[0])
+        lo = band_floor_m(m, c.agl_band_m[0])
         hi = m.height_m + c.agl_band_m[1]
         keep: dict = {}
-        if m.area.min_height_m is not None:  # a keep-out is flown over: never below it
-            lo = max(lo, m.area.min_height_m)
         if m.area.blocking:  # room for the keep-outs near the responder, and their margin
             n_poly = sum(isinstance(k, KeepOutPolygon) for k in m.area.blocking)
             keep = dict(max_keep_outs=min(max(len(m.area.blocking) - n_poly, 1),

@@ -38,7 +38,7 @@ import numpy as np
 from gymnasium import spaces
 
 from estimator.records import Trajectory
-from planner.adaptive import AdaptiveConfig, Manoeuvres
+from planner.adaptive import AdaptiveConfig, Manoeuvres, band_floor_m
 from planner.coverage import Sweep, search_spacing_m
 from planner.observation import (
     AgentView,
@@ -456,10 +456,7 @@ class WaypointActions:
         self.enc = encoder
         self.speed = self.speed_override or mission.speed_mps
         band = self.cfg.adaptive.agl_band_m
-        # a keep-out flown over (a power line): never below the search height, as the
-        # adaptive policy (docs/search.md)
-        floor = mission.area.min_height_m or 0.0
-        self.band = (max(10.0, mission.height_m + band[0], floor), mission.height_m + band[1])
+        self.band = (band_floor_m(mission, band[0]), mission.height_m + band[1])
         self.penalty = 0.0  # of the last decision: share of the reach outside the area
         area = mission.area
         hp = area.halfplanes  # inside with the margin: n . q - c >= margin on every edge
