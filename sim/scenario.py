@@ -716,6 +716,9 @@ def _gnss_over(table: dict, base: GnssConfig, where: str) -> GnssConfig:
     return from_table(GnssConfig, t, where, base=base)
 
 
+_AGENT_KEYS = tuple(sorted(f.name for f in dataclasses.fields(AgentSpec)))  # [[agents]]
+
+
 def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[AgentSpec, ...]:
     if raw is None:
         return ()
@@ -726,10 +729,10 @@ def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[Agen
     for i, a in enumerate(raw):
         where = f"agents[{i}]"
         t = dict(a)
-        known = ("gnss", "kind", "name", "start_e_m", "start_n_m", "vehicle")
-        unknown = sorted(set(t) - set(known))
+        unknown = sorted(set(t) - set(_AGENT_KEYS))
         if unknown:
-            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(known)})")
+            raise ConfigError(f"{where}: unknown key {unknown[0]!r} "
+                              f"(known: {', '.join(_AGENT_KEYS)})")
         kind = t.pop("kind", "uav")
         if kind not in ("uav", "ground"):
             raise ConfigError(f"{where}.kind: {kind!r} is not 'uav' or 'ground'")
