@@ -232,9 +232,10 @@ class Stepper:
         if h_walk is not None:  # a walker follows the path's ground track at its own height
             traj = dataclasses.replace(traj, enu_m=np.column_stack(
                 [traj.enu_m[:, :2], np.full(len(traj.enu_m), h_walk)]), height_ref="terrain")
-            nav = (nav[0], nav[1], a.vehicle._p[2])  # its height is the ground's, not GNSS's
+            # its height is the ground's, not GNSS's
+            nav = (nav[0], nav[1], a.vehicle.position_m[2])
         # the path is flown on the autopilot's estimate: start the leg where it believes
-        speed = math.hypot(a.vehicle._v[0], a.vehicle._v[1])
+        speed = math.hypot(*a.vehicle.velocity_mps[:2])
         g = path_guidance(traj, self.world, a.spec.vehicle, start_speed_mps=speed, from_m=nav,
                           arrive_m=self.ARRIVE_M)
         a.vehicle.set_guidance(g)
@@ -245,7 +246,7 @@ class Stepper:
         the ground (within ``LANDED_AGL_M``) stays landed instead (holding its believed
         height there would fly it into the ground as its navigation error drifts)."""
         a = self.agent(agent)
-        p = a.vehicle._p
+        p = a.vehicle.position_m
         if (a.spec.vehicle.ground_height_m is None
                 and p[2] - float(self.world.ground_m(p[0], p[1])) <= LANDED_AGL_M):
             g = LandedGuidance()
@@ -260,11 +261,11 @@ class Stepper:
         a = self.agent(agent)
         v = a.vehicle
         if v.nav_error is None:
-            return tuple(v._p)
+            return v.position_m
         cached = self._nav_cache.get(a.index)
         if cached is not None and cached[0] == v.k:  # asked again before the next tick
             return cached[1]
-        p = v._p
+        p = v.position_m
         b = v.nav_error(np.array([v.t_s]))[0].tolist()
         nav = (p[0] + b[0], p[1] + b[1], p[2] + b[2])
         self._nav_cache[a.index] = (v.k, nav)

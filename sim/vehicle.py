@@ -463,6 +463,16 @@ class Multirotor:
     def state(self) -> VehicleState:
         return VehicleState(self.t_s, tuple(self._p), tuple(self._v), self._yaw)
 
+    @property
+    def position_m(self) -> tuple[float, float, float]:
+        """The controller's (true) position now, world ENU metres (read-only)."""
+        return (self._p[0], self._p[1], self._p[2])
+
+    @property
+    def velocity_mps(self) -> tuple[float, float, float]:
+        """The controller's (true) velocity now, ENU m/s (read-only)."""
+        return (self._v[0], self._v[1], self._v[2])
+
     def set_guidance(self, guidance: Guidance) -> None:
         self.guidance = guidance
 

@@ -262,7 +262,7 @@ def test_a_vehicle_holding_on_the_ground_stays_on_it_whatever_its_navigation_err
     # in the air a hold is still a hold of the believed position
     st = Stepper(realise(sc, 3))
     o = st.world.origin
-    e, n, _ = st.agents[0].vehicle._p
+    e, n, _ = st.agents[0].vehicle.position_m
     st.follow(0, Trajectory(np.array([0.0, 20.0]), np.array([[e, n, 45.0], [e + 40.0, n, 45.0]]),
                             (o.lat_deg, o.lon_deg, o.h_m), "terrain"))
     st.step_to(25.0)
