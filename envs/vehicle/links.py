@@ -30,7 +30,9 @@ station that can read MAVLink 2 switches to it on the first MAVLink 2 frame it h
 (QGroundControl, Mission Planner, pymavlink's ``mavutil``; MAVSDK always sends 2), so
 one still writing MAVLink 1 :data:`MAVLINK1_AFTER_S` after it was first heard (and
 greeted in MAVLink 2), and never MAVLink 2, gets MAVLink 1 frames from then on, until
-it writes a MAVLink 2 frame. On a MAVLink 1 link, messages with an id above 255 (MAVLink 2 only:
+it writes a MAVLink 2 frame. What the vehicle knows of a ground station's version is
+the link's (:class:`Versions`): the same system and component ids on another link are
+another ground station. On a MAVLink 1 link, messages with an id above 255 (MAVLink 2 only:
 TUNNEL, PROTOCOL_VERSION...) are not sent, and extension fields are left out; a
 PROTOCOL_VERSION asked for goes in MAVLink 2 framing all the same, as PX4 sends it.
 """
@@ -97,8 +99,10 @@ def is_mavlink1(msg: Any) -> bool:
 
 
 class Versions:
-    """What the vehicle knows of each ground station's MAVLink (by system and component
-    id, on whatever link): when it was first heard and whether it ever sent MAVLink 2."""
+    """What the vehicle knows of each ground station's MAVLink on one link (by system and
+    component id): when it was first heard and whether it ever sent MAVLink 2. Each link
+    has its own (:class:`Framing`): two ground stations with the same ids on two links
+    (a MAVLink 1 one and a MAVLink 2 one) are two ground stations."""
 
     MAX_SOURCES = 1024
 
@@ -122,17 +126,18 @@ class Versions:
 
 class Framing:
     """The MAVLink version a link's ground station reads (see the module docstring):
-    ``heard(source, mavlink1, now, versions)`` for every frame received (``source``:
+    ``heard(source, mavlink1, now)`` for every frame received on the link (``source``:
     system and component id); ``mavlink1`` says how to send. A ground station that ever
-    sent a MAVLink 2 frame reads MAVLink 2: when it starts again in MAVLink 1
-    (QGroundControl restarted) it is sent MAVLink 2, so it switches back."""
+    sent a MAVLink 2 frame on the link reads MAVLink 2: when it starts again in MAVLink 1
+    there (QGroundControl restarted, from the same address) it is sent MAVLink 2, so it
+    switches back."""
 
     def __init__(self) -> None:
         self.mavlink1 = False
+        self.versions = Versions()  # this link's ground stations
 
-    def heard(self, source: tuple[int, int], mavlink1: bool, now: float,
-              versions: Versions) -> None:
-        only_1 = versions.reads_only_1(source, mavlink1, now)
+    def heard(self, source: tuple[int, int], mavlink1: bool, now: float) -> None:
+        only_1 = self.versions.reads_only_1(source, mavlink1, now)
         if not mavlink1:
             self.mavlink1 = False
         elif only_1:
@@ -383,7 +388,6 @@ class Links:
         self._ids = itertools.count()
         self.sent = 0
         self.gone: list[int] = []  # ids of links closed since the last take_gone()
-        self.versions = Versions()  # each ground station's MAVLink, across links
         try:
             for url in urls:
                 scheme = vehicle_url(url).split(":", 1)[0]
@@ -423,7 +427,7 @@ class Links:
             for msg in link.receive():
                 if now is not None and msg.get_type() != "BAD_DATA":
                     link.framing.heard((msg.get_srcSystem(), msg.get_srcComponent()),
-                                       is_mavlink1(msg), now, self.versions)
+                                       is_mavlink1(msg), now)
                 yield k, msg
             if link.closed:
                 del self.links[k]
@@ -459,13 +463,21 @@ class Links:
         for link in list(self.links.values()):
             self.sent += self._send(link, msg)
 
-    def send(self, peer: Peer, msg: Any, *, mavlink2: bool = False) -> None:
-        """``msg`` on the link of ``peer`` (gone: nothing); ``mavlink2``: in MAVLink 2
+    def ids(self) -> list[int]:
+        """The ids of the links open now."""
+        return list(self.links)
+
+    def send_on(self, link_id: int, msg: Any, *, mavlink2: bool = False) -> None:
+        """``msg`` on link ``link_id`` (gone: nothing); ``mavlink2``: in MAVLink 2
         framing whatever the link's."""
-        link = self.links.get(peer[0])
+        link = self.links.get(link_id)
         if msg is None or link is None:
             return
         self.sent += self._send(link, msg, mavlink2)
+
+    def send(self, peer: Peer, msg: Any, *, mavlink2: bool = False) -> None:
+        """``msg`` on the link of ``peer`` (:meth:`send_on`)."""
+        self.send_on(peer[0], msg, mavlink2=mavlink2)
 
     def send_args(self, peer: Peer, name: str, args: tuple) -> None:
         """``<name>_send(target system, target component, *args)`` to ``peer``."""

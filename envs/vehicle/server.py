@@ -16,7 +16,8 @@ clock instead of drifting silently. ``--log`` receives the phone's records as th
 reach the file (:class:`sim.stepper.LogSink`, flushed): :meth:`VirtualVehicle._on_phone_records`
 is the one place the phone's records leave the simulation.
 
-Replies go to the link and system that asked; telemetry to every link; a ground
+Replies go to the link and system that asked; telemetry to every link, at that link's
+rates (MAV_CMD_SET_MESSAGE_INTERVAL sets them for its own link only); a ground
 station heard for the first time gets a HEARTBEAT at once (it need not wait a second to
 discover the vehicle). Every
 COMMAND_LONG and COMMAND_INT is answered with a COMMAND_ACK, malformed ones too (NaN
@@ -325,8 +326,14 @@ class VirtualVehicle:
         self.relay.relay(emitted)  # to the ground stations that asked (TUNNEL)
 
     def _publish_streams(self) -> None:
-        for msg_id in self.telemetry.streams.due(self.t_s):
-            self._broadcast(self.telemetry.build(msg_id))
+        """The streams that are due, each link at its own rates."""
+        built: dict[int, Any] = {}
+        for link in self.links.ids():
+            for msg_id in self.telemetry.streams_of(link).due(self.t_s):
+                if msg_id not in built:
+                    built[msg_id] = self.telemetry.build(msg_id)
+                self.links.send_on(link, built[msg_id])
+        self.stats.sent = self.links.sent
 
     def _wait(self, timeout_s: float) -> None:
         if timeout_s <= 0:
@@ -393,6 +400,7 @@ class VirtualVehicle:
         silent too long) end."""
         for link in self.links.take_gone():
             self.protocol.forget_link(link)
+            self.telemetry.forget(link)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -601,7 +609,7 @@ class VirtualVehicle:
         refusal also a STATUSTEXT saying why), then what was asked for."""
         ap = self.autopilot
         try:
-            result, why, after = self._decide(cmd, p, frame)
+            result, why, after = self._decide(peer, cmd, p, frame)
         except (ArithmeticError, ValueError, TypeError, KeyError) as exc:
             result, why, after = MAV_RESULT_FAILED, f"command {cmd} failed: {exc}", None
         self._ack(peer, cmd, result)
@@ -610,8 +618,10 @@ class VirtualVehicle:
         self._send_msg(peer, after)
         self._publish_events()
 
-    def _decide(self, cmd: int, p: list[float], frame: int | None) -> tuple[int, str, Any]:
-        """(MAV_RESULT, why, the message to send after the ACK or None)."""
+    def _decide(self, peer: Peer, cmd: int, p: list[float],
+                frame: int | None) -> tuple[int, str, Any]:
+        """(MAV_RESULT, why, the message to send after the ACK or None) for a command
+        from ``peer`` (message intervals: of its link)."""
         ap = self.autopilot
         if cmd == MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] == 1.0:
@@ -663,13 +673,14 @@ class VirtualVehicle:
             if not _is_message_id(p[0]):
                 return MAV_RESULT_DENIED, f"no message id {p[0]:g}", None
             msg_id = int(p[0])
+            streams = self.telemetry.streams_of(peer[0])
             if cmd == MAV_CMD_GET_MESSAGE_INTERVAL:
                 return MAV_RESULT_ACCEPTED, "", mavlink.MAVLink_message_interval_message(
-                    msg_id, self.telemetry.streams.interval_us(msg_id))
+                    msg_id, streams.interval_us(msg_id))
             if cmd == MAV_CMD_SET_MESSAGE_INTERVAL:
                 if not (math.isfinite(p[1]) and p[1] >= -1.0):
                     return MAV_RESULT_DENIED, f"message interval {p[1]:g} us", None
-                ok = self.telemetry.streams.set_interval(msg_id, p[1])
+                ok = streams.set_interval(msg_id, p[1])
                 return (MAV_RESULT_ACCEPTED if ok else MAV_RESULT_UNSUPPORTED), "", None
         if cmd in (MAV_CMD_REQUEST_MESSAGE, MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
                    MAV_CMD_GET_HOME_POSITION, MAV_CMD_REQUEST_PROTOCOL_VERSION):

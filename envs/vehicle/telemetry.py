@@ -5,9 +5,11 @@ Default rates are PX4's "normal" MAVLink mode (GLOBAL_POSITION_INT 5 Hz, ATTITUD
 ALTITUDE / LOCAL_POSITION_NED 1 Hz, HOME_POSITION and BATTERY_STATUS 0.5 Hz;
 TERRAIN_REPORT for its own position 1 Hz, as ArduPilot; GPS_GLOBAL_ORIGIN 0.1 Hz: the
 local frame of LOCAL_POSITION_NED and HOME_POSITION is the world's ENU frame, as NED),
-on the simulated clock (as PX4 SITL with a speed factor); MAV_CMD_SET_MESSAGE_INTERVAL
-changes them (also simulated time; ATTITUDE_QUATERNION is off until asked for, as in
-PX4's normal mode) and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most
+on the simulated clock (as PX4 SITL with a speed factor). Each link has its own
+:class:`Streams` (as PX4 keeps rates per MAVLink instance, ArduPilot per serial port):
+MAV_CMD_SET_MESSAGE_INTERVAL changes them for the link that asked only (also simulated
+time; ATTITUDE_QUATERNION is off until asked for, as in PX4's normal mode), a new link
+starts at the defaults, and MAV_CMD_REQUEST_MESSAGE sends one now. A stream is sent at most
 once per simulation step (0.2 s of simulated time up to a speed-up of 10, then up to
 1 s from 50x), so a faster stream is thinned to the step rate. HEARTBEAT goes at 1 Hz
 of wall time (it keeps ground stations' links alive whatever the speed-up) and at once
@@ -171,7 +173,8 @@ def _default_interval_s(msg_id: int) -> float:
 
 @dataclass
 class Streams:
-    """Which messages stream at which interval (simulated seconds) and when next."""
+    """Which messages stream at which interval (simulated seconds) and when next, on
+    one link."""
 
     interval_s: dict[int, float] = field(
         default_factory=lambda: {k: _default_interval_s(k)
@@ -216,8 +219,19 @@ class Telemetry:
     def __init__(self, autopilot: Autopilot) -> None:
         self.ap = autopilot
         self.last_fix: GnssFix | None = None
-        self.streams = Streams()
+        self.streams: dict[int, Streams] = {}  # per link id (envs.vehicle.links)
         self.fingerprint = world_fingerprint(autopilot.stepper.realisation)
+
+    def streams_of(self, link: int) -> Streams:
+        """The streams of link ``link`` (a new link: the defaults)."""
+        st = self.streams.get(link)
+        if st is None:
+            st = self.streams[link] = Streams()
+        return st
+
+    def forget(self, link: int) -> None:
+        """Link ``link`` is gone: its rates with it."""
+        self.streams.pop(link, None)
 
     def _time_ms(self) -> int:
         return int(self.ap.t_s * 1000.0) & 0xFFFFFFFF

@@ -77,9 +77,11 @@ def _f32(x: float) -> float:
 class Mavlink1Gcs:
     """A ground station that speaks and reads MAVLink 1 only (system 250)."""
 
-    def __init__(self, port: int, source_system: int = 250) -> None:
+    def __init__(self, port: int, source_system: int = 250, local_port: int = 0) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.settimeout(0.2)
+        if local_port:  # the address of a ground station that was there before
+            self.sock.bind((LOOPBACK, local_port))
         self.addr = (LOOPBACK, port)
         gcs = self
 
@@ -185,13 +187,14 @@ def test_a_mavlink1_ground_station_uploads_reads_back_and_arms() -> None:
 
 def test_a_mavlink2_ground_station_restarting_in_mavlink1_keeps_hearing_mavlink2() -> None:
     """QGroundControl starts in MAVLink 1 and switches on the first MAVLink 2 frame it
-    hears: the same ground station (255/190) heard in MAVLink 2 before and now writing
-    MAVLink 1 for longer than the grace keeps getting MAVLink 2, or it would never switch
-    back (and lose mission_type: no fence, no rally)."""
+    hears: the same ground station (255/190, from the same UDP port) heard in MAVLink 2
+    before and now writing MAVLink 1 for longer than the grace keeps getting MAVLink 2,
+    or it would never switch back (and lose mission_type: no fence, no rally)."""
     with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
         first = Gcs(rv.pymavlink_url)  # MAVLink 2, 255/190
+        local_port = first.conn.port.getsockname()[1]
         first.close()
-        again = Mavlink1Gcs(rv.port, source_system=255)
+        again = Mavlink1Gcs(rv.port, source_system=255, local_port=local_port)
         try:
             t0 = time.monotonic()
             while time.monotonic() - t0 < 3.0:  # past the 2 s grace, writing MAVLink 1
@@ -204,6 +207,28 @@ def test_a_mavlink2_ground_station_restarting_in_mavlink1_keeps_hearing_mavlink2
             assert all(d[0] == 0xFD for d in again.datagrams)  # MAVLink 2 frames
         finally:
             again.close()
+
+
+def test_the_same_ids_on_two_links_each_get_their_own_mavlink_version() -> None:
+    """A MAVLink 2 ground station and a MAVLink 1-only one with the same ids (255/190)
+    on two links (two addresses on the vehicle's udpin port): the MAVLink 1 one gets
+    MAVLink 1 frames once its grace is over, the other keeps MAVLink 2. The version
+    used to be remembered by ids across links: the MAVLink 1 one heard MAVLink 2 frames
+    it cannot read for ever."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        two = Gcs(rv.pymavlink_url)  # MAVLink 2, 255/190
+        one = Mavlink1Gcs(rv.port, source_system=255)
+        try:
+            assert two.wait("GLOBAL_POSITION_INT").get_msgbuf()[0] == 0xFD
+            # in MAVLink 1 framing once its grace is over (generous: a loaded machine)
+            one.wait("GLOBAL_POSITION_INT", 30.0, where=lambda m: m.get_msgbuf()[0] == 0xFE)
+            two.messages.clear()
+            two.wait("GLOBAL_POSITION_INT")
+            assert two.messages and all(m.get_msgbuf()[0] == 0xFD for m in two.messages)
+            assert len(rv.vehicle.links.links) == 2
+        finally:
+            one.close()
+            two.close()
 
 
 def test_a_legacy_upload_loop_is_asked_with_mission_request() -> None:
@@ -676,7 +701,9 @@ def test_attitude_quaternion_on_request() -> None:
         yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y ** 2 + q.z ** 2))
         _, _, attitude_yaw = rv.vehicle.telemetry._attitude()  # ATTITUDE's yaw
         assert yaw == pytest.approx(attitude_yaw, abs=1e-3)  # landed: the nose stays
-        assert rv.vehicle.telemetry.streams.interval_us(31) == 200_000
+        # on MAVSDK's link (the only one)
+        assert [st.interval_us(31) for st in rv.vehicle.telemetry.streams.values()] == \
+            [200_000]
 
 
 def test_a_fence_item_sent_as_a_mission_item_ends_the_upload_at_once() -> None:

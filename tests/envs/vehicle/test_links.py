@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import socket
+import time
 
 import pytest
 from pymavlink.dialects.v20.common import (
@@ -38,6 +39,7 @@ from pymavlink.dialects.v20.common import (
 
 from envs.vehicle import VirtualVehicle, links
 from envs.vehicle.px4 import Mode
+from envs.vehicle.telemetry import Streams
 from planner.mavlink import mavutil
 from sim import load_scenario
 from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port, until
@@ -178,7 +180,7 @@ def test_every_command_is_acknowledged_malformed_ones_too() -> None:
     with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
         ap = rv.autopilot
         home = (ap.home.lat_deg, ap.home.lon_deg, ap.home.alt_m)
-        intervals = dict(rv.vehicle.telemetry.streams.interval_s)
+        intervals = Streams().interval_s  # the defaults
         gcs = Gcs(rv.pymavlink_url)
         try:
             got = []
@@ -198,8 +200,61 @@ def test_every_command_is_acknowledged_malformed_ones_too() -> None:
         # nothing changed
         assert (ap.home.lat_deg, ap.home.lon_deg, ap.home.alt_m) == home
         assert not ap.armed and ap.mode is Mode.LOITER and ap.landed
-        assert rv.vehicle.telemetry.streams.interval_s == intervals
+        streams = list(rv.vehicle.telemetry.streams.values())
+        assert streams and all(st.interval_s == intervals for st in streams)
         assert rv.vehicle._bad_kinds == set()  # no message it could not handle
+
+
+def test_message_rates_are_per_link() -> None:
+    """SET_MESSAGE_INTERVAL on one link (ATTITUDE at 1 Hz, ATTITUDE_QUATERNION at 10 Hz)
+    changes nothing on another (two addresses on the vehicle's udpin port), as PX4 keeps
+    rates per MAVLink instance and ArduPilot per serial port; GET_MESSAGE_INTERVAL tells
+    each link its own. Messages are counted over 10 s of the vehicle's simulated clock
+    (their time_boot_ms). The rates used to be the vehicle's: the other link got 1 Hz
+    ATTITUDE and the quaternions too."""
+    from pymavlink.dialects.v20.common import (
+        MAVLINK_MSG_ID_ATTITUDE,
+        MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
+    )
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=5.0) as rv:
+        a, b = Gcs(rv.pymavlink_url), Gcs(rv.pymavlink_url)
+        try:
+            assert until(lambda: len(rv.vehicle.links.links) == 2, 15.0)
+            for msg_id, interval_us in ((MAVLINK_MSG_ID_ATTITUDE, 1e6),
+                                        (MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 1e5)):
+                assert a.command(MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us) == \
+                    MAV_RESULT_ACCEPTED
+            told = {}
+            for name, gcs in (("a", a), ("b", b)):
+                assert gcs.command(MAV_CMD_GET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_ATTITUDE) == \
+                    MAV_RESULT_ACCEPTED
+                told[name] = gcs.wait("MESSAGE_INTERVAL", where=lambda m: m.message_id
+                                      == MAVLINK_MSG_ID_ATTITUDE).interval_us
+            assert told == {"a": 1_000_000, "b": 100_000}
+            t0_ms = (rv.vehicle.t_s + 1.0) * 1000.0  # from a moment after the change
+            t1_ms = t0_ms + 10_000.0
+            counts = {(g, k): 0 for g in "ab" for k in ("ATTITUDE", "ATTITUDE_QUATERNION")}
+            done = {"a": False, "b": False}
+            deadline = time.monotonic() + 120.0
+            while not all(done.values()) and time.monotonic() < deadline:
+                for name, gcs in (("a", a), ("b", b)):
+                    m = gcs.recv(0.05)
+                    if m is None or not hasattr(m, "time_boot_ms"):
+                        continue
+                    if m.time_boot_ms >= t1_ms:
+                        done[name] = True
+                    elif m.time_boot_ms >= t0_ms and (name, m.get_type()) in counts:
+                        counts[name, m.get_type()] += 1
+            assert all(done.values())
+        finally:
+            a.close()
+            b.close()
+    # 10 Hz streams are thinned to the simulation steps (0.2 s of simulated time or less)
+    assert 9 <= counts["a", "ATTITUDE"] <= 11
+    assert 40 <= counts["a", "ATTITUDE_QUATERNION"] <= 101
+    assert 40 <= counts["b", "ATTITUDE"] <= 101
+    assert counts["b", "ATTITUDE_QUATERNION"] == 0
 
 
 def test_tcpin_that_cannot_listen_is_one_line() -> None:
