@@ -8,7 +8,9 @@ is never flown. The vehicle re-requests an unanswered item every ``retry_s`` and
 drops a transfer that makes no progress for ``timeout_s`` (wall clock; PX4: 250 ms
 and 5 s). A resent last item after the final ACK is acknowledged again (the ACK was
 lost), a resent earlier item is answered with a request for the one expected, an
-item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE. One upload per
+item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE, an item of another
+list answering the pending request ends it with MAV_MISSION_ERROR
+(:meth:`MissionServer._wrong_type`). One upload per
 list at a time: a second ground station gets MAV_MISSION_DENIED while one runs. A ground
 station is its MAVLink identity (system and component), as PX4 keeps it: the same one
 starting again on another link (it reconnected, its old TCP connection half-open)
@@ -168,13 +170,12 @@ class MissionServer:
         if rx is not None and rx.peer == peer:
             rx.float_form = float_form
         if rx is None or rx.peer != peer:
+            if self._wrong_type(peer, w):
+                return
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
                 self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
-                return
-            if rx is None:
-                self._wrong_type(peer, w)
-            return
+            return  # else a late duplicate: ignored
         n = len(rx.items)
         if w.seq < n:
             self._request(rx)  # a resend of an item we hold: ask for the next one
@@ -199,14 +200,20 @@ class MissionServer:
         self._commit(peer, rx.mission_type, rx.items)
         self._ack(peer, MAV_MISSION_ACCEPTED, rx.mission_type)
 
-    def _wrong_type(self, peer: Peer, w: WireItem) -> None:
-        """An item answering this ground station's pending request (its sequence) but
-        for another list (a script that left ``mission_type`` at 0 in a fence upload):
-        that transfer ends with MAV_MISSION_ERROR at once, as PX4 answers it, instead of
-        re-requests until the timeout. The held list stays."""
+    def _wrong_type(self, peer: Peer, w: WireItem) -> bool:
+        """Whether ``w``, an item for a list this ground station is not uploading,
+        answers its pending request of another list (its sequence; a script that left
+        ``mission_type`` at 0 in a fence upload): then that transfer ends with
+        MAV_MISSION_ERROR at once, as PX4 answers an item of another type than the
+        transfer's, instead of re-requests until the timeout; so too while another
+        ground station uploads the item's list, and before a resent last item of an
+        earlier upload is acknowledged again. The held lists stay."""
+        hit = False
         for t, rx in list(self._rx.items()):
             if rx.peer == peer and t != w.mission_type and w.seq == len(rx.items):
                 self._refuse(peer, MAV_MISSION_ERROR, t)
+                hit = True
+        return hit
 
     def on_item_int(self, peer: Peer, msg: Any) -> None:
         self.on_item(peer, WireItem.from_msg(msg))

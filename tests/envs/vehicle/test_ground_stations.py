@@ -19,7 +19,8 @@ failed before its fix.
   ALTITUDE and LOCAL_POSITION_NED streams, GPS_GLOBAL_ORIGIN on request).
 - A TCP ground station that reconnects mid-upload, or hangs up, locks no one out; two
   ground stations on one ``udpin`` port each get their own answers only; one heard in
-  MAVLink 2 that restarts in MAVLink 1 (QGroundControl) keeps hearing MAVLink 2.
+  MAVLink 2 that restarts in MAVLink 1 (QGroundControl) keeps hearing MAVLink 2; a
+  MAVLink 1 and a MAVLink 2 one with the same ids on two links each get their own.
 - MAVSDK as a companion computer (the vehicle's own system id) is answered.
 - LOG_REQUEST_LIST, PING, partial mission lists, standard (base-only) mode changes, a
   fence item sent with the mission's type, are answered at once, never left waiting.

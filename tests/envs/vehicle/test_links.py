@@ -2,8 +2,9 @@
 
 Over ``tcpin`` the vehicle accepts any number of pymavlink TCP clients: an idle one
 (connected first, never reading or writing) locks no one out, every client gets the
-telemetry, each one's commands are answered to it alone, a client whose buffers are
-full only loses its own (whole) messages, and one that hangs up is forgotten. Every COMMAND_LONG
+telemetry (at its own link's rates), each one's commands are answered to it alone, a
+client whose buffers are full only loses its own (whole) messages, and one that hangs
+up is forgotten. Every COMMAND_LONG
 and COMMAND_INT is acknowledged, malformed ones too (a table of NaN and out-of-range
 parameters with the MAV_RESULT each gets), and none of them changes the vehicle."""
 

@@ -14,6 +14,9 @@ from pymavlink.dialects.v20.common import (
     MAV_MISSION_DENIED as MISSION_DENIED,
 )
 from pymavlink.dialects.v20.common import (
+    MAV_MISSION_ERROR as MISSION_ERROR,
+)
+from pymavlink.dialects.v20.common import (
     MAV_MISSION_INVALID_PARAM1 as MISSION_INVALID_PARAM1,
 )
 from pymavlink.dialects.v20.common import (
@@ -201,6 +204,56 @@ def test_download_clear_and_count_zero() -> None:
     link.take()
     link.server.on_count(GCS, 0, MAV_MISSION_TYPE_MISSION)  # PX4: a count of 0 clears
     assert link.acks() == [MISSION_ACCEPTED] and link.server.held[0] == []
+
+
+def _fence_item(seq: int, mission_type: int = MAV_MISSION_TYPE_FENCE) -> WireItem:
+    return WireItem(seq=seq, frame=0, command=5003, current=0, autocontinue=0, param1=1.0,
+                    param2=0.0, param3=0.0, param4=0.0, x=367150000, y=-44780000, z=0.0,
+                    mission_type=mission_type)
+
+
+@pytest.mark.parametrize("before", ["nothing", "another uploads the mission",
+                                    "its own mission uploaded"])
+def test_an_item_of_the_wrong_list_answering_a_pending_request_ends_that_upload(
+        before: str) -> None:
+    """A fence item sent with ``mission_type`` 0 answering this ground station's pending
+    fence request ends the fence upload with MAV_MISSION_ERROR at once (as PX4 answers an
+    item of another type than the transfer's), whatever else is going on with the
+    mission list: nothing; another ground station uploading it (the item used to be
+    ignored: re-requests until the 5 s timeout); this ground station's own last mission
+    ending at that sequence (it used to be taken for a resent last item: the mission was
+    ACCEPTED again). The held lists and the other's upload stay."""
+    link = Link()
+    if before == "another uploads the mission":
+        link.server.on_count(OTHER, 3, MAV_MISSION_TYPE_MISSION)
+    elif before == "its own mission uploaded":
+        upload(link, [wp(0)])
+    held = {t: list(v) for t, v in link.server.held.items()}
+    link.take()
+    link.server.on_count(GCS, 1, MAV_MISSION_TYPE_FENCE)
+    assert link.take() == [(GCS, "mission_request_int", (0, MAV_MISSION_TYPE_FENCE))]
+    link.server.on_item(GCS, _fence_item(0, mission_type=MAV_MISSION_TYPE_MISSION))
+    assert link.take() == [(GCS, "mission_ack", (MISSION_ERROR, MAV_MISSION_TYPE_FENCE))]
+    assert link.server.held == held
+    other_uploading = before == "another uploads the mission"
+    assert (MAV_MISSION_TYPE_MISSION in link.server._rx) == other_uploading
+    assert MAV_MISSION_TYPE_FENCE not in link.server._rx
+
+
+def test_an_item_of_another_list_not_answering_a_request_is_not_an_error() -> None:
+    """Without a pending request at its sequence, an item for a list this ground station
+    is not uploading is a late duplicate (ignored), or its last item resent (its ACK was
+    lost: ACCEPTED again)."""
+    link = Link()
+    upload(link, [wp(0), wp(1)])
+    link.take()
+    link.server.on_count(GCS, 2, MAV_MISSION_TYPE_FENCE)
+    link.take()
+    link.server.on_item(GCS, wp(1))  # not the pending fence request (seq 0): a resend
+    assert link.take() == [(GCS, "mission_ack", (MISSION_ACCEPTED, MAV_MISSION_TYPE_MISSION))]
+    link.server.on_item(OTHER, wp(1))  # someone else's late duplicate
+    assert link.take() == []
+    assert link.server.uploading  # the fence upload goes on
 
 
 def test_int32_max_is_no_position_only_for_a_mission_item() -> None:
