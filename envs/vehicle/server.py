@@ -72,7 +72,6 @@ from pymavlink.dialects.v20.common import (
     MAV_SEVERITY_CRITICAL,
     MAV_SEVERITY_INFO,
     MAV_SEVERITY_WARNING,
-    MAV_TYPE_GCS,
     MAVLINK_MSG_ID_AUTOPILOT_VERSION,
     MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
     MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
@@ -134,7 +133,6 @@ class _Link:
     last_rx_wall: float = -math.inf
     seen: bool = False
     lost: bool = False
-    gcs: set[tuple[int, int]] = field(default_factory=set)
     peers: set[Peer] = field(default_factory=set)  # (link, system, component) heard from
 
 
@@ -444,10 +442,6 @@ class VirtualVehicle:
 
     def _on_tunnel(self, peer: Peer, msg: Any) -> None:
         self.relay.on_tunnel(msg, self.t_s)
-
-    def _on_heartbeat(self, peer: Peer, msg: Any) -> None:
-        if msg.type == MAV_TYPE_GCS:
-            self._link.gcs.add(peer[1:])
 
     # mission protocol
     def _on_mission_count(self, peer: Peer, msg: Any) -> None:

@@ -124,7 +124,7 @@ def test_link_dies_half_way_through_osa_upload(tmp_path: Path, capsys) -> None:
         assert "the vehicle does not hold the mission" in err
         assert elapsed < (124 + 3) * 4 * 0.2  # the whole-transfer bound
         assert rv.held() == old
-        assert _until(lambda: not rv.vehicle.protocol.uploading, 3.0)  # dropped, not flown
+        assert _until(lambda: not rv.vehicle.protocol.uploading, 30.0)  # dropped, not flown
         assert rv.held() == old
 
 
@@ -215,15 +215,15 @@ def test_ground_station_disappears() -> None:
         assert gcs.command(400, 1) == 0 and gcs.command(22, 0, 0, 0, math.nan, math.nan,
                                                          math.nan, math.nan) == 0
         ap = rv.autopilot
-        assert _until(lambda: ap.mode is Mode.LOITER and not ap.landed, 10.0)
+        assert _until(lambda: ap.mode is Mode.LOITER and not ap.landed, 30.0)
         gcs.close()
-        assert _until(lambda: ap.mode is Mode.RTL, 5.0)  # NAV_DLL_ACT 2 after 0.5 s
+        assert _until(lambda: ap.mode is Mode.RTL, 30.0)  # NAV_DLL_ACT 2 after 0.5 s
         assert _until(lambda: not ap.armed, 40.0)
         # a ground station coming back is served again
         gcs = Gcs(rv.pymavlink_url)
         assert gcs.command(512, 148) == 0
         gcs.close()
-        assert _until(lambda: not rv.vehicle._link.lost, 2.0)
+        assert _until(lambda: not rv.vehicle._link.lost, 30.0)
 
 
 def test_upload_timeout_is_bounded_when_the_vehicle_is_gone() -> None:

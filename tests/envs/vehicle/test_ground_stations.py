@@ -300,7 +300,10 @@ def test_mavsdk_altitude_local_position_and_origin() -> None:
     with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv, \
             mavsdk_gcs(rv.mavsdk_url) as system:
         t = Telemetry(system)
-        assert _until(lambda: math.isfinite(t.altitude().altitude_amsl_m), 20.0)
+        # each stream arrives on its own: wait for all three (under load one comes late)
+        assert _until(lambda: math.isfinite(t.altitude().altitude_amsl_m)
+                      and math.isfinite(t.position().absolute_altitude_m)
+                      and math.isfinite(t.position_velocity_ned().position.down_m), 30.0)
         origin = t.get_gps_global_origin()
         f = rv.autopilot.frame
         assert (origin.latitude_deg, origin.longitude_deg) == pytest.approx(

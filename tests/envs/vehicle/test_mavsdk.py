@@ -94,7 +94,7 @@ def test_mavsdk_mission_action_and_telemetry() -> None:
         telemetry.subscribe_position(on_position)
         assert action.get_takeoff_altitude() == pytest.approx(2.5)  # MIS_TAKEOFF_ALT
         action.arm()
-        assert _until(telemetry.armed, 3.0)
+        assert _until(telemetry.armed, 30.0)
         mission.start_mission()
         assert _until(mission.is_mission_finished, 30.0), progress[-3:]
         # MAVSDK may call the progress callback after it reports the mission finished:
@@ -121,11 +121,11 @@ def test_mavsdk_mission_action_and_telemetry() -> None:
         # Action: hold, then a take-off in the air is accepted and changes nothing
         # (MAVLink: TAKEOFF when flying is idempotent), then return and land
         action.hold()
-        assert _until(lambda: telemetry.flight_mode().name == "HOLD", 3.0)
+        assert _until(lambda: telemetry.flight_mode().name == "HOLD", 30.0)
         action.takeoff()
         assert telemetry.flight_mode().name == "HOLD" and rv.autopilot.mode.name == "LOITER"
         action.return_to_launch()
-        assert _until(lambda: telemetry.flight_mode().name == "RETURN_TO_LAUNCH", 3.0)
+        assert _until(lambda: telemetry.flight_mode().name == "RETURN_TO_LAUNCH", 30.0)
         assert _until(lambda: not telemetry.armed(), 40.0)
         assert telemetry.landed_state().name == "ON_GROUND"
 
@@ -157,11 +157,14 @@ def test_mavsdk_missionraw_and_action_takeoff() -> None:
         assert compare_wire(mission_to_wire(m), [WireItem.from_msg(r) for r in raw]) == []
         action, telemetry = Action(system), Telemetry(system)
         action.set_takeoff_altitude(8.0)  # PARAM_SET MIS_TAKEOFF_ALT
-        assert _until(lambda: ap.params["MIS_TAKEOFF_ALT"] == 8.0, 2.0)
+        assert _until(lambda: ap.params["MIS_TAKEOFF_ALT"] == 8.0, 30.0)
+        modes: list[str] = []  # every mode MAVSDK reports (TAKEOFF may last one heartbeat)
+        telemetry.subscribe_flight_mode(lambda mode, _ud: modes.append(mode.name))
         action.arm()
         action.takeoff()
-        assert _until(lambda: telemetry.flight_mode().name == "TAKEOFF", 3.0)
-        assert _until(lambda: telemetry.flight_mode().name == "HOLD", 20.0)
+        assert _until(lambda: "HOLD" in modes[modes.index("TAKEOFF"):]
+                      if "TAKEOFF" in modes else False, 30.0), modes
+        assert telemetry.flight_mode().name == "HOLD"
         assert telemetry.position().relative_altitude_m == pytest.approx(8.0, abs=1.0)
         action.land()
         assert _until(lambda: not telemetry.armed(), 20.0)
