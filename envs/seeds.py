@@ -15,6 +15,10 @@ test        2 000 000 ... 2 000 999 ``osa evaluate --split test``, the
                                     benchmarks comparing policies
 ==========  ======================  ==============================================
 
+A world seed is an integer from 0 to :data:`MAX_SEED` = 2^63 - 1, for every command
+(``--seed``, ``--first-seed``: :func:`check_seed`): numpy's ``SeedSequence`` takes any
+integer >= 0, and ``osa evaluate`` keeps seeds in int64 columns.
+
 Without ``--split``, ``osa evaluate`` takes seeds K, K+1, ... from ``--first-seed K``
 (default 0, the command-line contract's default and the numbers ``osa search --seed``
 takes: for reproducing one world, or for the presets' own examples, which use small
@@ -22,6 +26,8 @@ seeds); comparisons that a trained policy enters belong on ``--split test``.
 """
 
 from __future__ import annotations
+
+MAX_SEED = 2**63 - 1  # a world seed is an integer 0 .. MAX_SEED (docs/cli.md, Conventions)
 
 SPLITS: dict[str, tuple[int, int]] = {
     "train": (0, 1_000_000),
@@ -48,3 +54,13 @@ def split_of(seed: int) -> str | None:
         if lo <= seed < hi:
             return name
     return None
+
+
+def check_seed(seed: int) -> int:
+    """``seed`` if it is a world seed (an int 0 .. :data:`MAX_SEED`), else ValueError
+    with a one-line reason."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"a seed is an integer, not {seed!r}")
+    if not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"a seed is an integer from 0 to 2^63 - 1 ({MAX_SEED}), not {seed}")
+    return seed

@@ -57,3 +57,18 @@ def non_negative_int(text: str) -> int:
     if v < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
     return v
+
+
+
+def seed_arg(text: str) -> int:
+    """A world seed (:func:`envs.seeds.check_seed`: an integer 0 .. 2^63 - 1)."""
+    from envs.seeds import check_seed
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    try:
+        return check_seed(v)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
