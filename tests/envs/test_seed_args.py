@@ -62,3 +62,25 @@ def test_check_seed_bounds_and_the_world_of_the_largest():
     far, zero = realise(sc, MAX_SEED).world, realise(sc, 0).world
     assert len(far.responders) == len(zero.responders) >= 1
     assert np.abs(far.responder_enu_m() - zero.responder_enu_m()).max() > 1.0
+
+
+@pytest.mark.parametrize("seed", [str(2**32), "-1"])
+def test_a_training_seed_past_2_32_is_one_line_not_an_internal_error(seed, capsys, tmp_path):
+    """Before: ``osa train --seed 2^40`` was an internal error (torch's and NumPy's
+    global seeding take 0 .. 2^32 - 1)."""
+    out = tmp_path / "model"
+    assert status_of(["train", "--seed", seed, "--steps", "8", "-o", str(out)]) == 2
+    assert one_line(capsys) == (f"osa: error: argument --seed: a seed is an integer from 0 "
+                                f"to 2^32 - 1 (4294967295), not {seed}")
+    assert not out.exists()
+
+
+def test_a_sweep_task_seed_past_2_32_is_refused(tmp_path):
+    from envs.sweep import SweepError, read_sweep
+
+    p = tmp_path / "sweep.toml"
+    p.write_text(f'steps = 8\n[[task]]\nname = "a"\nseed = {2**32}\n')
+    with pytest.raises(SweepError, match=r"seed: a seed is an integer from 0 to 2\^32 - 1"):
+        read_sweep(p, {})
+    p.write_text(f'steps = 8\n[[task]]\nname = "a"\nseed = {2**32 - 1}\n')
+    assert read_sweep(p, {})[0]["seed"] == 2**32 - 1
