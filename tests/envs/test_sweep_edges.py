@@ -67,6 +67,25 @@ def test_the_expanding_square_searches_the_reachable_part_without_hovering(tmp_p
     assert (near < 60.0).mean() > 0.5
 
 
+def test_a_pattern_with_nothing_reachable_flies_the_lawnmower_of_the_reachable_part(tmp_path):
+    from planner.coverage import PatternPolicy
+
+    class North:  # a pattern wholly beyond the wall
+        name = "north"
+
+        def waypoints(self, mission, spacing_m, heading_deg):
+            return [(-200.0, 100.0), (200.0, 100.0), (200.0, 200.0)]
+
+    p = tmp_path / "cut.toml"
+    p.write_text(BASE + WALL)
+    mission = mission_of(load_scenario(p))
+    policy = PatternPolicy(North())
+    policy.reset(mission, np.random.default_rng(0))
+    wps = np.asarray(policy.waypoints)
+    assert len(wps) >= 2 and wps[:, 1].max() < -100.0  # the south part's sweep
+    assert np.ptp(wps[:, 0]) > 200.0  # its two tracks (spacing 281 m), 250 m apart
+
+
 def test_the_waypoint_env_never_flies_below_a_keep_out_it_flies_over():
     """site-valley's power-line corridor (top 25 m) is flown over at the search height
     45 m: random:waypoint flew it at 22 m above the ground (seed 2, RTK) before."""
