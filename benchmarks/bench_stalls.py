@@ -16,30 +16,15 @@ random waypoints.
 from __future__ import annotations
 
 import argparse
-import math
-
-import numpy as np
 
 import sim
-from envs.loop import ClosedLoop, fly
+from envs.loop import HOVER_RADIUS_M, ClosedLoop, fly, longest_hover_s
 from envs.policies import load_policy
 from envs.seeds import split_seeds
 
-STILL_M = 3.0
+STILL_M = HOVER_RADIUS_M
 HOVER_S = 60.0  # "stands still": this long within STILL_M
-
-
-def longest_still_s(track) -> float:
-    """The longest time a track of (t, e, n, u) stayed within STILL_M of one point."""
-    t = np.asarray(track, dtype=float)
-    if len(t) < 2:
-        return 0.0
-    best, i = 0.0, 0
-    for j in range(1, len(t)):
-        while math.dist(t[j, 1:4], t[i, 1:4]) > STILL_M:
-            i += 1
-        best = max(best, float(t[j, 0] - t[i, 0]))
-    return best
+longest_still_s = longest_hover_s  # the longest time a track stayed within STILL_M
 
 
 def search_run(scenario, policy: str, seed: int) -> tuple[float, float, int, str]:

@@ -7,11 +7,15 @@ budget cut to ``--budget-s`` (0: the scenario's own), and checked for:
 - an exception (the traceback's last frame is printed),
 - a number in the report that is not finite,
 - the true path leaving the area or entering a keep-out below its top (worst excursion,
-  metres; ``--tolerance-m`` allowed for the controller's wander),
+  metres, ``ClosedLoop.excursion_m``; ``--tolerance-m`` allowed for the controller's
+  wander),
 - stalls the loop detected and the longest time still while a segment was pending,
 - a hover: the vehicle within 3 m of one point for ``--hover-s`` or longer, whatever
-  the policy asked (``bench_stalls.longest_still_s``; the env's ``return`` holds too),
+  the policy asked (``envs.loop.longest_hover_s``; the env's ``return`` holds too),
 - with ``--repeat``: a second identical run whose report or log differs.
+
+The last line counts the searches and those with a problem, and names the farthest
+excursion (tolerated or not) with its policy, scenario and seed.
 
     python benchmarks/bench_sweep.py --budget-s 240 --seeds 0,1,2147483647,4294967301
     python benchmarks/bench_sweep.py --scenarios suite/r5-h30-sa-u2 --policies team:adaptive
@@ -30,7 +34,6 @@ import time
 import traceback
 from pathlib import Path
 
-import numpy as np
 from bench_stalls import longest_still_s
 
 from envs.loop import ClosedLoop, fly
@@ -62,24 +65,6 @@ def non_finite(obj, path: str = "") -> list[str]:
     return []
 
 
-def excursion_m(loop: ClosedLoop) -> float:
-    """The farthest the true path went outside the area or into a keep-out below its
-    top (0 when it never did)."""
-    area = loop.mission.area
-    terrain = loop.world.terrain
-    worst = 0.0
-    for track in loop.true_tracks():
-        xy = np.asarray(track)[:, :2]
-        worst = max(worst, float(np.max(area.signed_distance_m(xy), initial=0.0)))
-        for k in area.keep_outs:
-            inside = -k.signed_distance_m(xy)
-            if k.top_m is not None:  # flown over: only below its top counts
-                agl = np.asarray(track)[:, 2] - terrain.height_m(xy[:, 0], xy[:, 1])
-                inside = np.where(agl < k.top_m, inside, 0.0)
-            worst = max(worst, float(np.max(inside, initial=0.0)))
-    return worst
-
-
 def one_run(scenario, policy: str, seed: int, log: Path | None) -> dict:
     logs = None if log is None else [log.with_suffix(f".{i}.jsonl")
                                       for i in range(len(scenario.agents))]
@@ -90,7 +75,7 @@ def one_run(scenario, policy: str, seed: int, log: Path | None) -> dict:
     report.pop("logs", None)  # the file names differ between the two runs
     out = {
         "ended": res.ended, "flight_time_s": res.flight_time_s,
-        "nonfinite": non_finite(report), "excursion_m": excursion_m(loop),
+        "nonfinite": non_finite(report), "excursion_m": loop.excursion_m(),
         "stalls": len(loop.stalls),
         "still_pending_s": max(loop.longest_still_s(i) for i in range(len(loop.nav_track))),
         # the UAVs the policy flies: one-UAV policies leave the others at take-off
@@ -174,7 +159,11 @@ def main() -> None:
     n_bad = sum(1 for r in rows if "error" in r or r.get("nonfinite") or r.get("stalls")
                 or r.get("excursion_m", 0) > a.tolerance_m or r.get("same") is False
                 or r.get("still_s", 0) >= a.hover_s)
-    print(f"{len(rows)} searches, {n_bad} with a problem, "
+    far = max(rows, key=lambda r: r.get("excursion_m", 0.0))
+    where = (f" ({far['policy']} on {far['scenario']}, seed {far['seed']})"
+             if far.get("excursion_m", 0.0) > 0 else "")
+    print(f"{len(rows)} searches, {n_bad} with a problem, farthest outside "
+          f"{far.get('excursion_m', 0.0):.1f} m{where}, "
           f"{sum(r['cpu_s'] for r in rows) / 60:.1f} CPU min")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))

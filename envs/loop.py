@@ -184,11 +184,26 @@ class _Progress:
     longest_still_s: float = 0.0  # evaluation: the longest still time while pending
 
 
+HOVER_RADIUS_M = 3.0  # "still": within this of one point (evaluation, the benchmarks)
+
+
 def planned_still_s(traj: Trajectory, radius_m: float) -> float:
     """The longest time the plan itself keeps the vehicle within ``radius_m`` of one
     point (its hovers and slow climbs): not a stall."""
-    p = np.asarray(traj.enu_m, dtype=float)
-    t = np.asarray(traj.t_s, dtype=float)
+    return _longest_within_s(traj.t_s, traj.enu_m, radius_m)
+
+
+def longest_hover_s(track, radius_m: float = HOVER_RADIUS_M) -> float:
+    """Evaluation: the longest time a track of (t, e, n, u) rows (``nav_track``) stayed
+    within ``radius_m`` of one point, whatever the policy asked (a hover it asked for
+    counts too; :meth:`ClosedLoop.longest_still_s` counts only pending segments)."""
+    rows = np.asarray(track, dtype=float).reshape(-1, 4)
+    return _longest_within_s(rows[:, 0], rows[:, 1:4], radius_m)
+
+
+def _longest_within_s(t_s, enu_m, radius_m: float) -> float:
+    p = np.asarray(enu_m, dtype=float)
+    t = np.asarray(t_s, dtype=float)
     best, i = 0.0, 0
     for j in range(1, len(p)):
         while float(np.linalg.norm(p[j] - p[i])) > radius_m:
@@ -497,6 +512,25 @@ class ClosedLoop:
 
     def true_tracks(self) -> list[np.ndarray]:
         return self.vehicle.true_tracks()
+
+    def excursion_m(self) -> float:
+        """The farthest the true path of any agent went outside the area or into a
+        keep-out below its top, in metres (0 when it never did; evaluation only:
+        ``benchmarks/bench_sweep.py``'s check)."""
+        area = self.mission.area
+        terrain = self.world.terrain
+        worst = 0.0
+        for track in self.true_tracks():
+            xyz = np.asarray(track)
+            xy = xyz[:, :2]
+            worst = max(worst, float(np.max(area.signed_distance_m(xy), initial=0.0)))
+            for k in area.keep_outs:
+                inside = -k.signed_distance_m(xy)
+                if k.top_m is not None:  # flown over: only below its top counts
+                    agl = xyz[:, 2] - terrain.height_m(xy[:, 0], xy[:, 1])
+                    inside = np.where(agl < k.top_m, inside, 0.0)
+                worst = max(worst, float(np.max(inside, initial=0.0)))
+        return worst
 
 
 @dataclass

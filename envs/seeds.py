@@ -15,6 +15,12 @@ test        2 000 000 ... 2 000 999 ``osa evaluate --split test``, the
                                     benchmarks comparing policies
 ==========  ======================  ==============================================
 
+A world seed is an integer from 0 to :data:`MAX_SEED` = 2^63 - 1, for every command
+(``--seed``, ``--first-seed``: :func:`check_seed`): numpy's ``SeedSequence`` takes any
+integer >= 0, and ``osa evaluate`` keeps seeds in int64 columns. The seed of a training
+(``osa train --seed``, a sweep task's ``seed``) also seeds torch and NumPy's global
+generator, which take 0 .. 2^32 - 1 (``check_seed(seed, TRAIN_SEED_BITS)``).
+
 Without ``--split``, ``osa evaluate`` takes seeds K, K+1, ... from ``--first-seed K``
 (default 0, the command-line contract's default and the numbers ``osa search --seed``
 takes: for reproducing one world, or for the presets' own examples, which use small
@@ -22,6 +28,9 @@ seeds); comparisons that a trained policy enters belong on ``--split test``.
 """
 
 from __future__ import annotations
+
+MAX_SEED = 2**63 - 1  # a world seed is an integer 0 .. MAX_SEED (docs/cli.md, Conventions)
+TRAIN_SEED_BITS = 32  # osa train's seed: torch's and NumPy's global seeding take 0 .. 2^32 - 1
 
 SPLITS: dict[str, tuple[int, int]] = {
     "train": (0, 1_000_000),
@@ -48,3 +57,14 @@ def split_of(seed: int) -> str | None:
         if lo <= seed < hi:
             return name
     return None
+
+
+def check_seed(seed: int, bits: int = 63) -> int:
+    """``seed`` if it is a seed (an int 0 .. 2^bits - 1: a world seed by default, up to
+    :data:`MAX_SEED`), else ValueError with a one-line reason."""
+    largest = 2**bits - 1
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"a seed is an integer, not {seed!r}")
+    if not 0 <= seed <= largest:
+        raise ValueError(f"a seed is an integer from 0 to 2^{bits} - 1 ({largest}), not {seed}")
+    return seed

@@ -40,6 +40,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from envs.seeds import TRAIN_SEED_BITS, check_seed
+
 TASK_KEYS = ("name", "env", "scenario", "uavs", "steps", "seed", "algo", "envs", "vec",
              "eval_every", "eval_worlds", "ppo")
 PPO_KEYS = ("n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "ent_coef",
@@ -54,8 +56,13 @@ class SweepError(ValueError):
 
 
 def _check_value(key: str, v, where: str) -> None:
-    ints = {"uavs": 1, "steps": 1, "seed": 0, "envs": 1, "eval_every": 0, "eval_worlds": 1}
-    if key in ints:
+    ints = {"uavs": 1, "steps": 1, "envs": 1, "eval_every": 0, "eval_worlds": 1}
+    if key == "seed":
+        try:
+            check_seed(v, TRAIN_SEED_BITS)
+        except ValueError as exc:
+            raise SweepError(f"{where}: seed: {exc}") from None
+    elif key in ints:
         if isinstance(v, bool) or not isinstance(v, int) or v < ints[key]:
             raise SweepError(f"{where}: {key} must be an integer >= {ints[key]}, not {v!r}")
     elif key == "ppo":

@@ -438,6 +438,54 @@ class SearchArea:
                     out.append((float(s[r0]), float(s[r1 - 1])))
         return out
 
+    def reachable_center(self, start: Sequence[float], cells: int = 48) -> XY:
+        """The datum of a pattern flown from ``start``: the area's centroid when a route
+        from ``start`` reaches it (always, without blocking keep-outs), else the centre
+        of the part of the area ``start`` can reach (keep-outs across the area cut it
+        off): the point of that part nearest its mean, found on a grid of ``cells`` x
+        ``cells`` points over the area's box (the points ``margin_m`` inside, joined to
+        their neighbours by straight legs that stay inside)."""
+        c = self.centroid_m
+        if not self._blocking or self._route(start, c) is not None:
+            return c
+        lo, hi = self._ccw.min(axis=0), self._ccw.max(axis=0)
+        xs, ys = np.linspace(lo[0], hi[0], cells), np.linspace(lo[1], hi[1], cells)
+        gx, gy = np.meshgrid(xs, ys)  # [row = y, col = x]
+        pts = np.column_stack([gx.ravel(), gy.ravel()])
+        ok = self.contains(pts, self.margin_m).reshape(cells, cells)
+        step = float(min(xs[1] - xs[0], ys[1] - ys[0]))
+        f = np.linspace(0.0, 1.0, max(2, math.ceil(step / 1.0) + 1))[:, None, None]
+
+        def legs_inside(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            q = a[None] + f * (b - a)[None]  # (k, n, 2): points along every leg at once
+            return self.contains(q.reshape(-1, 2), 0.0).reshape(len(f), -1).all(axis=0)
+
+        g = pts.reshape(cells, cells, 2)
+        right = ok[:, :-1] & ok[:, 1:]
+        right[right] = legs_inside(g[:, :-1][right], g[:, 1:][right])
+        up = ok[:-1, :] & ok[1:, :]
+        up[up] = legs_inside(g[:-1, :][up], g[1:, :][up])
+        d = ((pts - np.asarray(start, dtype=float)[:2]) ** 2).sum(axis=1)
+        d[~ok.ravel()] = np.inf
+        if not np.isfinite(d.min()):
+            return c
+        first = divmod(int(np.argmin(d)), cells)
+        seen = np.zeros_like(ok)
+        seen[first] = True
+        todo = [first]
+        while todo:  # the grid points joined to the one nearest the start
+            r, k = todo.pop()
+            for r2, k2, joined in ((r, k + 1, k + 1 < cells and right[r, k]),
+                                   (r, k - 1, k > 0 and right[r, k - 1]),
+                                   (r + 1, k, r + 1 < cells and up[r, k]),
+                                   (r - 1, k, r > 0 and up[r - 1, k])):
+                if joined and not seen[r2, k2]:
+                    seen[r2, k2] = True
+                    todo.append((r2, k2))
+        part = pts[seen.ravel()]
+        q = part[int(np.argmin(((part - part.mean(axis=0)) ** 2).sum(axis=1)))]
+        return float(q[0]), float(q[1])
+
     def expanding_square(self, datum: Sequence[float], spacing_m: float,
                          heading_deg: float = 0.0) -> list[XY]:
         """The IAMSAR expanding square from ``datum`` (legs S, S, 2S, 2S, ...), its
@@ -492,13 +540,14 @@ class SearchArea:
             self._inset_cache[margin_m] = pts
         return pts
 
-    def pull_inside(self, p: np.ndarray) -> XY:
-        """``p`` if it lies ``margin_m`` inside, else the nearest point of the inset
-        boundary (the centroid if there is none)."""
+    def pull_inside(self, p: np.ndarray, margin_m: float | None = None) -> XY:
+        """``p`` if it lies ``margin_m`` (default: the area's) inside, else the nearest
+        point of the boundary inset by that much (the centroid if there is none)."""
+        m = self.margin_m if margin_m is None else margin_m
         p = np.asarray(p, dtype=float).reshape(2)
-        if self.contains(p[None, :], self.margin_m)[0]:
+        if self.contains(p[None, :], m)[0]:
             return float(p[0]), float(p[1])
-        pts = self._inset_points(self.margin_m)
+        pts = self._inset_points(m)
         if len(pts) == 0:
             return self.centroid_m
         q = pts[int(np.argmin(((pts - p) ** 2).sum(axis=1)))]

@@ -88,13 +88,16 @@ class Lawnmower:
 
 @dataclass(frozen=True)
 class ExpandingSquare:
-    """The IAMSAR expanding square from the area's centroid, clipped to the area."""
+    """The IAMSAR expanding square from the area's centroid, clipped to the area; from
+    the centre of the part the start can reach when keep-outs cut the centroid off
+    (:meth:`planner.area.SearchArea.reachable_center`)."""
 
     name: ClassVar[str] = "expanding-square"
 
     def waypoints(self, mission: SearchMission, spacing_m: float, heading_deg: float
                   ) -> list[XY]:
-        return mission.area.expanding_square(mission.area.centroid_m, spacing_m, heading_deg)
+        datum = mission.area.reachable_center(mission.start_enu_m)
+        return mission.area.expanding_square(datum, spacing_m, heading_deg)
 
 
 class PatternPolicy:
@@ -102,7 +105,10 @@ class PatternPolicy:
     area, start to end and again in reverse, until every expected responder is
     localised (estimator judgement) or the budget is spent; with an unknown number of
     responders it stops after a full coverage once every responder it heard is
-    localised. The policy is named after its pattern."""
+    localised. A pattern whose waypoints the start cannot reach (cut off by keep-outs:
+    :meth:`planner.area.SearchArea.join` drops them) leaving less than one track
+    spacing to fly is replaced by the lawnmower over the part it can reach, so the
+    vehicle searches instead of hovering. The policy is named after its pattern."""
 
     def __init__(self, pattern: CoveragePattern, *, heading_deg: float = 0.0,
                  spacing_m: float | None = None, rule: LocalisedRule = LocalisedRule()) -> None:
@@ -117,6 +123,9 @@ class PatternPolicy:
         self.tracker = LocalisedTracker(self.rule)
         spacing = self.spacing_m or search_spacing_m(mission)
         self.waypoints = self.pattern.waypoints(mission, spacing, self.heading_deg)
+        reach = np.asarray(mission.area.join([mission.start_enu_m, *self.waypoints]))
+        if np.linalg.norm(np.diff(reach, axis=0), axis=1).sum() < spacing:
+            self.waypoints = Lawnmower().waypoints(mission, spacing, self.heading_deg)
         self.passes = 0
         self._started = False
 

@@ -57,3 +57,25 @@ def non_negative_int(text: str) -> int:
     if v < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
     return v
+
+
+
+def seed_arg(text: str, bits: int = 63) -> int:
+    """A world seed (:func:`envs.seeds.check_seed`: an integer 0 .. 2^63 - 1)."""
+    from envs.seeds import check_seed
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    try:
+        return check_seed(v, bits)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def train_seed_arg(text: str) -> int:
+    """The seed of a training (an integer 0 .. 2^32 - 1: :data:`envs.seeds.TRAIN_SEED_BITS`)."""
+    from envs.seeds import TRAIN_SEED_BITS
+
+    return seed_arg(text, TRAIN_SEED_BITS)

@@ -16,12 +16,11 @@ import math
 import sys
 from pathlib import Path
 
-from envs.commands._args import non_negative_int, positive_float, positive_int
+from envs.commands._args import non_negative_int, positive_float, positive_int, seed_arg
 from envs.commands._outputs import add_force_option
-from envs.seeds import SPLITS
+from envs.seeds import MAX_SEED, SPLITS
 
 DEFAULT_OUT = "osa-evaluate/rows.csv"
-MAX_SEED = 2**63 - 1  # seeds are int64 columns
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -41,7 +40,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "random:waypoint, ppo:PATH, team:POLICY")
     p.add_argument("--seeds", required=True, type=positive_int, metavar="N",
                    help="number of seeds (worlds)")
-    p.add_argument("--first-seed", type=non_negative_int, default=None, metavar="K",
+    p.add_argument("--first-seed", type=seed_arg, default=None, metavar="K",
                    help="first seed (default 0, or the start of --split)")
     p.add_argument("--split", choices=tuple(SPLITS), default=None,
                    help="take the seeds from this documented seed split (envs/seeds.py); "

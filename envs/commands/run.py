@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from envs.commands._args import non_negative_int
+from envs.commands._args import seed_arg
 from envs.commands._outputs import add_force_option
 
 DEFAULT_SCENARIO = "three-aps"
@@ -30,8 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scenario", nargs="?", default=DEFAULT_SCENARIO,
                    help=f"scenario preset or TOML file (default: {DEFAULT_SCENARIO})")
-    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
-                   help="random seed, >= 0 (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, metavar="N",
+                   help="random seed, 0 .. 2^63 - 1 (default 0)")
     p.add_argument("-o", "--out", default="osa-run", help="output folder (default ./osa-run)")
     p.add_argument("--mode", default="all",
                    help="modes to replay: all (the paper's six, default), all+robust, or a list")

@@ -15,7 +15,7 @@ import sys
 import threading
 from pathlib import Path
 
-from envs.commands._args import non_negative_int
+from envs.commands._args import seed_arg
 from envs.commands._outputs import add_force_option
 from estimator.tables import Column, text_table
 
@@ -36,7 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scenario", metavar="SCENARIO",
                    help="a search preset (osa simulate --list) or a .toml with a [search] table")
     p.add_argument("--policy", default="adaptive", metavar="P", help=POLICY_HELP)
-    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
+    p.add_argument("--seed", type=seed_arg, default=0, metavar="N",
                    help="world seed (default 0): the same seed, the same world for every policy")
     p.add_argument("-o", "--out", default="osa-search", metavar="DIR",
                    help="output folder (default ./osa-search)")

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from envs.commands._args import seed_arg
 from envs.commands._outputs import add_force_option
 
 
@@ -21,7 +22,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="preset name or .toml path")
     p.add_argument("-o", "--output", metavar="LOG", help="log file to write (.jsonl, .jsonl.gz)")
-    p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, metavar="N",
+                   help="random seed, 0 .. 2^63 - 1 (default 0)")
     p.add_argument("--list", action="store_true", help="list the scenario presets and exit")
     add_force_option(p)
     p.set_defaults(func=run)
@@ -46,8 +48,6 @@ def run(args: argparse.Namespace) -> int:
         return _fail("a SCENARIO is required (see osa simulate --list)")
     if not args.output:
         return _fail("-o LOG is required")
-    if args.seed < 0:
-        return _fail(f"--seed must be >= 0, got {args.seed}")
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:

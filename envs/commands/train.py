@@ -16,7 +16,7 @@ import argparse
 import math
 import sys
 
-from envs.commands._args import non_negative_int, positive_int
+from envs.commands._args import non_negative_int, positive_int, train_seed_arg
 from envs.commands._outputs import add_force_option
 
 
@@ -98,8 +98,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="the env's search scenario (preset or .toml; default the env's)")
     p.add_argument("--steps", type=positive_int, default=200_000, metavar="N",
                    help="environment steps (decisions) to train for (default 200000)")
-    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
-                   help="seed of the networks, the sampling and the envs' worlds (default 0)")
+    p.add_argument("--seed", type=train_seed_arg, default=0, metavar="N",
+                   help="seed of the networks, the sampling and the envs' worlds, "
+                   "0 .. 2^32 - 1 (default 0)")
     p.add_argument("-o", "--out", required=True, metavar="MODEL", help="model folder to write")
     p.add_argument("--algo", default="PPO", metavar="A",
                    help="Stable-Baselines3 algorithm: PPO (default), A2C, DQN (Search-v0), "

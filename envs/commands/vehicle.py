@@ -16,6 +16,7 @@ import signal
 import sys
 from pathlib import Path
 
+from envs.commands._args import seed_arg
 from envs.commands._outputs import OutputRefusedError, add_force_option, claim_output_file
 
 EXIT_OK = 0
@@ -67,7 +68,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--log", metavar="FILE", help="write the phone's flight log here as it "
                    "flies (with truth records, flushed line by line); an existing file "
                    "needs --force")
-    p.add_argument("--seed", type=int, default=0, metavar="N",
+    p.add_argument("--seed", type=seed_arg, default=0, metavar="N",
                    help="world seed (default 0)")
     p.add_argument("--param", metavar="NAME=VALUE", type=param_value, action="append",
                    default=[], help="set an autopilot parameter at start (repeatable), "
@@ -96,8 +97,6 @@ def _inputs(scenario: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from sim.scenario import ScenarioError, load_scenario
 
-    if args.seed < 0:
-        return _fail(EXIT_USAGE, f"--seed must be >= 0, got {args.seed}")
     if not 1 <= args.sysid <= 254:
         return _fail(EXIT_USAGE, f"--sysid must be in 1..254, got {args.sysid}")
     if args.lockstep is not None and not (math.isfinite(args.lockstep)

@@ -435,14 +435,20 @@ class WaypointActions:
     above the terrain changed by up to ``climb_m`` within the altitude band (the
     adaptive policy's: 20 m below to 25 m above the search height, at least 10 m, and
     not below the search height when a keep-out is flown over).
-    A waypoint beyond the area's margin is moved to the nearest point inside it (so the
+    A waypoint beyond the *inset* (the area's margin plus the braking distance at cruise
+    speed, ``speed^2 / (2 brake_mps2)``: 26 m at 8 m/s; at most half the depth of the
+    area's deepest point, at least the margin) is moved to the nearest point inside it (so the
     vehicle slides along the edge instead of stopping there); such a request costs
     ``leave_penalty`` times the share of the reach it lies outside. The vehicle flies to
     it at cruise speed and on along the same line (so it does not brake at each
-    waypoint), routed inside a concave area. A request shorter than 1 m holds.
+    waypoint), routed inside a concave area. A request shorter than 1 m holds. The
+    braking room is what a reversal at the inset needs: the autopilot turns back on a
+    U-turn of either hand, and with the margin alone (and a standalone GNSS's bias) the
+    true path went up to 2.5 m outside the area.
     """
 
     climb_m = 10.0
+    brake_mps2 = 2.0  # braking assumed (sim.vehicle.VehicleConfig's max_accel_mps2)
 
     def __init__(self, config: EnvConfig, speed_mps: float | None = None,
                  ground: bool = False) -> None:
@@ -457,13 +463,19 @@ class WaypointActions:
         self.speed = self.speed_override or mission.speed_mps
         band = self.cfg.adaptive.agl_band_m
         self.band = (band_floor_m(mission, band[0]), mission.height_m + band[1])
-        self.penalty = 0.0  # of the last decision: share of the reach outside the area
+        self.penalty = 0.0  # of the last decision: share of the reach outside the inset
         area = mission.area
-        hp = area.halfplanes  # inside with the margin: n . q - c >= margin on every edge
-        self.halfplanes = None if hp is None else (hp[0], hp[1] + area.margin_m)
+        # waypoints keep the braking distance at cruise speed inside the margin
+        lo, hi = area.vertices.min(axis=0), area.vertices.max(axis=0)
+        grid = np.stack(np.meshgrid(*np.linspace(lo, hi, 17).T), -1).reshape(-1, 2)
+        depth = -float(area.signed_distance_m(grid).min())  # about the deepest point's
+        self.inset_m = max(area.margin_m, min(
+            area.margin_m + self.speed**2 / (2.0 * self.brake_mps2), 0.5 * depth))
+        hp = area.halfplanes  # inside the inset: n . q - c >= inset on every edge
+        self.halfplanes = None if hp is None else (hp[0], hp[1] + self.inset_m)
 
     def _inside(self, p: np.ndarray) -> np.ndarray:
-        """The point of the area inset by its margin nearest to ``p`` (a convex area:
+        """The point of the area inset by ``inset_m`` nearest to ``p`` (a convex area:
         projections onto the violated edges; exact for a box, close otherwise)."""
         nrm, c = self.halfplanes
         q = np.asarray(p, dtype=float).copy()
@@ -487,10 +499,10 @@ class WaypointActions:
         here = here[:2]
         reach = self.speed * self.cfg.decision_period_s
         want = np.array([he + reach * ax, hn + reach * ay])
-        if self.halfplanes is not None:  # convex: the nearest point inside the margin
+        if self.halfplanes is not None:  # convex: the nearest point inside the inset
             wp = self._inside(want)
         else:
-            wp = np.asarray(area.pull_inside(want), dtype=float)
+            wp = np.asarray(area.pull_inside(want, self.inset_m), dtype=float)
         self.penalty = min(1.0, _norm(want - wp) / reach)
         if self.ground:
             agl = 0.0
@@ -500,7 +512,7 @@ class WaypointActions:
         i = self.enc.agent
         if _norm(wp - here) < 1.0:
             pts = [(he, hn)]
-        elif self.halfplanes is not None:  # on along the same line, up to the margin
+        elif self.halfplanes is not None:  # on along the same line, up to the inset
             on = self._inside(2.0 * wp - here)
             pts = [(he, hn), tuple(wp.tolist())]
             if _norm(on - wp) > 1.0:
@@ -508,7 +520,7 @@ class WaypointActions:
         else:
             pts = area.route(here, wp)
             on = wp + (wp - np.asarray(pts[-2], dtype=float))
-            if area.path_inside(np.array([wp, on]), area.margin_m, step_m=5.0):
+            if area.path_inside(np.array([wp, on]), self.inset_m, step_m=5.0):
                 pts = [*pts, (float(on[0]), float(on[1]))]
         if len(pts) == 1:
             t, kept = [0.0, self.cfg.decision_period_s], pts * 2
@@ -582,5 +594,5 @@ class Pilot:
         return self.encoder.tracker.frozen()
 
     def area_penalty(self) -> float:
-        """Share of the last waypoint request outside the area (waypoint actions)."""
+        """Share of the last waypoint request outside the inset (waypoint actions)."""
         return float(getattr(self.actions, "penalty", 0.0))

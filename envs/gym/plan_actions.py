@@ -104,8 +104,8 @@ class PlanActions:
             inside = [area.pull_inside(np.asarray(w)) for w in wps]
             self.routes.append(Sweep.through(mission, area.join(inside)))
         self.routes.append(Sweep(mission, spacing))
-        self.routes.append(Sweep.through(mission, area.expanding_square(area.centroid_m,
-                                                                        spacing)))
+        datum = area.reachable_center(mission.start_enu_m)
+        self.routes.append(Sweep.through(mission, area.expanding_square(datum, spacing)))
         cells = encoder.cells
         col = np.clip(((cells[:, 0] - lo[0]) / size[0]).astype(int), 0, s - 1)
         row = np.clip(((cells[:, 1] - lo[1]) / size[1]).astype(int), 0, s - 1)

@@ -20,9 +20,10 @@ class WaypointEnv(SearchEnvBase):
     north times the reach of one decision (cruise speed x decision period, 40 m by
     default); the height above the terrain changed by up to 10 m, within the altitude
     band (20 m below to 25 m above the search height, at least 10 m). A waypoint beyond
-    the area's margin moves to the nearest point inside it (the drone slides along the
-    edge); the drone flies to it at cruise speed and on along the same line (no braking
-    at each waypoint), routed inside a concave area; a request shorter than 1 m holds.
+    the area's margin plus the drone's braking distance at cruise speed (26 m at 8 m/s)
+    moves to the nearest point inside it (the drone slides along the edge); the drone
+    flies to it at cruise speed and on along the same line (no braking at each
+    waypoint), routed inside a concave area; a request shorter than 1 m holds.
 
     ## Observation Space
 
@@ -37,7 +38,7 @@ class WaypointEnv(SearchEnvBase):
     estimates' covariance, detection bonus, coverage of the area, minus time, minus
     ``leave_penalty`` per decision ending outside the area), the area term adding
     ``-leave_penalty`` times the share of the reach by which the requested waypoint lay
-    outside the area.
+    outside the area less its margin and the braking distance (where it is moved to).
 
     ## Starting State
 

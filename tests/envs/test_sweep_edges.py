@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from envs.gym.interface import EnvConfig, WaypointActions
-from envs.loop import ClosedLoop, fly, mission_of
+from envs.loop import ClosedLoop, fly, longest_hover_s, mission_of
 from envs.policies import load_policy
 from sim.scenario import load_scenario
 from tests.cli import status_of
@@ -45,6 +45,45 @@ def test_an_area_cut_in_two_by_a_keep_out_is_searched_on_the_start_side(tmp_path
     track = np.asarray(loop.true_tracks()[0])
     assert res.refused_plans == 0 and res.path_length_m > 100.0
     assert track[:, 1].max() < -100.0  # never into or over the wall
+
+
+def test_the_expanding_square_searches_the_reachable_part_without_hovering(tmp_path):
+    """Before: the square was centred on the area's centroid, cut off by the wall, and
+    the drone hovered over the take-off point for 885 s of 900 (path 128 m)."""
+    p = tmp_path / "cut.toml"
+    p.write_text(BASE.replace("budget_s = 60.0", "budget_s = 600.0") + WALL)
+    sc = load_scenario(p)
+    loop = ClosedLoop(sc, 0)
+    res = fly(loop, load_policy("expanding-square", sc))
+    assert res.refused_plans == 0 and res.ended == "budget"
+    assert longest_hover_s(loop.nav_track[0]) < 30.0
+    assert res.path_length_m > 3000.0
+    track = np.asarray(loop.true_tracks()[0])[:, :2]
+    assert track[:, 1].max() < -100.0  # never into or over the wall
+    # the south part (every 20 m) within 60 m of the track: 69 % (0 before)
+    grid = np.stack(np.meshgrid(np.arange(-240.0, 241.0, 20.0),
+                                np.arange(-240.0, -109.0, 20.0)), -1).reshape(-1, 2)
+    near = np.min(np.linalg.norm(grid[:, None] - track[None, ::5], axis=2), axis=1)
+    assert (near < 60.0).mean() > 0.5
+
+
+def test_a_pattern_with_nothing_reachable_flies_the_lawnmower_of_the_reachable_part(tmp_path):
+    from planner.coverage import PatternPolicy
+
+    class North:  # a pattern wholly beyond the wall
+        name = "north"
+
+        def waypoints(self, mission, spacing_m, heading_deg):
+            return [(-200.0, 100.0), (200.0, 100.0), (200.0, 200.0)]
+
+    p = tmp_path / "cut.toml"
+    p.write_text(BASE + WALL)
+    mission = mission_of(load_scenario(p))
+    policy = PatternPolicy(North())
+    policy.reset(mission, np.random.default_rng(0))
+    wps = np.asarray(policy.waypoints)
+    assert len(wps) >= 2 and wps[:, 1].max() < -100.0  # the south part's sweep
+    assert np.ptp(wps[:, 0]) > 200.0  # its two tracks (spacing 281 m), 250 m apart
 
 
 def test_the_waypoint_env_never_flies_below_a_keep_out_it_flies_over():
@@ -101,3 +140,32 @@ def test_osa_search_on_an_edge_file_runs_or_names_the_key(tmp_path, capsys, name
     report = json.loads(cap.out)
     assert report["ended"] in ("budget", "localised") and report["stalls"] == 0
     assert 0.0 < report["flight_time_s"] <= 60.0
+
+
+@pytest.mark.parametrize(("scenario", "seed"), [
+    ("suite/r1-c0-sa-u2", 2**31 - 1), ("suite/r1-c0-sa-u2", 4), ("search-three-mixed", 0),
+    ("search-random-los", 3)])
+def test_random_waypoints_keep_the_true_path_inside_the_area(scenario, seed):
+    """Before: a reversal at the margin (the autopilot's U-turn of either hand) plus a
+    standalone GNSS's bias took the true path 2.5 m outside the area (suite/r1-c0-sa-u2,
+    seed 2^31 - 1; 1.6 m on search-three-mixed seed 0, 0.6 m on search-random-los seed
+    3). Waypoints now keep the braking distance at cruise speed inside the margin."""
+    sc = load_scenario(scenario)
+    loop = ClosedLoop(sc, seed)
+    fly(loop, load_policy("random:waypoint", sc))
+    assert loop.excursion_m() == 0.0
+    # ... with room to spare: no agent's true path came within 2 m of the edge
+    area = loop.mission.area
+    for track in loop.true_tracks():
+        assert area.signed_distance_m(np.asarray(track)[:, :2]).max() < -2.0
+
+
+def test_waypoints_keep_the_braking_distance_inside_the_margin():
+    mission = mission_of(load_scenario("suite/r1-c0-sa-u2"))  # 8 m/s, margin 10 m
+    actions = WaypointActions(EnvConfig())
+    actions.reset(mission, encoder=None)
+    assert actions.inset_m == pytest.approx(10.0 + 8.0**2 / (2 * 2.0))  # 26 m
+    assert np.allclose(actions._inside(np.array([300.0, -400.0])), [224.0, -224.0])
+    fast = WaypointActions(EnvConfig(), speed_mps=40.0)  # 410 m: at most half the depth
+    fast.reset(mission, encoder=None)  # of the deepest point (250 m in a 500 m square)
+    assert fast.inset_m == pytest.approx(125.0)

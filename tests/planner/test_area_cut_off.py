@@ -43,3 +43,24 @@ def test_joining_an_area_without_cut_off_parts_is_unchanged():
     area = SearchArea(SQUARE, 10.0)
     pts = [(0.0, -200.0), (0.0, 200.0), (100.0, 200.0)]
     assert area.join(pts) == pts
+
+
+def test_the_reachable_center_is_the_centre_of_the_part_the_start_can_reach():
+    area = SearchArea(SQUARE, 10.0, keep_outs=(WALL,))
+    # from the south: the south part is y in [-240, -110] (the margins), x in [-240, 240]
+    e, n = area.reachable_center((0.0, -240.0))
+    assert abs(e) < 12.0 and abs(n - (-175.0)) < 12.0
+    assert area.reachable_center((0.0, 200.0)) == area.centroid_m  # routed to: as before
+    assert SearchArea(SQUARE, 10.0).reachable_center((0.0, -240.0)) == (0.0, 0.0)
+
+
+def test_the_expanding_square_from_the_south_has_legs_to_fly():
+    """Before: centred on the centroid (in the north), every waypoint was cut off from
+    the south and the path from the start was the start alone."""
+    area = SearchArea(SQUARE, 10.0, keep_outs=(WALL,))
+    start = (0.0, -240.0)
+    wps = area.expanding_square(area.reachable_center(start), 100.0)
+    path = np.array(area.join([start, *wps]))
+    assert len(path) >= 6 and path[:, 1].max() < -100.0
+    assert np.linalg.norm(np.diff(path, axis=0), axis=1).sum() > 1500.0
+    assert area.path_inside(path, 0.0)

@@ -12,6 +12,7 @@ import sim
 from envs.cli import main as osa
 from estimator.geodesy import ExactENU
 from estimator.logio import read_log
+from tests.cli import status_of
 
 
 @pytest.fixture(scope="module")
@@ -134,12 +135,14 @@ def test_cli_list(capsys):
         (["simulate", "paper-apab", "-o", "{tmp}/a-file/x.jsonl"], "cannot write"),
         (["simulate", "paper-apab"], "-o LOG is required"),
         (["simulate"], "SCENARIO is required"),
-        (["simulate", "paper-apab", "-o", "{tmp}/x.jsonl", "--seed", "-3"], "--seed"),
+        (["simulate", "paper-apab", "-o", "{tmp}/x.jsonl", "--seed", "-3"],
+         "argument --seed: a seed is an integer from 0 to 2^63 - 1"),  # as every command's
     ],
 )
 def test_cli_errors_are_one_line_exit_2(tmp_path, capsys, argv, match):
     (tmp_path / "a-file").write_text("in the way of a folder")  # missing folders are created
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
-    assert osa(argv) == 2
+    assert status_of(argv) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and match in err and err.startswith("osa simulate: ")
+    prefix = "osa: error: " if "--seed" in argv else "osa simulate: "  # argparse's: a seed
+    assert err.count("\n") == 1 and match in err and err.startswith(prefix)
