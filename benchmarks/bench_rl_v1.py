@@ -33,6 +33,7 @@ import numpy as np
 import sim
 from envs.gym.interface import EnvConfig, Pilot
 from envs.gym.plan_actions import PlanActions, plan_heuristic
+from envs.gym.trained import META_FILE
 from envs.loop import run_search
 from envs.policies import load_policy
 from envs.seeds import split_seeds
@@ -185,7 +186,9 @@ def curve(model: str, path: str) -> None:
 
     for a in ax:
         a.xaxis.set_major_locator(MaxNLocator(5))
-    fig.suptitle(f"osa train osa/Search-v1: {d.name}")
+    meta = d / META_FILE
+    env_id = json.loads(meta.read_text()).get("env_id") if meta.is_file() else "osa/Search-v1"
+    fig.suptitle(f"osa train {env_id}: {d.name}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")
