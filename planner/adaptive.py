@@ -335,7 +335,8 @@ class ResponderPlanner:
             self.planner = AdaptivePolicy.planner_for(ocfg, key)
             self.key = key
         self.ocfg = ocfg
-        self.planner.reset_warm_start()
+        if not self.own_warm_start:  # the others' warm starts are theirs
+            self.planner.reset_warm_start()
         self._warm = None
         self.solve_time_s = 0.0  # wall time spent in optimiser solves (benchmarks)
 
