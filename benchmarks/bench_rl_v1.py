@@ -1,5 +1,6 @@
 """``osa/Search-v1`` on held-out test worlds: a trained policy, the hand-written policy
-in v1's actions, a uniformly random v1 policy and ``adaptive`` (docs/rl.md).
+in v1's actions, a uniformly random v1 policy and ``adaptive`` (docs/rl.md); and the
+hand-written policy in ``osa/Search-v2``'s actions (``heuristic-v2``).
 
 Every policy flies ``osa search`` (``envs.loop.run_search``) on the same first
 ``--seeds`` test worlds (common random numbers). Per world: the time until every
@@ -32,15 +33,19 @@ import numpy as np
 import sim
 from envs.gym.interface import EnvConfig, Pilot
 from envs.gym.plan_actions import PlanActions, plan_heuristic
+from envs.gym.trained import META_FILE
 from envs.loop import run_search
 from envs.policies import load_policy
 from envs.seeds import split_seeds
 from planner.observation import Decision
 
+PLAN_POLICIES = ("heuristic", "random", "heuristic-v2")
+
 
 class PlanPolicy:
     """A policy in ``osa/Search-v1``'s actions flying ``osa search``: ``heuristic``
-    (:func:`plan_heuristic`) or ``random`` (uniform actions from the loop's generator)."""
+    (:func:`plan_heuristic`) or ``random`` (uniform actions from the loop's generator);
+    ``heuristic-v2``: :func:`plan_heuristic` in ``osa/Search-v2``'s actions."""
 
     def __init__(self, name: str, config: EnvConfig = EnvConfig(max_responders=5,
                                                                  coverage_cells=6)) -> None:
@@ -49,10 +54,11 @@ class PlanPolicy:
 
     def reset(self, mission, rng) -> None:
         self.rng = rng
-        self.pilot = Pilot("plan", self.config, actions=PlanActions(self.config))
+        actions = PlanActions(self.config, planned=self.name == "heuristic-v2")
+        self.pilot = Pilot("plan", self.config, actions=actions)
         self.pilot.reset(mission)
         n = self.pilot.action_space.n
-        self.act = (plan_heuristic(self.pilot.actions) if self.name == "heuristic"
+        self.act = (plan_heuristic(self.pilot.actions) if self.name != "random"
                     else (lambda enc: int(self.rng.integers(n))))
 
     def decide(self, obs) -> Decision:
@@ -66,9 +72,9 @@ HOME_M = 10.0  # "at take-off": the end of the true track this close to its star
 
 
 def fly(scenario, name: str, seed: int) -> dict:
-    """One ``osa search`` of policy ``name`` (``heuristic``, ``random``, a named policy
-    or ``ppo:PATH``) on world ``seed``."""
-    policy = PlanPolicy(name) if name in ("heuristic", "random") else load_policy(name)
+    """One ``osa search`` of policy ``name`` (one of :data:`PLAN_POLICIES`, a named
+    policy or ``ppo:PATH``) on world ``seed``."""
+    policy = PlanPolicy(name) if name in PLAN_POLICIES else load_policy(name)
     res = run_search(scenario, policy, seed)
     budget = scenario.search.budget_s
     times = [r.get("localised_at_s") for r in res.responders]
@@ -180,7 +186,9 @@ def curve(model: str, path: str) -> None:
 
     for a in ax:
         a.xaxis.set_major_locator(MaxNLocator(5))
-    fig.suptitle(f"osa train osa/Search-v1: {d.name}")
+    meta = d / META_FILE
+    env_id = json.loads(meta.read_text()).get("env_id") if meta.is_file() else "osa/Search-v1"
+    fig.suptitle(f"osa train {env_id}: {d.name}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")

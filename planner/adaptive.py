@@ -274,58 +274,44 @@ class Manoeuvres:
                                    m.speed_mps, m.origin, name)
 
 
-class AdaptivePolicy:
-    """Search until a responder is heard, then localise it by planning around the
-    estimate (see the module docstring)."""
+class ResponderPlanner:
+    """The receding-horizon plan about a responder's estimate that ``adaptive`` flies
+    (:class:`planner.optimal.OptimalPlanner` over the altitude band, inside the area's
+    local fence and clear of the blocking keep-outs near the vehicle), falling back to
+    the probe orbit when the planner refuses the start or its plan leaves the area; also
+    the ``planned`` action of ``osa/Search-v2`` (:mod:`envs.gym.plan_actions`).
 
-    name = "adaptive"
+    The built planner is shared per configuration per process
+    (:meth:`AdaptivePolicy.planner_for`). ``own_warm_start``: keep this user's warm start
+    apart from the other users of the shared planner (worlds stepped in lockstep would
+    otherwise warm-start each other); else the planner's own, reset by :meth:`reset`.
+    """
+
     MAX_PLANNER_CIRCLES = 6  # keep-out cylinders the CasADi problem holds at most
     MAX_PLANNER_POLYGONS = 2  # keep-out polygons (convex hulls) it holds at most
-    # one built OptimalPlanner per configuration per process, shared by the adaptive
-    # policies (building takes ~1 s; re-solving a built one takes milliseconds)
-    _planners: ClassVar[dict[tuple, object]] = {}
-
-    @classmethod
-    def planner_for(cls, cfg, key: tuple):
-        """The built planner of configuration ``cfg`` (``key`` identifies it)."""
-        from planner.optimal import OptimalPlanner
-
-        p = cls._planners.get(key)
-        if p is None:
-            p = cls._planners[key] = OptimalPlanner(cfg)
-        return p
 
     def __init__(self, config: AdaptiveConfig = AdaptiveConfig(), *,
-                 rule: LocalisedRule = LocalisedRule(), heading_deg: float = 0.0) -> None:
+                 own_warm_start: bool = False) -> None:
         self.cfg = config
-        self.rule = rule
-        self.heading_deg = heading_deg
-        self._planner = None
-        self._planner_key: tuple | None = None
+        self.own_warm_start = own_warm_start
+        self.planner = None
+        self.key: tuple | None = None
 
-    # ------------------------------------------------------------------ setup
-    def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
-        self.mission = mission
-        self.rng = rng
-        self.tracker = LocalisedTracker(self.rule)
-        self.sweep = Sweep(mission, search_spacing_m(mission, self.cfg.detect_probability),
-                           self.heading_deg)
-        self.manoeuvres = Manoeuvres(mission, self.cfg)
-        self.target: str | None = None
-        self.phase = "search"
-        self.phase_since = 0.0
-        self.target_since = 0.0
-        self.abandoned: set[str] = set()
-        self.last_plan_t = -math.inf
-        self._started = False
-        self.solve_time_s = 0.0  # wall time spent in optimiser solves (benchmarks)
-        self._ensure_planner()
+    def __getstate__(self) -> dict:  # pickles without the built planner (CasADi) ...
+        return {k: v for k, v in self.__dict__.items() if k != "planner"}
 
-    def _ensure_planner(self):
+    def __setstate__(self, state: dict) -> None:  # ... which is this process's again
+        self.__dict__.update(state)
+        self.planner = (AdaptivePolicy.planner_for(self.ocfg, self.key)
+                        if self.key is not None else None)
+
+    def reset(self, mission: SearchMission, manoeuvres: Manoeuvres) -> None:
+        """The planner of ``mission``'s configuration, its warm start reset."""
         from planner.optimal import OptimalConfig
         from planner.scoring import ScoringConfig
 
-        m, c = self.mission, self.cfg
+        self.mission, self.manoeuvres = mission, manoeuvres
+        m, c = mission, self.cfg
         lo = band_floor_m(m, c.agl_band_m[0])
         hi = m.height_m + c.agl_band_m[1]
         keep: dict = {}
@@ -347,11 +333,101 @@ class AdaptivePolicy:
             ocfg = dataclasses.replace(ocfg, **keep)
         # terrain and link hash by value (frozen dataclasses; a grid by identity)
         key = (m.terrain, m.link, repr(ocfg))
-        if self._planner is None or self._planner_key != key:
-            self._planner = self.planner_for(ocfg, key)
-            self._planner_key = key
+        if self.planner is None or self.key != key:
+            self.planner = AdaptivePolicy.planner_for(ocfg, key)
+            self.key = key
         self.ocfg = ocfg
-        self._planner.reset_warm_start()
+        if not self.own_warm_start:  # the others' warm starts are theirs
+            self.planner.reset_warm_start()
+        self._warm = None
+        self.solve_time_s = 0.0  # wall time spent in optimiser solves (benchmarks)
+
+    def plan(self, r: ResponderView, a: AgentView) -> tuple[Trajectory, int]:
+        """The plan about ``r``'s estimate from where the vehicle is, or the probe
+        orbit; and the number of solves (0 or 1)."""
+        m, c = self.mission, self.cfg
+        assert r.mean_enu_m is not None and r.cov_m2 is not None
+        cov = np.asarray(r.cov_m2, dtype=float) + c.prior_inflation_m2 * np.eye(3)
+        start = np.asarray(a.position_enu_m, dtype=float)
+        vel = np.asarray(a.velocity_enu_mps, dtype=float)
+        try:
+            fence = m.area.local_fence(r.mean_enu_m[:2] if m.area.contains(
+                np.array([r.mean_enu_m[:2]]))[0] else start[:2])
+        except ValueError:
+            fence = None
+        agl0 = float(start[2] - float(np.asarray(m.terrain.height_m(start[0], start[1]))))
+        band = (min(self.ocfg.agl_min_m, agl0), max(self.ocfg.agl_max_m, agl0))
+        kw: dict = {}
+        if m.area.blocking:  # the blocking keep-outs the horizon can reach
+            reach = self.ocfg.horizon_s * self.ocfg.max_speed_m_s + m.area.margin_m
+            near = [k for k in m.area.blocking
+                    if float(k.signed_distance_m(start[None, :2])[0]) <= reach]
+            kw = dict(keep_outs=[k for k in near if isinstance(k, KeepOut)],
+                      keep_out_polygons=[k for k in near if isinstance(k, KeepOutPolygon)])
+        if self.own_warm_start:
+            self.planner.warm_state = self._warm
+        try:
+            res = self.planner.plan(r.mean_enu_m, cov, start, vel, fence=fence,
+                                    agl_band_m=band, origin=m.origin, **kw)
+        except ValueError:  # outside the fence, in a keep-out, more keep-outs than it holds
+            return self.manoeuvres.probe(r, a), 0
+        finally:
+            if self.own_warm_start:
+                self._warm = self.planner.warm_state
+        self.solve_time_s += res.solve_time_s
+        traj = res.trajectory
+        if not res.feasible or not m.area.path_inside(traj.enu_m, 0.0):
+            return self.manoeuvres.probe(r, a), 1
+        return traj, 1
+
+
+class AdaptivePolicy:
+    """Search until a responder is heard, then localise it by planning around the
+    estimate (see the module docstring)."""
+
+    name = "adaptive"
+    # one built OptimalPlanner per configuration per process, shared by the adaptive
+    # policies (building takes ~1 s; re-solving a built one takes milliseconds)
+    _planners: ClassVar[dict[tuple, object]] = {}
+
+    @classmethod
+    def planner_for(cls, cfg, key: tuple):
+        """The built planner of configuration ``cfg`` (``key`` identifies it)."""
+        from planner.optimal import OptimalPlanner
+
+        p = cls._planners.get(key)
+        if p is None:
+            p = cls._planners[key] = OptimalPlanner(cfg)
+        return p
+
+    def __init__(self, config: AdaptiveConfig = AdaptiveConfig(), *,
+                 rule: LocalisedRule = LocalisedRule(), heading_deg: float = 0.0) -> None:
+        self.cfg = config
+        self.rule = rule
+        self.heading_deg = heading_deg
+        self.optimal = ResponderPlanner(config)
+
+    # ------------------------------------------------------------------ setup
+    def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
+        self.mission = mission
+        self.rng = rng
+        self.tracker = LocalisedTracker(self.rule)
+        self.sweep = Sweep(mission, search_spacing_m(mission, self.cfg.detect_probability),
+                           self.heading_deg)
+        self.manoeuvres = Manoeuvres(mission, self.cfg)
+        self.target: str | None = None
+        self.phase = "search"
+        self.phase_since = 0.0
+        self.target_since = 0.0
+        self.abandoned: set[str] = set()
+        self.last_plan_t = -math.inf
+        self._started = False
+        self.optimal.reset(mission, self.manoeuvres)
+
+    @property
+    def solve_time_s(self) -> float:
+        """Wall time spent in optimiser solves this search (benchmarks)."""
+        return self.optimal.solve_time_s
 
     # ------------------------------------------------------------------ decide
     def decide(self, obs: Observation) -> Decision:
@@ -432,7 +508,7 @@ class AdaptivePolicy:
                 return Decision(localised=loc)
             if self.phase != "plan" or t - self.last_plan_t >= c.replan_s or a.segment_done:
                 self.phase = "plan"
-                traj, solves = self._optimal(r, a)
+                traj, solves = self.optimal.plan(r, a)
                 self.last_plan_t = t
                 return Decision(plans={0: traj}, localised=loc, replans=solves,
                                 note=f"plan around {r.bssid}")
@@ -451,37 +527,6 @@ class AdaptivePolicy:
 
     def _close_helix(self, r: ResponderView, a: AgentView) -> Trajectory:
         return self.manoeuvres.close_helix(r, a)
-
-    def _optimal(self, r: ResponderView, a: AgentView) -> tuple[Trajectory, int]:
-        m, c = self.mission, self.cfg
-        assert r.mean_enu_m is not None and r.cov_m2 is not None
-        cov = np.asarray(r.cov_m2, dtype=float) + c.prior_inflation_m2 * np.eye(3)
-        start = np.asarray(a.position_enu_m, dtype=float)
-        vel = np.asarray(a.velocity_enu_mps, dtype=float)
-        try:
-            fence = m.area.local_fence(r.mean_enu_m[:2] if m.area.contains(
-                np.array([r.mean_enu_m[:2]]))[0] else start[:2])
-        except ValueError:
-            fence = None
-        agl0 = float(start[2] - float(np.asarray(m.terrain.height_m(start[0], start[1]))))
-        band = (min(self.ocfg.agl_min_m, agl0), max(self.ocfg.agl_max_m, agl0))
-        kw: dict = {}
-        if m.area.blocking:  # the blocking keep-outs the horizon can reach
-            reach = self.ocfg.horizon_s * self.ocfg.max_speed_m_s + m.area.margin_m
-            near = [k for k in m.area.blocking
-                    if float(k.signed_distance_m(start[None, :2])[0]) <= reach]
-            kw = dict(keep_outs=[k for k in near if isinstance(k, KeepOut)],
-                      keep_out_polygons=[k for k in near if isinstance(k, KeepOutPolygon)])
-        try:
-            res = self._planner.plan(r.mean_enu_m, cov, start, vel, fence=fence,
-                                     agl_band_m=band, origin=m.origin, **kw)
-        except ValueError:  # outside the fence, in a keep-out, more keep-outs than it holds
-            return self._probe(r, a), 0
-        self.solve_time_s += res.solve_time_s
-        traj = res.trajectory
-        if not res.feasible or not m.area.path_inside(traj.enu_m, 0.0):
-            return self._probe(r, a), 1
-        return traj, 1
 
 
 def coarse_fit(r: ResponderView, mission: SearchMission, cell_m: float = 10.0,

@@ -643,6 +643,16 @@ class OptimalPlanner:
     def reset_warm_start(self) -> None:
         self._warm = None
 
+    @property
+    def warm_state(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The last checked solution (primal, dual) the next solve starts from, or None:
+        users sharing one planner keep theirs apart by swapping it."""
+        return self._warm
+
+    @warm_state.setter
+    def warm_state(self, value: tuple[np.ndarray, np.ndarray] | None) -> None:
+        self._warm = value
+
     def plan(
         self,
         prior_mean_enu_m: Sequence[float],

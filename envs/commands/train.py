@@ -37,6 +37,7 @@ REWARD_WEIGHTS = ("time_cost_per_s", "localised_bonus", "information_weight", "d
                   "coverage_bonus", "leave_penalty")  # what --reward sets (docs/rl.md "Rewards")
 
 REWARD_PRESETS = ("metric",)
+PLAN_ENVS = ("osa/Search-v1", "osa/Search-v2")  # the whole search as the policy's choice
 
 
 def preset_weights(preset: str, env_id: str) -> dict:
@@ -48,7 +49,7 @@ def preset_weights(preset: str, env_id: str) -> dict:
         raise ValueError(f"unknown reward preset {preset!r}")
     out = {"information_weight": 0.0, "detection_bonus": 0.0, "coverage_bonus": 0.0,
            "leave_penalty": 0.0}
-    if env_id == "osa/Search-v1":
+    if env_id in PLAN_ENVS:
         out["localised_bonus"] = 0.0
     return out
 
@@ -71,8 +72,8 @@ def reward_weights(items: list[str], env_id: str, preset: str | None = None
                     f"{', '.join(REWARD_WEIGHTS)}"), out
         if env_id == TEAM_ENV_ID:
             return f"--reward: not for {TEAM_ENV_ID}", out
-        if name == "localised_bonus" and env_id != "osa/Search-v1":
-            return f"--reward: localised_bonus is osa/Search-v1's, not {env_id}'s", out
+        if name == "localised_bonus" and env_id not in PLAN_ENVS:
+            return f"--reward: localised_bonus is osa/Search-v1's and v2's, not {env_id}'s", out
         try:
             x = float(value)
         except ValueError:
@@ -91,7 +92,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "folder MODEL, which osa search --policy ppo:MODEL and osa evaluate load.",
     )
     p.add_argument("--env", default="osa/Search-v0", metavar="ID",
-                   help="a registered env id: osa/Search-v0 (default), osa/Search-v1 or "
+                   help="a registered env id: osa/Search-v0 (default), osa/Search-v1, "
+                   "osa/Search-v2 (v1 with adaptive's planned action) or "
                    "osa/Waypoint-v0; osa/Team-v0: a team of --uavs UAVs, one shared policy "
                    "(PettingZoo)")
     p.add_argument("--scenario", default=None, metavar="S",
@@ -118,11 +120,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint-every", type=non_negative_int, default=50_000, metavar="N",
                    help="save a checkpoint every N steps (0: never; default 50000)")
     p.add_argument("--curriculum", default=None, metavar="FROM:TO",
-                   help="osa/Search-v1: the curriculum level (the share of the scenario's "
+                   help="osa/Search-v1 and v2: the curriculum level (the share of the scenario's "
                    "[randomise] ranges in use, 0 to 1) rising linearly from FROM to TO over "
                    "the training (default: none, level 1)")
     p.add_argument("--imitate", type=non_negative_int, default=0, metavar="N",
-                   help="osa/Search-v1: warm start by behaviour cloning of the hand-written "
+                   help="osa/Search-v1 and v2: warm start by behaviour cloning of the hand-written "
                    "policy, N episodes per env before the training (default 0: none)")
     p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
                    help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
@@ -133,7 +135,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "settings and algorithm (e.g. a DAgger clone); default: fresh weights")
     p.add_argument("--reward", action="append", default=[], metavar="NAME=X",
                    help="a reward weight of the env (repeatable): "
-                   f"{', '.join(REWARD_WEIGHTS)} (localised_bonus: osa/Search-v1); "
+                   f"{', '.join(REWARD_WEIGHTS)} (localised_bonus: osa/Search-v1 and v2); "
                    "default: the env's")
     p.add_argument("--reward-preset", choices=REWARD_PRESETS, default=None,
                    help="metric: every reward term but time off (the return is minus "
@@ -151,6 +153,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(default 3e-4)")
     p.add_argument("--ent-coef", type=float, default=None, metavar="X",
                    help="PPO: the entropy bonus (default 0.01)")
+    p.add_argument("--gamma", type=float, default=None, metavar="X",
+                   help="PPO: the discount, in (0, 1] (default 0.995)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--uavs", type=positive_int, default=None, metavar="N",
                    help="UAVs of a team (osa/Team-v0 only; default 2)")
@@ -205,13 +209,13 @@ def check_task(task: dict) -> str | None:
 
 
 def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
-    """The options of ``osa/Search-v1`` training and PPO's rates checked: (why they
+    """The options of ``osa/Search-v1`` and ``v2`` training and PPO's rates checked: (why they
     cannot be, or None; the TrainSettings keywords they give)."""
-    v1 = args.env == "osa/Search-v1"
+    v1 = args.env in PLAN_ENVS
     kw: dict = {}
     if args.curriculum is not None:
         if not v1:
-            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1)", kw
+            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1 and v2)", kw
         try:
             lo, hi = (float(x) for x in args.curriculum.split(":"))
         except ValueError:
@@ -221,7 +225,7 @@ def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
         kw["curriculum"] = (lo, hi)
     if args.imitate and not v1:
         return (f"--imitate: {args.env} has nothing to imitate (the hand-written policy is "
-                "osa/Search-v1's)"), kw
+                "osa/Search-v1's and v2's)"), kw
     if args.dagger and not args.imitate:
         return "--dagger: needs --imitate N (the episodes of each round)", kw
     kw["imitate_episodes"], kw["imitate_rounds"] = args.imitate, args.dagger
@@ -235,13 +239,15 @@ def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
     kw["imitation_coef"], kw["critic_warmup"] = args.imitation_coef, args.critic_warmup
     algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
     for name, value, key in (("--learning-rate", args.learning_rate, "learning_rate"),
-                             ("--ent-coef", args.ent_coef, "ent_coef")):
+                             ("--ent-coef", args.ent_coef, "ent_coef"),
+                             ("--gamma", args.gamma, "gamma")):
         if value is None:
             continue
         if args.algo.upper() != "PPO":
             return f"{name}: PPO only", kw
-        if not (math.isfinite(value) and 0.0 <= value <= 1.0):
-            return f"{name}: expected a number in [0, 1], got {value!r}", kw
+        if not (math.isfinite(value) and 0.0 <= value <= 1.0) or (key == "gamma" and value == 0):
+            return (f"{name}: expected a number in {'(0' if key == 'gamma' else '[0'}, 1], "
+                    f"got {value!r}"), kw
         algo_kwargs[key] = linear_schedule(value) if key == "learning_rate" else value
     kw["algo_kwargs"] = algo_kwargs
     return None, kw
@@ -267,10 +273,12 @@ def run(args: argparse.Namespace) -> int:
     if args.sweep is not None:
         if args.curriculum or args.imitate or args.learning_rate is not None or \
                 args.ent_coef is not None or args.init is not None or args.reward or \
-                args.reward_preset or args.imitation_coef or args.critic_warmup:
+                args.reward_preset or args.imitation_coef or args.critic_warmup or \
+                args.gamma is not None:
             return _fail("--sweep: --curriculum, --imitate, --dagger, --init, --reward, "
                          "--reward-preset, --imitation-coef, --critic-warmup, "
-                         "--learning-rate and --ent-coef are for one training, not a sweep")
+                         "--learning-rate, --ent-coef and --gamma are for one training, "
+                         "not a sweep")
         return run_sweep(args, task)
     problem = check_task(task)
     if problem:

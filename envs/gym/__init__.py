@@ -7,6 +7,8 @@
 - ``osa/Search-v1`` (:class:`envs.gym.plan.PlanEnv`): the whole search as the
   policy's choice (:class:`envs.gym.plan_actions.PlanActions`), domain randomisation
   from ``[randomise]`` and a curriculum level;
+- ``osa/Search-v2`` (:class:`envs.gym.plan.PlannedEnv`): v1 with ``adaptive``'s
+  receding-horizon plan about the target as one more action, ``planned``;
 - :class:`envs.gym.multi.SearchParallelEnv`: N agents (UAVs, optionally a ground
   agent) sharing one fused estimate (PettingZoo ``ParallelEnv``);
 - :class:`envs.gym.trained.TrainedPolicy`: a model trained by ``osa train`` as a

@@ -550,17 +550,17 @@ class Pilot:
     def __init__(self, kind: str, config: EnvConfig = EnvConfig(), *, n_others: int = 0,
                  speed_mps: float | None = None, ground: bool = False,
                  actions: object | None = None) -> None:
-        if kind not in ("search", "waypoint", "plan"):
-            raise ValueError(f"unknown action kind {kind!r} (search, waypoint, plan)")
+        if kind not in ("search", "waypoint", "plan", "plan-v2"):
+            raise ValueError(f"unknown action kind {kind!r} (search, waypoint, plan, plan-v2)")
         self.kind = kind
         self.cfg = config
         self.encoder = Encoder(config, n_others)
         if actions is not None:  # an action mapping object (e.g. PlanActions(sectors=4))
             self.actions = actions
-        elif kind == "plan":
+        elif kind in ("plan", "plan-v2"):  # osa/Search-v1, osa/Search-v2
             from envs.gym.plan_actions import PlanActions
 
-            self.actions = PlanActions(config)
+            self.actions = PlanActions(config, planned=kind == "plan-v2")
         else:
             self.actions = (ManoeuvreActions(config) if kind == "search"
                             else WaypointActions(config, speed_mps, ground))

@@ -1,4 +1,5 @@
-"""``osa/Search-v1``: the whole search is the policy's choice."""
+"""``osa/Search-v1``: the whole search is the policy's choice; ``osa/Search-v2``: the
+same with ``adaptive``'s receding-horizon plan as one more action."""
 
 from __future__ import annotations
 
@@ -128,3 +129,18 @@ class PlanEnv(SearchEnvBase):
         info = super()._info()
         info["level"] = self.level
         return info
+
+
+class PlannedEnv(PlanEnv):
+    """``osa/Search-v2``: ``osa/Search-v1`` (its observation, rewards, episode end and
+    arguments) with one more action after v1's, ``planned``: ``adaptive``'s
+    receding-horizon CasADi plan about the target's estimate, solved again every 20 s
+    of flight while it stays chosen (the probe helix while the target has no usable
+    estimate); ``Discrete(sectors^2 + 9)``, 18 by default. See
+    :class:`envs.gym.plan_actions.PlanActions` (``planned=True``)."""
+
+    kind = "plan-v2"
+
+    def _make_pilot(self) -> Pilot:
+        actions = self._actions_arg or PlanActions(self.config, self._sectors, planned=True)
+        return Pilot(self.kind, self.config, actions=actions)

@@ -1,4 +1,5 @@
-"""The actions of ``osa/Search-v1``: the whole search as the policy's choice.
+"""The actions of ``osa/Search-v1`` and ``osa/Search-v2``: the whole search as the
+policy's choice.
 
 :class:`PlanActions` maps a ``Discrete`` action to a :class:`planner.observation.Decision`
 (as :class:`envs.gym.interface.ManoeuvreActions` does for ``osa/Search-v0``), but
@@ -11,7 +12,10 @@ sector, the responders set aside, and what is being flown.
 :func:`plan_heuristic` is the hand-written policy in these actions (search the area
 with the lawnmower, probe a responder heard, orbit it while its estimate is wide,
 finish with the close helix, set it aside once localised): the yardstick a trained
-policy is compared with and the floor a random one falls below.
+policy is compared with and the floor a random one falls below. ``osa/Search-v2``
+(``PlanActions(config, planned=True)``) adds the ``planned`` action, ``adaptive``'s
+receding-horizon plan about the target, and :func:`plan_heuristic` then flies it where
+v1's flies the near orbit: ``adaptive`` in v2's actions.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from gymnasium import spaces
 
 from envs.gym.interface import responder_manoeuvre
 from estimator.records import Trajectory
-from planner.adaptive import Manoeuvres
+from planner.adaptive import Manoeuvres, ResponderPlanner
 from planner.area import SearchArea
 from planner.coverage import Sweep, search_spacing_m
 from planner.observation import AgentView, Decision, Observation, SearchMission
@@ -30,6 +34,7 @@ from planner.observation import AgentView, Decision, Observation, SearchMission
 TARGET_ACTIONS = ("helix", "orbit-near", "orbit-far", "close-pass")
 PATTERNS = ("lawnmower", "expanding-square")
 POINTER_ACTIONS = ("next", "done")
+PLANNED = "planned"  # osa/Search-v2's action after v1's
 
 
 class PlanActions:
@@ -49,7 +54,13 @@ class PlanActions:
       target, and fly to it;
     - ``done``: set the target aside (it is no longer the target, ``next`` skips it
       until every other responder heard is localised or set aside); the vehicle flies
-      on what it flies.
+      on what it flies;
+    - ``planned`` (``osa/Search-v2``, ``planned=True``: ``Discrete(sectors^2 + 9)``, v1's
+      actions then this one): ``adaptive``'s receding-horizon CasADi plan about the
+      target's estimate (:class:`planner.adaptive.ResponderPlanner`), solved again every
+      ``replan_s`` (20 s) of flight while it stays chosen, or when its segment is flown;
+      the probe helix while the target has no usable estimate, or when the planner
+      refuses (as ``adaptive``).
 
     The target (the slot feature ``target`` of the observation) is chosen by the policy
     with ``next``; when there is none and a responder heard is neither localised nor set
@@ -63,13 +74,17 @@ class PlanActions:
 
     kind = "plan"
 
-    def __init__(self, config, sectors: int = 3) -> None:
+    def __init__(self, config, sectors: int = 3, planned: bool = False) -> None:
         if not 1 <= int(sectors) <= 6:
             raise ValueError("sectors must be in [1, 6]")
         self.cfg = config
         self.sectors = int(sectors)
+        self.planned = bool(planned)
         self.names = (*(f"sector-{i}" for i in range(self.sectors**2)), *PATTERNS,
-                      *TARGET_ACTIONS, *POINTER_ACTIONS)
+                      *TARGET_ACTIONS, *POINTER_ACTIONS, *((PLANNED,) if planned else ()))
+        # the adaptive policy's planner (built once per process and configuration)
+        self.optimal = (ResponderPlanner(config.adaptive, own_warm_start=True)
+                        if planned else None)
         self.space = spaces.Discrete(len(self.names))
         k = config.max_responders
         f32 = np.float32
@@ -87,6 +102,9 @@ class PlanActions:
         self.mission = mission
         self.enc = encoder
         self.man = Manoeuvres(mission, self.cfg.adaptive)
+        if self.optimal is not None:
+            self.optimal.reset(mission, self.man)
+        self.planned_at = -np.inf  # when the planned action last solved
         spacing = search_spacing_m(mission, self.cfg.adaptive.detect_probability)
         area = mission.area
         v = area.vertices
@@ -183,11 +201,33 @@ class PlanActions:
         if target is None:  # nothing to manoeuvre about: fly on
             return self._fly_on(a, loc)
         key = (i, target)
+        if name == PLANNED:
+            return self._planned(key, obs, a, loc)
         if self.current == key and not a.segment_done:
             return Decision(localised=loc)
         self.current = key
         traj = self._build(name, target, obs, a)
         return Decision(plans={self.enc.agent: traj}, localised=loc, note=f"{name} {target}")
+
+    def _planned(self, key: tuple[int, str], obs: Observation, a: AgentView,
+                 loc: frozenset[str]) -> Decision:
+        """``adaptive``'s plan about the target, solved again every ``replan_s``; the
+        probe while the target has no usable estimate (flown to its end)."""
+        r = next(v for v in obs.responders if v.bssid == key[1])
+        usable = r.has_estimate and r.status in ("converged", "tracking")
+        again = self.current != key or a.segment_done or (
+            usable and obs.t_s - self.planned_at >= self.cfg.adaptive.replan_s)
+        if not again:
+            return Decision(localised=loc)
+        self.current = key
+        if not usable:
+            self.planned_at = -np.inf
+            return Decision(plans={self.enc.agent: self.man.probe(r, a)}, localised=loc,
+                            note=f"planned {r.bssid}: probe")
+        traj, solves = self.optimal.plan(r, a)
+        self.planned_at = obs.t_s
+        return Decision(plans={self.enc.agent: traj}, localised=loc, replans=solves,
+                        note=f"planned {r.bssid}")
 
     def _fly_on(self, a: AgentView, loc: frozenset[str]) -> Decision:
         """No new segment; before the first one, climb to the search height where the
@@ -221,30 +261,55 @@ class PlanActions:
         return responder_manoeuvre(self.man, self.cfg.adaptive, name, target, obs, a, "next")
 
 
-def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0):
+def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0,
+                   planned: bool | None = None, close_band: float = 2.0,
+                   give_up: float | None = None):
     """The hand-written policy in :class:`PlanActions` (observation -> action), reading
     only the observation: with a target not localised, the probe helix until it has an
     estimate, a near orbit while sigma_H > ``close_sigma_h_m``, then the close helix;
-    a localised target is set aside (``done``); with no target, the lawnmower."""
+    a localised target is set aside (``done``); with no target, the lawnmower.
+
+    ``planned`` (default: when the actions have it, ``osa/Search-v2``): ``adaptive`` in
+    these actions: the ``planned`` action instead of the near orbit, and a helix being
+    flown stays (re-centred) while sigma_H <= ``close_band`` x ``close_sigma_h_m`` (``adaptive``'s
+    close phase stays until the target is localised; without the band a sigma_H about
+    the threshold would switch segments at every decision), and a target heard first
+    more than ``give_up`` of the budget ago (the slot's ``age``; 600 s of 30 minutes)
+    with no usable estimate yet is set aside (``done``; ``adaptive`` gives one up after
+    420 s as the target: a responder the terrain or vegetation hides could hold the
+    probe to the end of the budget). ``give_up=None``: never."""
     from envs.gym.interface import SLOT_FEATURES
 
+    if planned is None:
+        planned = PLANNED in actions.names
     f = {k: j for j, k in enumerate(SLOT_FEATURES)}
     nf = len(SLOT_FEATURES)
-    helix, orbit = actions.index("helix"), actions.index("orbit-near")
+    helix = actions.index("helix")
+    orbit = actions.index(PLANNED if planned else "orbit-near")
     done, sweep = actions.index("done"), actions.index("lawnmower")
     threshold = np.log10(close_sigma_h_m) / 2.0
+    stay = np.log10(close_band * close_sigma_h_m) / 2.0
+    give_up = give_up if planned else None
 
     def act(obs: dict) -> int:
         slots = np.asarray(obs["responders"]).reshape(-1, nf)
-        mask = np.asarray(obs["responder_mask"])
-        for s, m in zip(slots, mask, strict=True):
-            if m < 0.5 or s[f["target"]] < 0.5:
-                continue
-            if s[f["localised"]] > 0.5:
+        mask = np.asarray(obs["responder_mask"]) > 0.5
+        on = [s for s, m in zip(slots, mask, strict=True) if m and s[f["target"]] > 0.5]
+        if not on and planned:  # the one the action will make the target (no decision lost)
+            aside = np.asarray(obs["set_aside"]) > 0.5
+            on = sorted((s for s, m, x in zip(slots, mask, aside, strict=True)
+                         if m and not x and s[f["localised"]] < 0.5), key=lambda s: s[f["age"]])
+        if not on:
+            return sweep
+        s = on[0]
+        if s[f["localised"]] > 0.5:
+            return done
+        if s[f["present_estimate"]] < 0.5 or s[f["status_none"]] > 0.5:
+            if give_up is not None and s[f["age"]] > give_up:
                 return done
-            if s[f["present_estimate"]] < 0.5 or s[f["status_none"]] > 0.5:
-                return helix
-            return orbit if s[f["log_sigma_h"]] > threshold else helix
-        return sweep
+            return helix
+        if planned and obs["flying"][helix] > 0.5 and s[f["log_sigma_h"]] <= stay:
+            return helix
+        return orbit if s[f["log_sigma_h"]] > threshold else helix
 
     return act

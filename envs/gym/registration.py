@@ -8,6 +8,7 @@ ENVS: dict[str, str] = {
     "osa/Search-v0": "envs.gym.search:SearchEnv",
     "osa/Waypoint-v0": "envs.gym.waypoint:WaypointEnv",
     "osa/Search-v1": "envs.gym.plan:PlanEnv",
+    "osa/Search-v2": "envs.gym.plan:PlannedEnv",
 }
 # the PettingZoo team env's name at the CLI (not a Gymnasium id: envs/gym/team.py)
 TEAM_ENV_ID = "osa/Team-v0"

@@ -77,7 +77,7 @@ class TrainedPolicy:
             algo = meta.get("algo", "PPO")
         except (ValueError, KeyError) as exc:
             raise ValueError(f"{meta_p}: unreadable ({exc})") from None
-        if kind not in ("search", "waypoint", "plan", "team"):
+        if kind not in ("search", "waypoint", "plan", "plan-v2", "team"):
             raise ValueError(f"{meta_p}: unknown env kind {kind!r}")
         try:
             import torch

@@ -85,7 +85,8 @@ def test_gymnasium_and_sb3_checkers_pass_without_warnings(env_id):
 def test_registered_in_one_place_and_made_by_id():
     from envs.gym.registration import ENVS
 
-    assert set(ENVS) == {*IDS, "osa/Search-v1"}  # v1: tests/envs/gym/test_plan.py
+    # v1: tests/envs/gym/test_plan.py; v2: tests/envs/gym/test_plan_v2.py
+    assert set(ENVS) == {*IDS, "osa/Search-v1", "osa/Search-v2"}
     for env_id in IDS:
         assert gymnasium.spec(env_id).entry_point == ENVS[env_id]
     assert isinstance(gymnasium.make("osa/Search-v0").unwrapped, SearchEnv)
