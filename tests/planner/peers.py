@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -238,9 +239,15 @@ class ScriptedMavlinkVehicle:
         return f"udpout://{self.host}:{self.port}"
 
     def start(self) -> ScriptedMavlinkVehicle:
-        self.port = free_udp_port(self.host)
-        self._conn = mavutil.mavlink_connection(f"udpin:{self.host}:{self.port}",
+        # port 0: the OS picks the port at the bind itself (no window in which another
+        # socket takes it); pymavlink binds with SO_REUSEADDR, which would let a ground
+        # station's own socket, bound later to an ephemeral port, share this one and
+        # receive its datagrams (MAVSDK then heard no vehicle): cleared after the bind
+        self._conn = mavutil.mavlink_connection(f"udpin:{self.host}:0",
                                                 source_system=1, source_component=1)
+        sock = self._conn.port
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
+        self.port = int(sock.getsockname()[1])
         self._thread = threading.Thread(target=self._run, name="scripted-vehicle", daemon=True)
         self._thread.start()
         return self
