@@ -119,7 +119,7 @@ def _per_call_ms(fn) -> tuple[float, float]:
 def planner_stages() -> None:
     import sim
     from envs.loop import mission_of
-    from planner.adaptive import AdaptivePolicy
+    from planner.adaptive import AdaptivePolicy, ResponderPlanner
     from planner.optimal import OptimalConfig, OptimalPlanner
     from planner.scoring import ScoringConfig
     from sim import FtmConfig, FtmLink
@@ -156,7 +156,7 @@ def planner_stages() -> None:
                 print(line)
     for name in ("site-valley", "search-random-los"):
         mission = mission_of(sim.load_scenario(name))
-        AdaptivePolicy._planners.clear()
+        ResponderPlanner._planners.clear()
         t0 = time.process_time()
         AdaptivePolicy().reset(mission, np.random.default_rng(0))
         print(f"{name}: the adaptive policy's planner built in "

@@ -113,6 +113,7 @@ def mission_of(scenario: Scenario, realisation: Realisation | None = None,
         origin=(o.lat_deg, o.lon_deg, o.h_m),
         expected_responders=s.expected_responders,
         n_agents=len(scenario.agents),
+        max_accel_mps2=scenario.vehicle.max_accel_mps2,
     )
 
 

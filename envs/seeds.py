@@ -29,7 +29,8 @@ seeds); comparisons that a trained policy enters belong on ``--split test``.
 
 from __future__ import annotations
 
-MAX_SEED = 2**63 - 1  # a world seed is an integer 0 .. MAX_SEED (docs/cli.md, Conventions)
+WORLD_SEED_BITS = 63  # osa evaluate keeps seeds in int64 columns
+MAX_SEED = 2**WORLD_SEED_BITS - 1  # a world seed is an integer 0 .. MAX_SEED (docs/cli.md)
 TRAIN_SEED_BITS = 32  # osa train's seed: torch's and NumPy's global seeding take 0 .. 2^32 - 1
 
 SPLITS: dict[str, tuple[int, int]] = {
@@ -59,7 +60,7 @@ def split_of(seed: int) -> str | None:
     return None
 
 
-def check_seed(seed: int, bits: int = 63) -> int:
+def check_seed(seed: int, bits: int = WORLD_SEED_BITS) -> int:
     """``seed`` if it is a seed (an int 0 .. 2^bits - 1: a world seed by default, up to
     :data:`MAX_SEED`), else ValueError with a one-line reason."""
     largest = 2**bits - 1

@@ -282,13 +282,26 @@ class ResponderPlanner:
     the ``planned`` action of ``osa/Search-v2`` (:mod:`envs.gym.plan_actions`).
 
     The built planner is shared per configuration per process
-    (:meth:`AdaptivePolicy.planner_for`). ``own_warm_start``: keep this user's warm start
+    (:meth:`planner_for`). ``own_warm_start``: keep this user's warm start
     apart from the other users of the shared planner (worlds stepped in lockstep would
     otherwise warm-start each other); else the planner's own, reset by :meth:`reset`.
     """
 
     MAX_PLANNER_CIRCLES = 6  # keep-out cylinders the CasADi problem holds at most
     MAX_PLANNER_POLYGONS = 2  # keep-out polygons (convex hulls) it holds at most
+    # one built OptimalPlanner per configuration per process, shared by its
+    # users (building takes ~1 s; re-solving a built one takes milliseconds)
+    _planners: ClassVar[dict[tuple, object]] = {}
+
+    @classmethod
+    def planner_for(cls, cfg, key: tuple):
+        """The built planner of configuration ``cfg`` (``key`` identifies it)."""
+        from planner.optimal import OptimalPlanner
+
+        p = cls._planners.get(key)
+        if p is None:
+            p = cls._planners[key] = OptimalPlanner(cfg)
+        return p
 
     def __init__(self, config: AdaptiveConfig = AdaptiveConfig(), *,
                  own_warm_start: bool = False) -> None:
@@ -302,7 +315,7 @@ class ResponderPlanner:
 
     def __setstate__(self, state: dict) -> None:  # ... which is this process's again
         self.__dict__.update(state)
-        self.planner = (AdaptivePolicy.planner_for(self.ocfg, self.key)
+        self.planner = (ResponderPlanner.planner_for(self.ocfg, self.key)
                         if self.key is not None else None)
 
     def reset(self, mission: SearchMission, manoeuvres: Manoeuvres) -> None:
@@ -334,7 +347,7 @@ class ResponderPlanner:
         # terrain and link hash by value (frozen dataclasses; a grid by identity)
         key = (m.terrain, m.link, repr(ocfg))
         if self.planner is None or self.key != key:
-            self.planner = AdaptivePolicy.planner_for(ocfg, key)
+            self.planner = ResponderPlanner.planner_for(ocfg, key)
             self.key = key
         self.ocfg = ocfg
         if not self.own_warm_start:  # the others' warm starts are theirs
@@ -386,19 +399,6 @@ class AdaptivePolicy:
     estimate (see the module docstring)."""
 
     name = "adaptive"
-    # one built OptimalPlanner per configuration per process, shared by the adaptive
-    # policies (building takes ~1 s; re-solving a built one takes milliseconds)
-    _planners: ClassVar[dict[tuple, object]] = {}
-
-    @classmethod
-    def planner_for(cls, cfg, key: tuple):
-        """The built planner of configuration ``cfg`` (``key`` identifies it)."""
-        from planner.optimal import OptimalPlanner
-
-        p = cls._planners.get(key)
-        if p is None:
-            p = cls._planners[key] = OptimalPlanner(cfg)
-        return p
 
     def __init__(self, config: AdaptiveConfig = AdaptiveConfig(), *,
                  rule: LocalisedRule = LocalisedRule(), heading_deg: float = 0.0) -> None:
@@ -493,7 +493,7 @@ class AdaptivePolicy:
                   a: AgentView) -> Decision:
         c = self.cfg
         t = obs.t_s
-        if r.has_estimate and r.status in ("converged", "tracking"):
+        if r.tracked:
             if r.sigma_h_m is not None and r.sigma_h_m <= c.close_sigma_h_m and (
                 self.phase != "close"
             ):

@@ -52,6 +52,9 @@ class SearchMission:
     origin: tuple[float, float, float]  # WGS84 (lat, lon, h) of the mission's ENU frame
     expected_responders: int | None = None  # None: unknown
     n_agents: int = 1
+    # the vehicle's along-track acceleration limit (the scenario's [vehicle], as PX4's
+    # MPC_ACC_HOR): what braking before a reversal needs
+    max_accel_mps2: float = 2.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,6 +87,11 @@ class ResponderView:
     @property
     def has_estimate(self) -> bool:
         return self.mean_enu_m is not None
+
+    @property
+    def tracked(self) -> bool:
+        """An estimate the estimator tracks (converged or tracking): one to plan about."""
+        return self.mean_enu_m is not None and self.status in ("converged", "tracking")
 
 
 @dataclass(frozen=True, kw_only=True)

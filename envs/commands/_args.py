@@ -59,17 +59,17 @@ def non_negative_int(text: str) -> int:
     return v
 
 
-
-def seed_arg(text: str, bits: int = 63) -> int:
-    """A world seed (:func:`envs.seeds.check_seed`: an integer 0 .. 2^63 - 1)."""
-    from envs.seeds import check_seed
+def seed_arg(text: str, bits: int | None = None) -> int:
+    """A seed (:func:`envs.seeds.check_seed`): a world seed, 0 .. 2^63 - 1, unless
+    ``bits`` says otherwise."""
+    from envs.seeds import WORLD_SEED_BITS, check_seed
 
     try:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
     try:
-        return check_seed(v, bits)
+        return check_seed(v, WORLD_SEED_BITS if bits is None else bits)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 

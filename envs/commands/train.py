@@ -238,16 +238,17 @@ def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
         return f"{'--imitation-coef' if args.imitation_coef else '--critic-warmup'}: PPO only", kw
     kw["imitation_coef"], kw["critic_warmup"] = args.imitation_coef, args.critic_warmup
     algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
-    for name, value, key in (("--learning-rate", args.learning_rate, "learning_rate"),
-                             ("--ent-coef", args.ent_coef, "ent_coef"),
-                             ("--gamma", args.gamma, "gamma")):
+    # (option, value, PPO's keyword, whether 0 is allowed): each in [0, 1] or (0, 1]
+    for name, value, key, zero in (("--learning-rate", args.learning_rate, "learning_rate", True),
+                                   ("--ent-coef", args.ent_coef, "ent_coef", True),
+                                   ("--gamma", args.gamma, "gamma", False)):
         if value is None:
             continue
         if args.algo.upper() != "PPO":
             return f"{name}: PPO only", kw
-        if not (math.isfinite(value) and 0.0 <= value <= 1.0) or (key == "gamma" and value == 0):
-            return (f"{name}: expected a number in {'(0' if key == 'gamma' else '[0'}, 1], "
-                    f"got {value!r}"), kw
+        low_ok = value >= 0.0 if zero else value > 0.0
+        if not (math.isfinite(value) and low_ok and value <= 1.0):
+            return f"{name}: expected a number in {'[' if zero else '('}0, 1], got {value!r}", kw
         algo_kwargs[key] = linear_schedule(value) if key == "learning_rate" else value
     kw["algo_kwargs"] = algo_kwargs
     return None, kw

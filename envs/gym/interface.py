@@ -336,7 +336,7 @@ def responder_manoeuvre(man, adaptive, name: str, target: str, obs: Observation,
     ``orbit-near``, ``orbit-far``, ``helix``, ``close-pass``; anything else flies to it
     (noted ``goto_note``)."""
     r = next(v for v in obs.responders if v.bssid == target)
-    est = r.mean_enu_m is not None and r.status in ("converged", "tracking")
+    est = r.tracked
     center = r.mean_enu_m[:2] if est else man.heard_center(r)[0]
     if name == "orbit-near":
         return man.orbit(center, adaptive.probe_radius_m[0], a)
@@ -436,19 +436,18 @@ class WaypointActions:
     adaptive policy's: 20 m below to 25 m above the search height, at least 10 m, and
     not below the search height when a keep-out is flown over).
     A waypoint beyond the *inset* (the area's margin plus the braking distance at cruise
-    speed, ``speed^2 / (2 brake_mps2)``: 26 m at 8 m/s; at most half the depth of the
-    area's deepest point, at least the margin) is moved to the nearest point inside it (so the
-    vehicle slides along the edge instead of stopping there); such a request costs
-    ``leave_penalty`` times the share of the reach it lies outside. The vehicle flies to
-    it at cruise speed and on along the same line (so it does not brake at each
-    waypoint), routed inside a concave area. A request shorter than 1 m holds. The
-    braking room is what a reversal at the inset needs: the autopilot turns back on a
-    U-turn of either hand, and with the margin alone (and a standalone GNSS's bias) the
-    true path went up to 2.5 m outside the area.
+    speed, ``speed^2 / (2 max_accel_mps2)`` of the mission's vehicle: 26 m at 8 m/s and
+    2 m/s^2; at most half the depth of the area's deepest point, at least the margin) is
+    moved to the nearest point inside it (so the vehicle slides along the edge instead of
+    stopping there); such a request costs ``leave_penalty`` times the share of the reach
+    it lies outside. The vehicle flies to it at cruise speed and on along the same line
+    (so it does not brake at each waypoint), routed inside a concave area. A request
+    shorter than 1 m holds. The braking room is what a reversal at the inset needs: the
+    autopilot turns back on a U-turn of either hand, and with the margin alone (and a
+    standalone GNSS's bias) the true path went up to 2.5 m outside the area.
     """
 
     climb_m = 10.0
-    brake_mps2 = 2.0  # braking assumed (sim.vehicle.VehicleConfig's max_accel_mps2)
 
     def __init__(self, config: EnvConfig, speed_mps: float | None = None,
                  ground: bool = False) -> None:
@@ -470,7 +469,7 @@ class WaypointActions:
         grid = np.stack(np.meshgrid(*np.linspace(lo, hi, 17).T), -1).reshape(-1, 2)
         depth = -float(area.signed_distance_m(grid).min())  # about the deepest point's
         self.inset_m = max(area.margin_m, min(
-            area.margin_m + self.speed**2 / (2.0 * self.brake_mps2), 0.5 * depth))
+            area.margin_m + self.speed**2 / (2.0 * mission.max_accel_mps2), 0.5 * depth))
         hp = area.halfplanes  # inside the inset: n . q - c >= inset on every edge
         self.halfplanes = None if hp is None else (hp[0], hp[1] + self.inset_m)
 

@@ -214,7 +214,7 @@ class PlanActions:
         """``adaptive``'s plan about the target, solved again every ``replan_s``; the
         probe while the target has no usable estimate (flown to its end)."""
         r = next(v for v in obs.responders if v.bssid == key[1])
-        usable = r.has_estimate and r.status in ("converged", "tracking")
+        usable = r.tracked
         again = self.current != key or a.segment_done or (
             usable and obs.t_s - self.planned_at >= self.cfg.adaptive.replan_s)
         if not again:

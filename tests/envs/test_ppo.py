@@ -19,6 +19,23 @@ from envs.gym.plan_actions import plan_heuristic
 ID = "osa/Search-v1"
 
 
+def one_responder_file(tmp_path, budget_s: float):
+    """``search-five-mixed`` with one responder and a short budget, as a scenario file."""
+    toml = tmp_path / "r.toml"
+    toml.write_text('extends = "search-five-mixed"\nname = "r"\n[search]\n'
+                    f'budget_s = {budget_s}\nrandom_responders = 1\nexpected_responders = 1\n')
+    return toml
+
+
+def assert_train_refuses(main, cases, out, capsys) -> None:
+    """Each ``(argv, pattern)`` of ``cases``: ``osa train`` refuses it in one line, exit 2."""
+    capsys.readouterr()
+    for argv, match in cases:
+        assert main(["train", *argv, "-o", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
+
+
 def small(budget_s: float, responders: int):
     sc = sim.load_scenario("search-five-mixed")
     return dataclasses.replace(sc, search=dataclasses.replace(
@@ -142,9 +159,7 @@ def test_osa_train_recipe_options_and_their_errors(tmp_path, capsys):
 
     from envs.cli import main
 
-    toml = tmp_path / "r.toml"
-    toml.write_text('extends = "search-five-mixed"\nname = "r"\n[search]\nbudget_s = 100.0\n'
-                    'random_responders = 1\nexpected_responders = 1\n')
+    toml = one_responder_file(tmp_path, 100.0)
     out = tmp_path / "m"
     assert main(["train", "--env", ID, "--scenario", str(toml), "--steps", "512", "--envs", "2",
                  "--vec", "batched", "--imitate", "1", "--reward-preset", "metric",
@@ -157,12 +172,11 @@ def test_osa_train_recipe_options_and_their_errors(tmp_path, capsys):
     assert (cfg["information_weight"], cfg["detection_bonus"], cfg["coverage_bonus"],
             cfg["leave_penalty"], cfg["time_cost_per_s"]) == (0.0, 0.0, 0.0, 0.0, 0.05)
     assert meta["env_kwargs"]["localised_bonus"] == 0.0
-    capsys.readouterr()
-    for argv, match in ((["--env", ID, "--imitation-coef", "1"], "needs --imitate"),
-                        (["--env", ID, "--imitate", "1", "--imitation-coef", "-1"], ">= 0"),
-                        (["--algo", "A2C", "--critic-warmup", "2"], "PPO only"),
-                        (["--env", "osa/Team-v0", "--reward-preset", "metric"], "not for"),
-                        (["--env", ID, "--reward", "information_weight=-1"], ">= 0")):
-        assert main(["train", *argv, "-o", str(tmp_path / "x")]) == 2
-        err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
+    assert_train_refuses(main, ((["--env", ID, "--imitation-coef", "1"], "needs --imitate"),
+                                (["--env", ID, "--imitate", "1", "--imitation-coef", "-1"],
+                                 ">= 0"),
+                                (["--algo", "A2C", "--critic-warmup", "2"], "PPO only"),
+                                (["--env", "osa/Team-v0", "--reward-preset", "metric"],
+                                 "not for"),
+                                (["--env", ID, "--reward", "information_weight=-1"], ">= 0")),
+                         tmp_path / "x", capsys)

@@ -15,6 +15,7 @@ import envs  # noqa: F401  (registers the envs)
 from envs.gym.plan import PlanEnv, PlannedEnv
 from envs.gym.plan_actions import plan_heuristic
 from tests.envs.gym.test_plan import rollout, small
+from tests.envs.test_ppo import assert_train_refuses, one_responder_file
 
 ID = "osa/Search-v2"
 
@@ -108,16 +109,13 @@ def test_the_v2_teacher_localises_one_responder():
 def test_osa_train_v2_imitates_the_v2_teacher_with_its_gamma(tmp_path, capsys):
     pytest.importorskip("stable_baselines3")
     import json
-    import re
 
     from stable_baselines3 import PPO
 
     from envs.cli import main
     from envs.policies import load_policy
 
-    toml = tmp_path / "r.toml"
-    toml.write_text('extends = "search-five-mixed"\nname = "r"\n[search]\nbudget_s = 200.0\n'
-                    'random_responders = 1\nexpected_responders = 1\n')
+    toml = one_responder_file(tmp_path, 200.0)
     out = tmp_path / "m"
     assert main(["train", "--env", ID, "--scenario", str(toml), "--steps", "256",
                  "--envs", "1", "--eval-every", "0", "--checkpoint-every", "0",
@@ -132,12 +130,10 @@ def test_osa_train_v2_imitates_the_v2_teacher_with_its_gamma(tmp_path, capsys):
     policy = load_policy(f"ppo:{out}")  # flies with v2's actions
     policy.reset(sim_mission(toml), None)
     assert policy.pilot.action_space.n == 18 and policy.pilot.actions.planned
-    capsys.readouterr()
-    for argv, match in ((["--gamma", "0"], r"in \(0, 1\]"), (["--gamma", "1.5"], r"\(0, 1\]"),
-                        (["--algo", "A2C", "--gamma", "0.99"], "PPO only")):
-        assert main(["train", "--env", ID, *argv, "-o", str(tmp_path / "x")]) == 2
-        err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "osa train: --" in err and re.search(match, err)
+    assert_train_refuses(main, ((["--env", ID, "--gamma", "0"], r"in \(0, 1\]"),
+                                (["--env", ID, "--gamma", "1.5"], r"\(0, 1\]"),
+                                (["--env", ID, "--algo", "A2C", "--gamma", "0.99"], "PPO only")),
+                         tmp_path / "x", capsys)
 
 
 def sim_mission(toml):
