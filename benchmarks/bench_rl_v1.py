@@ -1,6 +1,7 @@
 """``osa/Search-v1`` on held-out test worlds: a trained policy, the hand-written policy
 in v1's actions, a uniformly random v1 policy and ``adaptive`` (docs/rl.md); and the
-hand-written policy in ``osa/Search-v2``'s actions (``heuristic-v2``).
+hand-written policy in ``osa/Search-v2``'s and ``osa/Search-v3``'s actions
+(``heuristic-v2``, ``heuristic-v3``).
 
 Every policy flies ``osa search`` (``envs.loop.run_search``) on the same first
 ``--seeds`` test worlds (common random numbers). Per world: the time until every
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import sim
-from envs.gym.interface import EnvConfig, Pilot
+from envs.gym.interface import PLAN_KINDS, EnvConfig, Pilot
 from envs.gym.plan_actions import PlanActions, plan_heuristic
 from envs.gym.trained import META_FILE
 from envs.loop import run_search
@@ -39,13 +40,14 @@ from envs.policies import load_policy
 from envs.seeds import split_seeds
 from planner.observation import Decision
 
-PLAN_POLICIES = ("heuristic", "random", "heuristic-v2")
+PLAN_POLICIES = ("heuristic", "random", "heuristic-v2", "heuristic-v3")
 
 
 class PlanPolicy:
     """A policy in ``osa/Search-v1``'s actions flying ``osa search``: ``heuristic``
     (:func:`plan_heuristic`) or ``random`` (uniform actions from the loop's generator);
-    ``heuristic-v2``: :func:`plan_heuristic` in ``osa/Search-v2``'s actions."""
+    ``heuristic-v2`` / ``heuristic-v3``: :func:`plan_heuristic` in ``osa/Search-v2``'s /
+    ``osa/Search-v3``'s actions."""
 
     def __init__(self, name: str, config: EnvConfig = EnvConfig(max_responders=5,
                                                                  coverage_cells=6)) -> None:
@@ -54,8 +56,9 @@ class PlanPolicy:
 
     def reset(self, mission, rng) -> None:
         self.rng = rng
-        actions = PlanActions(self.config, planned=self.name == "heuristic-v2")
-        self.pilot = Pilot("plan", self.config, actions=actions)
+        kind = {"heuristic-v2": "plan-v2", "heuristic-v3": "plan-v3"}.get(self.name, "plan")
+        actions = PlanActions(self.config, **PLAN_KINDS[kind])
+        self.pilot = Pilot(kind, self.config, actions=actions)
         self.pilot.reset(mission)
         n = self.pilot.action_space.n
         self.act = (plan_heuristic(self.pilot.actions) if self.name != "random"

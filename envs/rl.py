@@ -45,8 +45,8 @@ class TrainSettings:
     progress: bool = True
     algo_kwargs: dict = field(default_factory=dict)
     policy_kwargs: dict = field(default_factory=lambda: {"net_arch": [128, 128]})
-    curriculum: tuple[float, float] | None = None  # osa/Search-v1, v2: level from, to
-    imitate_episodes: int = 0  # osa/Search-v1, v2: behaviour cloning of plan_heuristic first
+    curriculum: tuple[float, float] | None = None  # osa/Search-v1 to v3: level from, to
+    imitate_episodes: int = 0  # osa/Search-v1 to v3: behaviour cloning of plan_heuristic first
     imitate_epochs: int = 30
     imitate_rounds: int = 0  # DAgger rounds after the first fit
     imitate_learning_rate: float = 3e-4  # Adam's rate while imitating (whatever PPO's)
@@ -340,7 +340,7 @@ def _fly_and_label(venv, episodes: int, teacher, actor, gamma: float):
 
 
 def imitate(model, venv, settings: TrainSettings) -> dict:
-    """Warm start (``osa/Search-v1``, ``v2``): behaviour cloning of the hand-written policy
+    """Warm start (``osa/Search-v1`` to ``v3``): behaviour cloning of the hand-written policy
     (:func:`envs.gym.plan_actions.plan_heuristic`, in the env's actions) with DAgger
     rounds. The teacher flies
     ``imitate_episodes`` episodes in every training env (train worlds; the
@@ -360,7 +360,7 @@ def imitate(model, venv, settings: TrainSettings) -> dict:
 
     probe = make_env(settings.env_id, settings.env_kwargs).unwrapped
     if not isinstance(probe.pilot.actions, PlanActions):
-        raise ValueError(f"imitation needs osa/Search-v1's or v2's actions, not "
+        raise ValueError(f"imitation needs osa/Search-v1's to v3's actions, not "
                          f"{settings.env_id}'s")
     teacher = plan_heuristic(probe.pilot.actions)
     probe.close()

@@ -37,7 +37,8 @@ REWARD_WEIGHTS = ("time_cost_per_s", "localised_bonus", "information_weight", "d
                   "coverage_bonus", "leave_penalty")  # what --reward sets (docs/rl.md "Rewards")
 
 REWARD_PRESETS = ("metric",)
-PLAN_ENVS = ("osa/Search-v1", "osa/Search-v2")  # the whole search as the policy's choice
+# the whole search as the policy's choice
+PLAN_ENVS = ("osa/Search-v1", "osa/Search-v2", "osa/Search-v3")
 
 
 def preset_weights(preset: str, env_id: str) -> dict:
@@ -73,7 +74,7 @@ def reward_weights(items: list[str], env_id: str, preset: str | None = None
         if env_id == TEAM_ENV_ID:
             return f"--reward: not for {TEAM_ENV_ID}", out
         if name == "localised_bonus" and env_id not in PLAN_ENVS:
-            return f"--reward: localised_bonus is osa/Search-v1's and v2's, not {env_id}'s", out
+            return f"--reward: localised_bonus is osa/Search-v1's to v3's, not {env_id}'s", out
         try:
             x = float(value)
         except ValueError:
@@ -93,7 +94,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--env", default="osa/Search-v0", metavar="ID",
                    help="a registered env id: osa/Search-v0 (default), osa/Search-v1, "
-                   "osa/Search-v2 (v1 with adaptive's planned action) or "
+                   "osa/Search-v2 (v1 with adaptive's planned action), osa/Search-v3 (v2 with each "
+                   "responder's recent sigma_H shrink observed) or "
                    "osa/Waypoint-v0; osa/Team-v0: a team of --uavs UAVs, one shared policy "
                    "(PettingZoo)")
     p.add_argument("--scenario", default=None, metavar="S",
@@ -120,11 +122,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint-every", type=non_negative_int, default=50_000, metavar="N",
                    help="save a checkpoint every N steps (0: never; default 50000)")
     p.add_argument("--curriculum", default=None, metavar="FROM:TO",
-                   help="osa/Search-v1 and v2: the curriculum level (the share of the scenario's "
+                   help="osa/Search-v1 to v3: the curriculum level (the share of the scenario's "
                    "[randomise] ranges in use, 0 to 1) rising linearly from FROM to TO over "
                    "the training (default: none, level 1)")
     p.add_argument("--imitate", type=non_negative_int, default=0, metavar="N",
-                   help="osa/Search-v1 and v2: warm start by behaviour cloning of the hand-written "
+                   help="osa/Search-v1 to v3: warm start by behaviour cloning of the hand-written "
                    "policy, N episodes per env before the training (default 0: none)")
     p.add_argument("--dagger", type=non_negative_int, default=0, metavar="K",
                    help="with --imitate: K DAgger rounds (the clone flies, the hand-written "
@@ -135,7 +137,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "settings and algorithm (e.g. a DAgger clone); default: fresh weights")
     p.add_argument("--reward", action="append", default=[], metavar="NAME=X",
                    help="a reward weight of the env (repeatable): "
-                   f"{', '.join(REWARD_WEIGHTS)} (localised_bonus: osa/Search-v1 and v2); "
+                   f"{', '.join(REWARD_WEIGHTS)} (localised_bonus: osa/Search-v1 to v3); "
                    "default: the env's")
     p.add_argument("--reward-preset", choices=REWARD_PRESETS, default=None,
                    help="metric: every reward term but time off (the return is minus "
@@ -209,13 +211,13 @@ def check_task(task: dict) -> str | None:
 
 
 def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
-    """The options of ``osa/Search-v1`` and ``v2`` training and PPO's rates checked: (why they
+    """The options of ``osa/Search-v1`` to ``v3`` training and PPO's rates checked: (why they
     cannot be, or None; the TrainSettings keywords they give)."""
     v1 = args.env in PLAN_ENVS
     kw: dict = {}
     if args.curriculum is not None:
         if not v1:
-            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1 and v2)", kw
+            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1 to v3)", kw
         try:
             lo, hi = (float(x) for x in args.curriculum.split(":"))
         except ValueError:
@@ -225,7 +227,7 @@ def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
         kw["curriculum"] = (lo, hi)
     if args.imitate and not v1:
         return (f"--imitate: {args.env} has nothing to imitate (the hand-written policy is "
-                "osa/Search-v1's and v2's)"), kw
+                "osa/Search-v1's to v3's)"), kw
     if args.dagger and not args.imitate:
         return "--dagger: needs --imitate N (the episodes of each round)", kw
     kw["imitate_episodes"], kw["imitate_rounds"] = args.imitate, args.dagger

@@ -9,6 +9,9 @@
   from ``[randomise]`` and a curriculum level;
 - ``osa/Search-v2`` (:class:`envs.gym.plan.PlannedEnv`): v1 with ``adaptive``'s
   receding-horizon plan about the target as one more action, ``planned``;
+- ``osa/Search-v3`` (:class:`envs.gym.plan.EffortEnv`): v2 with how much each
+  responder's sigma_H shrank over the last 20 s in the observation (when a responder
+  is done is the policy's judgement);
 - :class:`envs.gym.multi.SearchParallelEnv`: N agents (UAVs, optionally a ground
   agent) sharing one fused estimate (PettingZoo ``ParallelEnv``);
 - :class:`envs.gym.trained.TrainedPolicy`: a model trained by ``osa train`` as a

@@ -537,6 +537,12 @@ class WaypointActions:
         return Decision(plans={i: traj}, localised=loc)
 
 
+# the action kinds of osa/Search-v1, v2 and v3: PlanActions' options of each
+PLAN_KINDS: dict[str, dict[str, bool]] = {
+    "plan": {}, "plan-v2": {"planned": True}, "plan-v3": {"planned": True, "shrink": True},
+}
+
+
 def _norm(v: np.ndarray) -> float:
     """``np.linalg.norm`` of a vector (its square root of ``v . v``), without its checks."""
     return math.sqrt(v.dot(v))
@@ -549,17 +555,18 @@ class Pilot:
     def __init__(self, kind: str, config: EnvConfig = EnvConfig(), *, n_others: int = 0,
                  speed_mps: float | None = None, ground: bool = False,
                  actions: object | None = None) -> None:
-        if kind not in ("search", "waypoint", "plan", "plan-v2"):
-            raise ValueError(f"unknown action kind {kind!r} (search, waypoint, plan, plan-v2)")
+        if kind not in ("search", "waypoint", *PLAN_KINDS):
+            raise ValueError(f"unknown action kind {kind!r} (search, waypoint, "
+                             f"{', '.join(PLAN_KINDS)})")
         self.kind = kind
         self.cfg = config
         self.encoder = Encoder(config, n_others)
         if actions is not None:  # an action mapping object (e.g. PlanActions(sectors=4))
             self.actions = actions
-        elif kind in ("plan", "plan-v2"):  # osa/Search-v1, osa/Search-v2
+        elif kind in PLAN_KINDS:  # osa/Search-v1, v2, v3
             from envs.gym.plan_actions import PlanActions
 
-            self.actions = PlanActions(config, planned=kind == "plan-v2")
+            self.actions = PlanActions(config, **PLAN_KINDS[kind])
         else:
             self.actions = (ManoeuvreActions(config) if kind == "search"
                             else WaypointActions(config, speed_mps, ground))

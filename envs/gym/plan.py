@@ -1,5 +1,6 @@
 """``osa/Search-v1``: the whole search is the policy's choice; ``osa/Search-v2``: the
-same with ``adaptive``'s receding-horizon plan as one more action."""
+same with ``adaptive``'s receding-horizon plan as one more action; ``osa/Search-v3``: v2
+with how much each responder's sigma_H shrank lately in the observation."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import math
 from pathlib import Path
 
 from envs.gym.base import DEFAULT_SCENARIO, SearchEnvBase
-from envs.gym.interface import Pilot
+from envs.gym.interface import PLAN_KINDS, Pilot
 from envs.gym.plan_actions import PlanActions
 from envs.loop import DEFAULT_MODE
 from sim.scenario import Scenario
@@ -142,5 +143,19 @@ class PlannedEnv(PlanEnv):
     kind = "plan-v2"
 
     def _make_pilot(self) -> Pilot:
-        actions = self._actions_arg or PlanActions(self.config, self._sectors, planned=True)
+        actions = self._actions_arg or PlanActions(self.config, self._sectors,
+                                                   **PLAN_KINDS[self.kind])
         return Pilot(self.kind, self.config, actions=actions)
+
+
+class EffortEnv(PlannedEnv):
+    """``osa/Search-v3``: ``osa/Search-v2`` (its actions, rewards, episode end and
+    arguments) with one more observation key, ``sigma_shrink``: per responder slot, how
+    much its sigma_H shrank over the last 20 s of flight (``1 - now / then``, in [0, 1]; 1
+    before it has a sigma_H that old). When a responder is done, that is, when what is
+    flown about it no longer improves its estimate, becomes the policy's judgement
+    (``done`` sets it aside and the estimator's plateau judgement completes meanwhile):
+    how to split the effort between responders. See
+    :class:`envs.gym.plan_actions.PlanActions` (``shrink=True``)."""
+
+    kind = "plan-v3"

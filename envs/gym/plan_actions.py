@@ -15,7 +15,13 @@ finish with the close helix, set it aside once localised): the yardstick a train
 policy is compared with and the floor a random one falls below. ``osa/Search-v2``
 (``PlanActions(config, planned=True)``) adds the ``planned`` action, ``adaptive``'s
 receding-horizon plan about the target, and :func:`plan_heuristic` then flies it where
-v1's flies the near orbit: ``adaptive`` in v2's actions.
+v1's flies the near orbit: ``adaptive`` in v2's actions. ``osa/Search-v3``
+(``PlanActions(config, planned=True, shrink=True)``) adds to the observation how much each
+responder's sigma_H shrank over the last :data:`SHRINK_WINDOW_S`, so that when a
+responder is done (its estimate gains nothing more from what is flown) is the policy's
+judgement; :func:`plan_heuristic` then sets a target aside as soon as its close helix
+gains nothing, and the estimator's plateau judgement (:class:`planner.observation.LocalisedRule`)
+completes while it flies to the next.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ TARGET_ACTIONS = ("helix", "orbit-near", "orbit-far", "close-pass")
 PATTERNS = ("lawnmower", "expanding-square")
 POINTER_ACTIONS = ("next", "done")
 PLANNED = "planned"  # osa/Search-v2's action after v1's
+SHRINK_WINDOW_S = 20.0  # osa/Search-v3's sigma_shrink: over this much of the past
 
 
 class PlanActions:
@@ -62,6 +69,11 @@ class PlanActions:
       the probe helix while the target has no usable estimate, or when the planner
       refuses (as ``adaptive``).
 
+    ``shrink=True`` (``osa/Search-v3``, with ``planned=True``) adds the observation key
+    ``sigma_shrink``: per slot, ``1 - sigma_H(t) / sigma_H(t - 20 s)`` (clipped to [0, 1];
+    1 while the responder has no sigma_H that old: nothing is settled yet), from the
+    estimates the policy has seen (:class:`planner.observation.LocalisedTracker`).
+
     The target (the slot feature ``target`` of the observation) is chosen by the policy
     with ``next``; when there is none and a responder heard is neither localised nor set
     aside, it is the most recently heard such responder. A localised target stays the
@@ -74,12 +86,14 @@ class PlanActions:
 
     kind = "plan"
 
-    def __init__(self, config, sectors: int = 3, planned: bool = False) -> None:
+    def __init__(self, config, sectors: int = 3, planned: bool = False,
+                 shrink: bool = False) -> None:
         if not 1 <= int(sectors) <= 6:
             raise ValueError("sectors must be in [1, 6]")
         self.cfg = config
         self.sectors = int(sectors)
         self.planned = bool(planned)
+        self.shrink = bool(shrink)
         self.names = (*(f"sector-{i}" for i in range(self.sectors**2)), *PATTERNS,
                       *TARGET_ACTIONS, *POINTER_ACTIONS, *((PLANNED,) if planned else ()))
         # the adaptive policy's planner (built once per process and configuration)
@@ -93,6 +107,8 @@ class PlanActions:
             "set_aside": spaces.Box(0.0, 1.0, (k,), f32),
             "flying": spaces.Box(0.0, 1.0, (len(self.names),), f32),
         }
+        if self.shrink:
+            self.obs_space["sigma_shrink"] = spaces.Box(0.0, 1.0, (k,), f32)
 
     def index(self, name: str) -> int:
         return self.names.index(name)
@@ -151,8 +167,14 @@ class PlanActions:
         if self.current is not None and self.current[0] >= 0:
             flying[self.current[0]] = 1.0
         f32 = np.float32
-        return {"sectors": np.clip(sectors, 0.0, 1.0).astype(f32), "set_aside": aside.astype(f32),
-                "flying": flying.astype(f32)}
+        out = {"sectors": np.clip(sectors, 0.0, 1.0).astype(f32), "set_aside": aside.astype(f32),
+               "flying": flying.astype(f32)}
+        if self.shrink:
+            shrink = np.zeros(self.cfg.max_responders)
+            for i, b in enumerate(enc.slots[: self.cfg.max_responders]):
+                shrink[i] = sigma_shrink(enc.tracker.sigma.get(b, []), obs.t_s)
+            out["sigma_shrink"] = shrink.astype(f32)
+        return out
 
     # ------------------------------------------------------------------ decide
     def _pending(self, obs: Observation, skip: set[str]) -> list[str]:
@@ -261,9 +283,25 @@ class PlanActions:
         return responder_manoeuvre(self.man, self.cfg.adaptive, name, target, obs, a, "next")
 
 
+def sigma_shrink(history: list[tuple[float, float]], t_s: float,
+                 window_s: float = SHRINK_WINDOW_S) -> float:
+    """``1 - sigma_H(t) / sigma_H(t - window_s)`` of a responder's ``(t_s, sigma_H)``
+    history (the latest sigma_H at least ``window_s`` old), in [0, 1]; 1 without one."""
+    if not history:
+        return 1.0
+    old = None
+    for t, s in reversed(history):
+        if t <= t_s - window_s:
+            old = s
+            break
+    if old is None or old <= 0.0:
+        return 1.0
+    return float(min(max(1.0 - history[-1][1] / old, 0.0), 1.0))
+
+
 def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0,
                    planned: bool | None = None, close_band: float = 2.0,
-                   give_up: float | None = None):
+                   give_up: float | None = None, settled: float | None = None):
     """The hand-written policy in :class:`PlanActions` (observation -> action), reading
     only the observation: with a target not localised, the probe helix until it has an
     estimate, a near orbit while sigma_H > ``close_sigma_h_m``, then the close helix;
@@ -277,11 +315,24 @@ def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0,
     more than ``give_up`` of the budget ago (the slot's ``age``; 600 s of 30 minutes)
     with no usable estimate yet is set aside (``done``; ``adaptive`` gives one up after
     420 s as the target: a responder the terrain or vegetation hides could hold the
-    probe to the end of the budget). ``give_up=None``: never."""
+    probe to the end of the budget). ``give_up=None``: never.
+
+    ``settled`` (default, ``osa/Search-v3``'s ``sigma_shrink``: 0.03; with ``give_up``
+    then 1/3 of the budget): a target converged (with the rule's ``min_n_acc`` ranges
+    accepted) whose close helix shrank its sigma_H by less than this share over the
+    last 20 s is set aside (``done``): the estimator's plateau judgement of it
+    (sigma_H not 5 % smaller over 90 s) completes while the drone works on the next
+    responder or searches, instead of while it circles one that gains nothing."""
     from envs.gym.interface import SLOT_FEATURES
 
     if planned is None:
         planned = PLANNED in actions.names
+    shrinks = bool(getattr(actions, "shrink", False))
+    if shrinks:
+        settled = 0.03 if settled is None else settled
+        give_up = 1.0 / 3.0 if give_up is None else give_up
+    else:
+        settled = None
     f = {k: j for j, k in enumerate(SLOT_FEATURES)}
     nf = len(SLOT_FEATURES)
     helix = actions.index("helix")
@@ -290,18 +341,21 @@ def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0,
     threshold = np.log10(close_sigma_h_m) / 2.0
     stay = np.log10(close_band * close_sigma_h_m) / 2.0
     give_up = give_up if planned else None
+    min_acc = np.log1p(actions.cfg.rule.min_n_acc) / np.log(1000.0)  # log_accepted
 
     def act(obs: dict) -> int:
         slots = np.asarray(obs["responders"]).reshape(-1, nf)
         mask = np.asarray(obs["responder_mask"]) > 0.5
-        on = [s for s, m in zip(slots, mask, strict=True) if m and s[f["target"]] > 0.5]
+        on = [i for i, m in enumerate(mask) if m and slots[i][f["target"]] > 0.5]
         if not on and planned:  # the one the action will make the target (no decision lost)
             aside = np.asarray(obs["set_aside"]) > 0.5
-            on = sorted((s for s, m, x in zip(slots, mask, aside, strict=True)
-                         if m and not x and s[f["localised"]] < 0.5), key=lambda s: s[f["age"]])
+            on = sorted((i for i, m in enumerate(mask)
+                         if m and not aside[i] and slots[i][f["localised"]] < 0.5),
+                        key=lambda i: slots[i][f["age"]])
         if not on:
             return sweep
-        s = on[0]
+        on_slot = on[0]
+        s = slots[on_slot]
         if s[f["localised"]] > 0.5:
             return done
         if s[f["present_estimate"]] < 0.5 or s[f["status_none"]] > 0.5:
@@ -309,6 +363,10 @@ def plan_heuristic(actions: PlanActions, close_sigma_h_m: float = 3.0,
                 return done
             return helix
         if planned and obs["flying"][helix] > 0.5 and s[f["log_sigma_h"]] <= stay:
+            if settled is not None and s[f["status_converged"]] > 0.5 and \
+                    s[f["log_accepted"]] >= min_acc and s[f["log_sigma_h"]] <= threshold and \
+                    obs["sigma_shrink"][on_slot] < settled:
+                return done
             return helix
         return orbit if s[f["log_sigma_h"]] > threshold else helix
 

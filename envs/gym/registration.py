@@ -9,6 +9,7 @@ ENVS: dict[str, str] = {
     "osa/Waypoint-v0": "envs.gym.waypoint:WaypointEnv",
     "osa/Search-v1": "envs.gym.plan:PlanEnv",
     "osa/Search-v2": "envs.gym.plan:PlannedEnv",
+    "osa/Search-v3": "envs.gym.plan:EffortEnv",
 }
 # the PettingZoo team env's name at the CLI (not a Gymnasium id: envs/gym/team.py)
 TEAM_ENV_ID = "osa/Team-v0"

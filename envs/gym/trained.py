@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.gym.interface import EnvConfig, Pilot
+from envs.gym.interface import PLAN_KINDS, EnvConfig, Pilot
 from planner.observation import Decision, Observation, SearchMission
 
 MODEL_FILE, STATS_FILE, META_FILE = "model.zip", "vecnormalize.pkl", "osa-model.json"
@@ -77,7 +77,7 @@ class TrainedPolicy:
             algo = meta.get("algo", "PPO")
         except (ValueError, KeyError) as exc:
             raise ValueError(f"{meta_p}: unreadable ({exc})") from None
-        if kind not in ("search", "waypoint", "plan", "plan-v2", "team"):
+        if kind not in ("search", "waypoint", *PLAN_KINDS, "team"):
             raise ValueError(f"{meta_p}: unknown env kind {kind!r}")
         try:
             import torch

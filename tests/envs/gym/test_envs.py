@@ -86,7 +86,7 @@ def test_registered_in_one_place_and_made_by_id():
     from envs.gym.registration import ENVS
 
     # v1: tests/envs/gym/test_plan.py; v2: tests/envs/gym/test_plan_v2.py
-    assert set(ENVS) == {*IDS, "osa/Search-v1", "osa/Search-v2"}
+    assert set(ENVS) == {*IDS, "osa/Search-v1", "osa/Search-v2", "osa/Search-v3"}
     for env_id in IDS:
         assert gymnasium.spec(env_id).entry_point == ENVS[env_id]
     assert isinstance(gymnasium.make("osa/Search-v0").unwrapped, SearchEnv)

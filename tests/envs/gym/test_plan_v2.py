@@ -40,6 +40,9 @@ def test_v2_passes_the_checkers_and_v1_is_unchanged():
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        # but Gymnasium's note that a newer version exists (osa/Search-v3, docs/rl.md)
+        warnings.filterwarnings("ignore", message=".*osa/Search-v2 is out of date",
+                                category=DeprecationWarning)
         env = gymnasium.make(ID, scenario=small())
         check_env(env.unwrapped)
         sb3_check_env(env.unwrapped, warn=True)
@@ -106,7 +109,8 @@ def test_the_v2_teacher_localises_one_responder():
     assert info["flight_time_s"] < 600.0
 
 
-def test_osa_train_v2_imitates_the_v2_teacher_with_its_gamma(tmp_path, capsys):
+@pytest.mark.parametrize("env_id,kind", [(ID, "plan-v2"), ("osa/Search-v3", "plan-v3")])
+def test_osa_train_v2_and_v3_imitate_their_teacher_with_its_gamma(env_id, kind, tmp_path, capsys):
     pytest.importorskip("stable_baselines3")
     import json
 
@@ -117,7 +121,7 @@ def test_osa_train_v2_imitates_the_v2_teacher_with_its_gamma(tmp_path, capsys):
 
     toml = one_responder_file(tmp_path, 200.0)
     out = tmp_path / "m"
-    assert main(["train", "--env", ID, "--scenario", str(toml), "--steps", "256",
+    assert main(["train", "--env", env_id, "--scenario", str(toml), "--steps", "256",
                  "--envs", "1", "--eval-every", "0", "--checkpoint-every", "0",
                  "--imitate", "2", "--gamma", "0.999", "--no-progress", "-o", str(out)]) == 0
     imitated = json.loads((out / "imitation.json").read_text())
@@ -125,14 +129,17 @@ def test_osa_train_v2_imitates_the_v2_teacher_with_its_gamma(tmp_path, capsys):
     assert imitated["episodes"] == 2 and 40 < imitated["decisions"] < 80
     assert imitated["agreement"] > 0.7
     meta = json.loads((out / "osa-model.json").read_text())
-    assert meta["env_id"] == ID and meta["kind"] == "plan-v2"
+    assert meta["env_id"] == env_id and meta["kind"] == kind
     assert PPO.load(str(out / "model.zip"), device="cpu").gamma == 0.999
-    policy = load_policy(f"ppo:{out}")  # flies with v2's actions
+    policy = load_policy(f"ppo:{out}")  # flies with v2's (v3's) actions
     policy.reset(sim_mission(toml), None)
     assert policy.pilot.action_space.n == 18 and policy.pilot.actions.planned
-    assert_train_refuses(main, ((["--env", ID, "--gamma", "0"], r"in \(0, 1\]"),
-                                (["--env", ID, "--gamma", "1.5"], r"\(0, 1\]"),
-                                (["--env", ID, "--algo", "A2C", "--gamma", "0.99"], "PPO only")),
+    assert policy.pilot.actions.shrink == (kind == "plan-v3")
+    assert ("sigma_shrink" in policy.pilot.observation_space.spaces) == (kind == "plan-v3")
+    assert_train_refuses(main, ((["--env", env_id, "--gamma", "0"], r"in \(0, 1\]"),
+                                (["--env", env_id, "--gamma", "1.5"], r"\(0, 1\]"),
+                                (["--env", env_id, "--algo", "A2C", "--gamma", "0.99"],
+                                 "PPO only")),
                          tmp_path / "x", capsys)
 
 
