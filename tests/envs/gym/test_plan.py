@@ -14,7 +14,6 @@ import dataclasses
 import math
 import pickle
 import re
-import warnings
 
 import gymnasium
 import numpy as np
@@ -26,6 +25,7 @@ from envs.gym.interface import EnvConfig
 from envs.gym.plan import PlanEnv
 from envs.gym.plan_actions import PlanActions, plan_heuristic
 from sim.randomise import Randomise
+from tests.envs.gym.test_envs import assert_checkers_pass
 
 ID = "osa/Search-v1"
 
@@ -75,19 +75,7 @@ def uniform(seed: int, n: int):
 
 
 def test_checkers_pass_without_warnings():
-    pytest.importorskip("stable_baselines3")
-    from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        # but Gymnasium's note that a newer version exists (osa/Search-v2, docs/rl.md)
-        warnings.filterwarnings("ignore", message=".*osa/Search-v1 is out of date",
-                                category=DeprecationWarning)
-        env = gymnasium.make(ID, scenario=small())
-        check_env(env.unwrapped)
-        sb3_check_env(env.unwrapped, warn=True)
-        env.close()
+    assert_checkers_pass(ID, scenario=small())
     u = gymnasium.make(ID).unwrapped
     assert isinstance(u, PlanEnv) and u.action_space.n == 17
     assert {"sectors", "set_aside", "flying", "coverage", "responders"} <= set(

@@ -5,7 +5,6 @@ actions). v1 itself is unchanged (tests/envs/gym/test_plan.py)."""
 from __future__ import annotations
 
 import pickle
-import warnings
 
 import gymnasium
 import numpy as np
@@ -14,6 +13,7 @@ import pytest
 import envs  # noqa: F401  (registers the envs)
 from envs.gym.plan import PlanEnv, PlannedEnv
 from envs.gym.plan_actions import plan_heuristic
+from tests.envs.gym.test_envs import assert_checkers_pass
 from tests.envs.gym.test_plan import rollout, small
 from tests.envs.test_ppo import assert_train_refuses, one_responder_file
 
@@ -34,19 +34,7 @@ def recording(env):
 
 
 def test_v2_passes_the_checkers_and_v1_is_unchanged():
-    pytest.importorskip("stable_baselines3")
-    from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        # but Gymnasium's note that a newer version exists (osa/Search-v3, docs/rl.md)
-        warnings.filterwarnings("ignore", message=".*osa/Search-v2 is out of date",
-                                category=DeprecationWarning)
-        env = gymnasium.make(ID, scenario=small())
-        check_env(env.unwrapped)
-        sb3_check_env(env.unwrapped, warn=True)
-        env.close()
+    assert_checkers_pass(ID, scenario=small())
     with pytest.warns(DeprecationWarning, match="osa/Search-v1 is out of date"):
         v1 = gymnasium.make("osa/Search-v1").unwrapped  # Gymnasium's note: v2 exists
     v2 = gymnasium.make(ID).unwrapped

@@ -17,6 +17,7 @@ from envs.gym.plan import EffortEnv, PlannedEnv
 from envs.gym.plan_actions import SHRINK_WINDOW_S, plan_heuristic, sigma_shrink
 from envs.loop import run_search
 from envs.policies import load_policy
+from tests.envs.gym.test_envs import assert_checkers_pass
 from tests.envs.gym.test_plan import equal, rollout, small
 from tests.envs.gym.test_plan_v2 import recording
 
@@ -24,16 +25,9 @@ ID = "osa/Search-v3"
 
 
 def test_v3_passes_the_checkers_and_is_v2_with_one_more_key():
-    pytest.importorskip("stable_baselines3")
-    from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
-
+    assert_checkers_pass(ID, scenario=small())
     with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        env = gymnasium.make(ID, scenario=small())
-        check_env(env.unwrapped)
-        sb3_check_env(env.unwrapped, warn=True)
-        env.close()
+        warnings.simplefilter("error")  # the newest version: no note
         v3 = gymnasium.make(ID).unwrapped
     v2 = PlannedEnv()
     assert isinstance(v3, EffortEnv) and v3.kind == "plan-v3" and v2.kind == "plan-v2"
@@ -58,10 +52,8 @@ def test_sigma_shrink_against_a_hand_computation():
 def test_the_observed_shrink_is_that_of_the_estimates_seen():
     env = gymnasium.make(ID, scenario=small(900.0, 1)).unwrapped
     teacher = plan_heuristic(env.pilot.actions)
-    seen = []
-    for obs, *_ in rollout(env, teacher, world_seed=7):
-        enc = env.pilot.encoder
-        seen.append(obs["sigma_shrink"].copy())
+    seen = [step[0]["sigma_shrink"].copy() for step in rollout(env, teacher, world_seed=7)]
+    enc = env.pilot.encoder
     # at the end, by hand from the tracker's history of the one responder
     (b,) = enc.slots
     hist = enc.tracker.sigma[b]
