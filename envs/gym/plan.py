@@ -91,8 +91,9 @@ class PlanEnv(SearchEnvBase):
         self.set_level(level)
 
     def _make_pilot(self) -> Pilot:
-        actions = self._actions_arg or PlanActions(self.config, self._sectors)
-        return Pilot("plan", self.config, actions=actions)
+        actions = self._actions_arg or PlanActions(self.config, self._sectors,
+                                                   **PLAN_KINDS[self.kind])
+        return Pilot(self.kind, self.config, actions=actions)
 
     # ------------------------------------------------------------------ curriculum
     def set_level(self, level: float) -> None:
@@ -141,11 +142,6 @@ class PlannedEnv(PlanEnv):
     :class:`envs.gym.plan_actions.PlanActions` (``planned=True``)."""
 
     kind = "plan-v2"
-
-    def _make_pilot(self) -> Pilot:
-        actions = self._actions_arg or PlanActions(self.config, self._sectors,
-                                                   **PLAN_KINDS[self.kind])
-        return Pilot(self.kind, self.config, actions=actions)
 
 
 class EffortEnv(PlannedEnv):
