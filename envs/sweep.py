@@ -13,9 +13,12 @@ defaults (over the command line's options), each ``[[task]]`` overrides them::
 
 Keys (:data:`TASK_KEYS`): ``name`` (the task's folder, unique), ``env``, ``scenario``,
 ``uavs``, ``steps``, ``seed``, ``algo``, ``envs``, ``vec``, ``eval_every``,
-``eval_worlds``, and
-``ppo`` (a table of PPO settings over the defaults of ``envs.commands.train``; a
-``learning_rate`` is the start of the linear schedule).
+``eval_worlds``, the recipe's (:data:`envs.commands.train.RECIPE_KEYS`:
+``curriculum``, ``imitate``, ``dagger``, ``imitation_coef``, ``critic_warmup``,
+``reward`` (a table ``NAME = X``), ``reward_preset``, ``init``), and ``ppo`` (a table of
+PPO settings over the defaults of ``envs.commands.train``; a ``learning_rate`` is the
+start of the linear schedule). A task is read as a command line is
+(:func:`envs.commands.train.task_settings`).
 
 Each task is one :func:`envs.rl.train` on a worker (a Dask worker of the scheduler at
 ``ADDRESS``; without one, here, one after another). A task's outcome depends only on
@@ -40,14 +43,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from envs.commands.train import PPO_RANGES, RECIPE_KEYS, task_settings
 from envs.seeds import TRAIN_SEED_BITS, check_seed
 
 TASK_KEYS = ("name", "env", "scenario", "uavs", "steps", "seed", "algo", "envs", "vec",
-             "eval_every", "eval_worlds", "ppo")
-PPO_KEYS = ("n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "ent_coef",
-            "learning_rate", "clip_range", "vf_coef", "max_grad_norm")
+             "eval_every", "eval_worlds", "ppo", *RECIPE_KEYS)
 SUMMARY_COLUMNS = ("name", "env", "scenario", "uavs", "seed", "steps", "algo", "ppo",
-                   "localised", "median_time_s", "mean_return")
+                   "localised", "median_time_s", "mean_return", "recipe")
+TABLES = ("ppo", "reward")  # merged key by key: the command line's, the top level's, the task's
 _ONE_TRAINING = threading.Lock()  # torch's random generator is one per process
 
 
@@ -55,8 +58,14 @@ class SweepError(ValueError):
     """A sweep file that cannot be run (one line)."""
 
 
+def _number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def _check_value(key: str, v, where: str) -> None:
-    ints = {"uavs": 1, "steps": 1, "envs": 1, "eval_every": 0, "eval_worlds": 1}
+    """The type of a task's value (its range is :func:`task_settings`' to check)."""
+    ints = {"uavs": 1, "steps": 1, "envs": 1, "eval_every": 0, "eval_worlds": 1,
+            "imitate": 0, "dagger": 0, "critic_warmup": 0}
     if key == "seed":
         try:
             check_seed(v, TRAIN_SEED_BITS)
@@ -65,15 +74,23 @@ def _check_value(key: str, v, where: str) -> None:
     elif key in ints:
         if isinstance(v, bool) or not isinstance(v, int) or v < ints[key]:
             raise SweepError(f"{where}: {key} must be an integer >= {ints[key]}, not {v!r}")
-    elif key == "ppo":
+    elif key in TABLES:
         if not isinstance(v, dict):
-            raise SweepError(f"{where}: ppo must be a table of PPO settings")
+            raise SweepError(f"{where}: {key} must be a table of "
+                             f"{'PPO settings' if key == 'ppo' else 'reward weights'}")
         for k, x in v.items():
-            if k not in PPO_KEYS:
+            if key == "ppo" and k not in PPO_RANGES:
                 raise SweepError(f"{where}: unknown PPO setting {k!r}; choose from "
-                                 f"{', '.join(PPO_KEYS)}")
-            if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
-                raise SweepError(f"{where}: ppo.{k} must be a number, not {x!r}")
+                                 f"{', '.join(PPO_RANGES)}")
+            if not _number(x):
+                raise SweepError(f"{where}: {key}.{k} must be a number, not {x!r}")
+    elif key == "imitation_coef":
+        if not _number(v) or v < 0:
+            raise SweepError(f"{where}: imitation_coef must be a number >= 0, not {v!r}")
+    elif key == "curriculum":
+        if not (isinstance(v, str) or (isinstance(v, list) and len(v) == 2
+                                       and all(_number(x) for x in v))):
+            raise SweepError(f"{where}: curriculum must be \"FROM:TO\" or [FROM, TO], not {v!r}")
     elif key == "vec" and v not in ("subproc", "batched"):
         raise SweepError(f"{where}: vec must be 'subproc' or 'batched', not {v!r}")
     elif not isinstance(v, str) or not v:
@@ -108,7 +125,8 @@ def read_sweep(path: str | Path, defaults: dict) -> list[dict]:
             _check_value(k, v, where)
     for i, t in enumerate(tasks, 1):
         task = {**defaults, **top, **t}
-        task["ppo"] = {**defaults.get("ppo", {}), **top.get("ppo", {}), **t.get("ppo", {})}
+        for k in TABLES:
+            task[k] = {**(defaults.get(k) or {}), **top.get(k, {}), **t.get(k, {})}
         task.setdefault("name", f"task-{i}")
         if "/" in task["name"] or task["name"] in (".", ".."):
             raise SweepError(f"--sweep {p}: task {i}: name {task['name']!r} is not a folder name")
@@ -120,29 +138,18 @@ def read_sweep(path: str | Path, defaults: dict) -> list[dict]:
 
 
 def settings_of(task: dict):
-    """The :class:`envs.rl.TrainSettings` of a task (its PPO settings over the
-    command's defaults, the learning rate falling linearly from its value)."""
-    from envs.commands.train import PPO_DEFAULTS, linear_schedule
-    from envs.gym.registration import TEAM_ENV_ID
-    from envs.rl import TrainSettings
+    """The :class:`envs.rl.TrainSettings` of a task, read as a command line is
+    (:func:`envs.commands.train.task_settings`; no checkpoints, no progress bar)."""
+    problem, settings = task_settings(task)
+    if problem:
+        raise SweepError(f"task {task.get('name')}: {problem.lstrip('-')}")
+    return settings
 
-    env_kwargs: dict = {}
-    if task.get("scenario") is not None:
-        env_kwargs["scenario"] = task["scenario"]
-    if task["env"] == TEAM_ENV_ID:
-        env_kwargs["uavs"] = task.get("uavs", 2)
-    algo = task.get("algo", "PPO").upper()
-    algo_kwargs: dict = {}
-    if algo == "PPO":
-        algo_kwargs = dict(PPO_DEFAULTS)
-        for k, v in task.get("ppo", {}).items():
-            algo_kwargs[k] = linear_schedule(float(v)) if k == "learning_rate" else v
-    return TrainSettings(env_id=task["env"], env_kwargs=env_kwargs, steps=task["steps"],
-                         seed=task["seed"], algo=algo, n_envs=task.get("envs", 1),
-                         vec=task.get("vec", "subproc"),
-                         eval_every=task.get("eval_every", 0),
-                         eval_worlds=task.get("eval_worlds", 20), checkpoint_every=0,
-                         progress=False, algo_kwargs=algo_kwargs)
+
+def recipe_of(task: dict) -> str:
+    """The recipe options a task sets (not left at their defaults), as JSON."""
+    return json.dumps({k: task[k] for k in RECIPE_KEYS if task.get(k) not in (None, 0, {})},
+                      sort_keys=True)
 
 
 @dataclass(frozen=True)
@@ -175,7 +182,7 @@ def run_task(task: dict) -> TaskResult:
            "steps": summary.steps, "algo": settings.algo,
            "ppo": json.dumps(task.get("ppo", {}), sort_keys=True),
            "localised": last.get("localised"), "median_time_s": last.get("median_time_s"),
-           "mean_return": last.get("mean_return")}
+           "mean_return": last.get("mean_return"), "recipe": recipe_of(task)}
     return TaskResult(task["name"], files, row, wall)
 
 

@@ -55,19 +55,22 @@ def preset_weights(preset: str, env_id: str) -> dict:
     return out
 
 
-def reward_weights(items: list[str], env_id: str, preset: str | None = None
+def reward_weights(weights: dict, env_id: str, preset: str | None = None
                    ) -> tuple[str | None, dict]:
-    """``--reward-preset`` then ``--reward NAME=X`` items (which override it) as env
-    keywords: (why they cannot be, or None; them)."""
+    """``--reward-preset`` then the ``--reward NAME=X`` weights (``{NAME: X}``, X a number
+    or its text; they override the preset) as env keywords: (why they cannot be, or
+    None; them)."""
     from envs.gym.team import TEAM_ENV_ID
 
     out: dict = {}
     if preset is not None:
+        if preset not in REWARD_PRESETS:
+            return (f"--reward-preset: unknown preset {preset!r}; choose from "
+                    f"{', '.join(REWARD_PRESETS)}"), out
         if env_id == TEAM_ENV_ID:
             return f"--reward-preset: not for {TEAM_ENV_ID}", out
         out.update(preset_weights(preset, env_id))
-    for item in items:
-        name, _, value = item.partition("=")
+    for name, value in weights.items():
         if name not in REWARD_WEIGHTS:
             return (f"--reward: unknown weight {name!r}; choose from "
                     f"{', '.join(REWARD_WEIGHTS)}"), out
@@ -76,9 +79,11 @@ def reward_weights(items: list[str], env_id: str, preset: str | None = None
         if name == "localised_bonus" and env_id not in PLAN_ENVS:
             return f"--reward: localised_bonus is osa/Search-v1's to v3's, not {env_id}'s", out
         try:
+            if isinstance(value, bool):
+                raise ValueError
             x = float(value)
-        except ValueError:
-            return f"--reward: expected NAME=X with X a number, got {item!r}", out
+        except (TypeError, ValueError):
+            return f"--reward: expected NAME=X with X a number, got {name}={value!r}", out
         if not (math.isfinite(x) and x >= 0.0):
             return f"--reward: {name} must be a number >= 0, got {value!r}", out
         out[name] = x
@@ -210,50 +215,144 @@ def check_task(task: dict) -> str | None:
     return None
 
 
-def v1_options(args: argparse.Namespace) -> tuple[str | None, dict]:
-    """The options of ``osa/Search-v1`` to ``v3`` training and PPO's rates checked: (why they
-    cannot be, or None; the TrainSettings keywords they give)."""
-    v1 = args.env in PLAN_ENVS
+# PPO's settings of a task: (the range a value must lie in, as text; its test)
+PPO_RANGES: dict[str, tuple[str, object]] = {
+    "n_steps": ("an integer >= 1", lambda x: isinstance(x, int) and x >= 1),
+    "batch_size": ("an integer >= 1", lambda x: isinstance(x, int) and x >= 1),
+    "n_epochs": ("an integer >= 1", lambda x: isinstance(x, int) and x >= 1),
+    "gamma": ("a number in (0, 1]", lambda x: 0.0 < x <= 1.0),
+    "gae_lambda": ("a number in (0, 1]", lambda x: 0.0 < x <= 1.0),
+    "ent_coef": ("a number in [0, 1]", lambda x: 0.0 <= x <= 1.0),
+    "learning_rate": ("a number in [0, 1]", lambda x: 0.0 <= x <= 1.0),
+    "clip_range": ("a number > 0", lambda x: x > 0.0),
+    "vf_coef": ("a number >= 0", lambda x: x >= 0.0),
+    "max_grad_norm": ("a number > 0", lambda x: x > 0.0),
+}
+# what a training task holds beyond check_task's keys (the options of one training)
+RECIPE_KEYS = ("curriculum", "imitate", "dagger", "imitation_coef", "critic_warmup",
+               "reward", "reward_preset", "init")
+
+
+def option(key: str) -> str:
+    """The command-line option of a task key (``imitation_coef`` -> ``--imitation-coef``)."""
+    return "--" + key.replace("_", "-")
+
+
+def ppo_settings(task: dict) -> tuple[str | None, dict]:
+    """The algorithm's keywords of a task: PPO's defaults (:data:`PPO_DEFAULTS`) with the
+    task's ``ppo`` settings over them (``learning_rate`` the start of the linear
+    schedule), each checked against :data:`PPO_RANGES`: (why they cannot be, or None;
+    them)."""
+    ppo, algo = task.get("ppo") or {}, task.get("algo", "PPO").upper()
+    if algo != "PPO":
+        return (f"{option(next(iter(ppo)))}: PPO only", {}) if ppo else (None, {})
+    out = dict(PPO_DEFAULTS)
+    for key, value in ppo.items():
+        if key not in PPO_RANGES:
+            return f"ppo: unknown PPO setting {key!r}; choose from {', '.join(PPO_RANGES)}", out
+        what, ok = PPO_RANGES[key]
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not (number and math.isfinite(value) and ok(value)):
+            return f"{option(key)}: expected {what}, got {value!r}", out
+        out[key] = linear_schedule(float(value)) if key == "learning_rate" else value
+    return None, out
+
+
+def recipe_options(task: dict) -> tuple[str | None, dict]:
+    """A task's options of ``osa/Search-v1`` to ``v3`` training (curriculum, imitation,
+    DAgger, the imitation term, the critic warm-up) and PPO's settings checked: (why
+    they cannot be, or None; the :class:`envs.rl.TrainSettings` keywords they give)."""
+    env, algo = task["env"], task.get("algo", "PPO").upper()
+    v1 = env in PLAN_ENVS
     kw: dict = {}
-    if args.curriculum is not None:
+    curriculum = task.get("curriculum")
+    if curriculum is not None:
         if not v1:
-            return f"--curriculum: {args.env} has no curriculum level (osa/Search-v1 to v3)", kw
+            return f"--curriculum: {env} has no curriculum level (osa/Search-v1 to v3)", kw
         try:
-            lo, hi = (float(x) for x in args.curriculum.split(":"))
-        except ValueError:
-            return f"--curriculum: expected FROM:TO, got {args.curriculum!r}", kw
+            lo, hi = (float(x) for x in (curriculum.split(":") if isinstance(curriculum, str)
+                                         else curriculum))
+        except (TypeError, ValueError):
+            return f"--curriculum: expected FROM:TO, got {curriculum!r}", kw
         if not (0.0 <= lo <= 1.0 and 0.0 <= hi <= 1.0):
-            return f"--curriculum: levels must be in [0, 1], got {args.curriculum!r}", kw
+            return f"--curriculum: levels must be in [0, 1], got {curriculum!r}", kw
         kw["curriculum"] = (lo, hi)
-    if args.imitate and not v1:
-        return (f"--imitate: {args.env} has nothing to imitate (the hand-written policy is "
+    imitate, dagger = task.get("imitate") or 0, task.get("dagger") or 0
+    coef, warmup = task.get("imitation_coef") or 0.0, task.get("critic_warmup") or 0
+    if imitate and not v1:
+        return (f"--imitate: {env} has nothing to imitate (the hand-written policy is "
                 "osa/Search-v1's to v3's)"), kw
-    if args.dagger and not args.imitate:
+    if dagger and not imitate:
         return "--dagger: needs --imitate N (the episodes of each round)", kw
-    kw["imitate_episodes"], kw["imitate_rounds"] = args.imitate, args.dagger
-    if args.imitation_coef:
-        if not (math.isfinite(args.imitation_coef) and args.imitation_coef > 0):
-            return f"--imitation-coef: expected a number >= 0, got {args.imitation_coef!r}", kw
-        if not args.imitate:
+    kw["imitate_episodes"], kw["imitate_rounds"] = imitate, dagger
+    if coef:
+        if not (math.isfinite(coef) and coef > 0):
+            return f"--imitation-coef: expected a number >= 0, got {coef!r}", kw
+        if not imitate:
             return "--imitation-coef: needs --imitate N (the dataset it keeps the policy near)", kw
-    if (args.imitation_coef or args.critic_warmup) and args.algo.upper() != "PPO":
-        return f"{'--imitation-coef' if args.imitation_coef else '--critic-warmup'}: PPO only", kw
-    kw["imitation_coef"], kw["critic_warmup"] = args.imitation_coef, args.critic_warmup
-    algo_kwargs = dict(PPO_DEFAULTS) if args.algo.upper() == "PPO" else {}
-    # (option, value, PPO's keyword, whether 0 is allowed): each in [0, 1] or (0, 1]
-    for name, value, key, zero in (("--learning-rate", args.learning_rate, "learning_rate", True),
-                                   ("--ent-coef", args.ent_coef, "ent_coef", True),
-                                   ("--gamma", args.gamma, "gamma", False)):
-        if value is None:
-            continue
-        if args.algo.upper() != "PPO":
-            return f"{name}: PPO only", kw
-        low_ok = value >= 0.0 if zero else value > 0.0
-        if not (math.isfinite(value) and low_ok and value <= 1.0):
-            return f"{name}: expected a number in {'[' if zero else '('}0, 1], got {value!r}", kw
-        algo_kwargs[key] = linear_schedule(value) if key == "learning_rate" else value
-    kw["algo_kwargs"] = algo_kwargs
-    return None, kw
+    if (coef or warmup) and algo != "PPO":
+        return f"{'--imitation-coef' if coef else '--critic-warmup'}: PPO only", kw
+    kw["imitation_coef"], kw["critic_warmup"] = coef, warmup
+    problem, kw["algo_kwargs"] = ppo_settings(task)
+    return problem, kw
+
+
+def task_of_args(args: argparse.Namespace) -> dict:
+    """The training task of the command line (None where an option is not given): what
+    :func:`task_settings` reads, and a sweep's defaults."""
+    reward = {}
+    for item in args.reward:
+        name, _, value = item.partition("=")
+        reward[name] = value
+    ppo = {k: v for k, v in (("learning_rate", args.learning_rate),
+                             ("ent_coef", args.ent_coef), ("gamma", args.gamma))
+           if v is not None}
+    return {"env": args.env, "scenario": args.scenario, "uavs": args.uavs, "steps": args.steps,
+            "seed": args.seed, "algo": args.algo, "envs": args.envs, "vec": args.vec,
+            "eval_every": args.eval_every, "eval_worlds": args.eval_worlds, "ppo": ppo,
+            "curriculum": args.curriculum, "imitate": args.imitate or None,
+            "dagger": args.dagger or None, "imitation_coef": args.imitation_coef or None,
+            "critic_warmup": args.critic_warmup or None, "reward": reward or None,
+            "reward_preset": args.reward_preset, "init": args.init}
+
+
+def task_settings(task: dict, *, checkpoint_every: int = 0, progress: bool = False):
+    """The one reading of a training task (the command line's or a sweep's): (why it
+    cannot run, as one line, or None; its :class:`envs.rl.TrainSettings`)."""
+    from envs.gym.registration import TEAM_ENV_ID
+    from envs.rl import TrainSettings
+
+    problem = check_task(task)
+    if problem:
+        return problem, None
+    problem, recipe = recipe_options(task)
+    if problem:
+        return problem, None
+    env_id, algo = task["env"], task.get("algo", "PPO").upper()
+    env_kwargs: dict = {}
+    if task.get("scenario") is not None:
+        env_kwargs["scenario"] = task["scenario"]
+    if env_id == TEAM_ENV_ID:
+        env_kwargs["uavs"] = task.get("uavs") or 2
+    problem, weights = reward_weights(task.get("reward") or {}, env_id,
+                                      task.get("reward_preset"))
+    if problem:
+        return problem, None
+    env_kwargs.update(weights)
+    if task.get("init") is not None:
+        from envs.gym.trained import model_dir
+        from envs.rl import check_init
+
+        init = model_dir(task["init"]).resolve()
+        problem = check_init(init, env_id, algo, env_kwargs)
+        if problem:
+            return f"--init: {problem}", None
+        recipe["init"] = init
+    return None, TrainSettings(
+        env_id=env_id, env_kwargs=env_kwargs, steps=task["steps"], seed=task["seed"],
+        algo=algo, n_envs=task.get("envs") or 1, vec=task.get("vec") or "subproc",
+        eval_every=task.get("eval_every") or 0, eval_worlds=task.get("eval_worlds") or 20,
+        checkpoint_every=checkpoint_every, progress=progress, **recipe)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -265,64 +364,26 @@ def run(args: argparse.Namespace) -> int:
         return _fail("needs the optional 'rl' extra: pip install torch==2.13.0 (or the CPU "
                      "wheel: pip install torch --index-url "
                      "https://download.pytorch.org/whl/cpu), then pip install -e '.[rl]'")
-    from envs.gym.registration import TEAM_ENV_ID
-    from envs.rl import TrainSettings, train
+    from envs.rl import train
 
-    task = {"env": args.env, "scenario": args.scenario, "uavs": args.uavs, "steps": args.steps,
-            "seed": args.seed, "algo": args.algo, "envs": args.envs, "vec": args.vec,
-            "eval_every": args.eval_every, "eval_worlds": args.eval_worlds, "ppo": {}}
+    task = task_of_args(args)
     if args.scheduler is not None and args.sweep is None:
         return _fail("--scheduler runs the tasks of a --sweep FILE")
     if args.sweep is not None:
-        if args.curriculum or args.imitate or args.learning_rate is not None or \
-                args.ent_coef is not None or args.init is not None or args.reward or \
-                args.reward_preset or args.imitation_coef or args.critic_warmup or \
-                args.gamma is not None:
-            return _fail("--sweep: --curriculum, --imitate, --dagger, --init, --reward, "
-                         "--reward-preset, --imitation-coef, --critic-warmup, "
-                         "--learning-rate, --ent-coef and --gamma are for one training, "
-                         "not a sweep")
         return run_sweep(args, task)
-    problem = check_task(task)
+    problem, settings = task_settings(task, checkpoint_every=args.checkpoint_every,
+                                      progress=not args.no_progress)
     if problem:
         return _fail(problem)
-    problem, v1_kw = v1_options(args)
-    if problem:
-        return _fail(problem)
-    env_kwargs = {}
-    if args.scenario is not None:
-        env_kwargs["scenario"] = args.scenario
-    if args.env == TEAM_ENV_ID:
-        env_kwargs["uavs"] = args.uavs or 2
-    problem, weights = reward_weights(args.reward, args.env, args.reward_preset)
-    if problem:
-        return _fail(problem)
-    env_kwargs.update(weights)
-    init = None
-    if args.init is not None:
-        from envs.gym.trained import model_dir
-        from envs.rl import check_init
-
-        init = model_dir(args.init).resolve()
-        problem = check_init(init, args.env, args.algo.upper(), env_kwargs)
-        if problem:
-            return _fail(f"--init: {problem}")
-        v1_kw["init"] = init
     from envs.commands._outputs import OutputRefusedError, claim_output_dir
 
     inputs = [args.scenario] if args.scenario and Path(args.scenario).exists() else []
-    if init is not None:
-        inputs.append(str(init))
+    if settings.init is not None:
+        inputs.append(str(settings.init))
     try:  # the one output rule (docs/cli.md "Outputs"), before any training
         out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         return _fail(exc)
-    settings = TrainSettings(env_id=args.env, env_kwargs=env_kwargs, steps=args.steps,
-                             seed=args.seed, algo=args.algo.upper(), n_envs=args.envs,
-                             vec=args.vec,
-                             eval_every=args.eval_every, eval_worlds=args.eval_worlds,
-                             checkpoint_every=args.checkpoint_every,
-                             progress=not args.no_progress, **v1_kw)
     summary = train(settings, out)
     print(summary.text())
     return 0
@@ -340,12 +401,15 @@ def run_sweep(args: argparse.Namespace, defaults: dict) -> int:
         tasks = read_sweep(args.sweep, {k: v for k, v in defaults.items() if v is not None})
     except SweepError as exc:
         return _fail(exc)
+    inits = []
     for t in tasks:
-        problem = check_task(t)
+        problem, settings = task_settings(t)
         if problem:
             return _fail(f"--sweep {args.sweep}: task {t['name']}: {problem.lstrip('-')}")
-    inputs = [args.sweep, *{t["scenario"] for t in tasks
-                            if t.get("scenario") and Path(t["scenario"]).exists()}]
+        if settings.init is not None:
+            inits.append(str(settings.init))
+    inputs = [args.sweep, *inits, *{t["scenario"] for t in tasks
+                                    if t.get("scenario") and Path(t["scenario"]).exists()}]
     try:
         out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
         claim_output_file(out / "sweep.csv", force=True, inputs=inputs)

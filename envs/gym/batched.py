@@ -32,6 +32,7 @@ CPU-second than one env (``python benchmarks/bench_batch.py``).
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import gymnasium
@@ -92,8 +93,12 @@ class BatchedSearchEnv(VectorEnv):
         first = self.worlds[0]
         self.single_observation_space = first.observation_space
         self.single_action_space = first.action_space
-        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        # batch_space seeds the space it is given from the OS when it is not seeded yet:
+        # given copies, the single spaces stay unseeded (as a single env's), so what is
+        # saved with them (SB3's VecNormalize) does not depend on the machine's entropy
+        self.observation_space = batch_space(copy.deepcopy(self.single_observation_space),
+                                             self.num_envs)
+        self.action_space = batch_space(copy.deepcopy(self.single_action_space), self.num_envs)
         self._keys = list(self.single_observation_space.spaces)
         self._autoreset = np.zeros(self.num_envs, dtype=np.bool_)
         self._elapsed = np.zeros(self.num_envs, dtype=np.int64)

@@ -162,6 +162,22 @@ name = "b"
 seed = 1
 [task.ppo]
 learning_rate = 1e-3
+[[task]]
+name = "recipe"
+env = "osa/Search-v3"
+uavs = 1
+steps = 128
+seed = 2
+envs = 2
+vec = "batched"
+imitate = 1
+dagger = 1
+imitation_coef = 1.0
+critic_warmup = 1
+reward_preset = "metric"
+curriculum = [0.5, 1.0]
+[task.reward]
+time_cost_per_s = 0.05
 """
 
 
@@ -175,16 +191,23 @@ def _parameters(folder) -> dict:
 def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
     distributed = pytest.importorskip(
         "distributed", reason="Dask distributed is not installed (not in the README's .[test])")
-    from envs.sweep import read_sweep, run_sweep
+    from envs.sweep import read_sweep, run_sweep, settings_of
 
     f = tmp_path / "sweep.toml"
     f.write_text(SWEEP)
     short = tmp_path / "rtk-5min.toml"  # validation: 60 decisions a world
     short.write_text(SCENARIO)
     tasks = read_sweep(f, {"scenario": str(short), "uavs": 2})
-    assert [t["name"] for t in tasks] == ["a", "b"]
+    assert [t["name"] for t in tasks] == ["a", "b", "recipe"]
     assert tasks[1]["ppo"] == {"n_steps": 64, "batch_size": 64, "n_epochs": 2,
                                "learning_rate": 1e-3}
+    # the recipe of issue 20's item 4 as a sweep task, read as its command line is
+    s = settings_of(tasks[2])
+    assert (s.env_id, s.imitate_episodes, s.imitate_rounds, s.imitation_coef,
+            s.critic_warmup, s.curriculum, s.vec, s.n_envs) == \
+        ("osa/Search-v3", 1, 1, 1.0, 1, (0.5, 1.0), "batched", 2)
+    assert s.env_kwargs["time_cost_per_s"] == 0.05 and s.env_kwargs["information_weight"] == 0
+    assert s.algo_kwargs["n_steps"] == 64 and s.algo_kwargs["gamma"] == 0.995
     here = tmp_path / "here"
     there = tmp_path / "there"
     here.mkdir()
@@ -196,8 +219,15 @@ def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
         run_sweep(tasks, there, client)
     assert (here / "sweep.csv").read_text() == (there / "sweep.csv").read_text()
     rows = (here / "sweep.csv").read_text().splitlines()
-    assert len(rows) == 3 and rows[1].startswith(f"a,osa/Team-v0,{short},2,0,256")
-    for name in ("a", "b"):
+    assert len(rows) == 4 and rows[1].startswith(f"a,osa/Team-v0,{short},2,0,256")
+    assert rows[3].startswith(f"recipe,osa/Search-v3,{short},,2,128,PPO,")
+    assert rows[3].endswith('"{""critic_warmup"": 1, ""curriculum"": [0.5, 1.0], ""dagger"": 1, '
+                            '""imitate"": 1, ""imitation_coef"": 1.0, ""reward"": '
+                            '{""time_cost_per_s"": 0.05}, ""reward_preset"": ""metric""}"')
+    imitated = json.loads((here / "recipe" / "imitation.json").read_text())
+    assert imitated == json.loads((there / "recipe" / "imitation.json").read_text())
+    assert len(imitated["rounds"]) == 2 and imitated["agreement"] > 0.5
+    for name in ("a", "b", "recipe"):
         a, b = _parameters(here / name), _parameters(there / name)
         assert a.keys() == b.keys()
         for k in a:
@@ -221,6 +251,17 @@ def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
         ("[[task]]\nenv = 'osa/Waypoint-v0'\nuavs = 2\n", "uavs: only for osa/Team-v0"),
         ("[[task]]\nenv = 'osa/Team-v0'\nvec = 'batched'\n", "vec batched: not for osa/Team"),
         ("[[task]]\nvec = 'gpu'\n", "vec must be 'subproc' or 'batched'"),
+        ("[[task]]\nimitate = 2\n", "task task-1: imitate: osa/Search-v0 has nothing to imitate"),
+        ("[[task]]\nenv = 'osa/Search-v3'\ndagger = 1\n", "dagger: needs --imitate"),
+        ("[[task]]\nimitate = -1\n", "imitate must be an integer >= 0"),
+        ("[[task]]\ncurriculum = 3\n", "curriculum must be"),
+        ("[[task]]\nenv = 'osa/Search-v3'\ncurriculum = '0:2'\n", r"in \[0, 1\]"),
+        ("[[task]]\n[task.reward]\nspeed = 1\n", "unknown weight 'speed'"),
+        ("[[task]]\nreward_preset = 'fast'\n", "unknown preset 'fast'"),
+        ("[[task]]\n[task.ppo]\ngamma = 0\n", r"gamma: expected a number in \(0, 1\]"),
+        ("[[task]]\n[task.ppo]\nn_steps = 0.5\n", "n-steps: expected an integer >= 1"),
+        ("[[task]]\nalgo = 'A2C'\n[task.ppo]\nn_steps = 64\n", "n-steps: PPO only"),
+        ("[[task]]\ninit = 'no-such-model'\n", "init: .*no-such-model"),
     ],
 )
 def test_osa_train_sweep_refuses_bad_files_in_one_line(tmp_path, capsys, text, match):
@@ -235,6 +276,32 @@ def test_osa_train_sweep_refuses_bad_files_in_one_line(tmp_path, capsys, text, m
 
     assert re.search(match, err), err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_command_lines_recipe_options_are_every_sweep_tasks_defaults(tmp_path):
+    """``osa train --sweep FILE --imitate 2 --reward X=Y ...``: the command line's options
+    are every task's defaults (a task's own value wins; tables merge key by key), read
+    as one training's command line is."""
+    from envs.cli import build_parser
+    from envs.commands.train import task_of_args
+    from envs.sweep import read_sweep, settings_of
+
+    f = tmp_path / "s.toml"
+    f.write_text('env = "osa/Search-v3"\n[[task]]\nname = "a"\n[[task]]\nname = "b"\n'
+                 'imitate = 1\nimitation_coef = 0.5\n[task.reward]\nlocalised_bonus = 2\n'
+                 '[task.ppo]\ngamma = 0.99\n')
+    args = build_parser().parse_args(
+        ["train", "--sweep", str(f), "-o", "x", "--imitate", "2", "--dagger", "1",
+         "--reward", "time_cost_per_s=0.05", "--ent-coef", "0", "--curriculum", "0.2:1"])
+    a, b = (settings_of(t) for t in read_sweep(
+        f, {k: v for k, v in task_of_args(args).items() if v is not None}))
+    assert (a.imitate_episodes, a.imitate_rounds, a.imitation_coef, a.curriculum) == \
+        (2, 1, 0.0, (0.2, 1.0))
+    assert (b.imitate_episodes, b.imitate_rounds, b.imitation_coef) == (1, 1, 0.5)
+    assert a.env_kwargs == {"time_cost_per_s": 0.05}
+    assert b.env_kwargs == {"time_cost_per_s": 0.05, "localised_bonus": 2.0}
+    assert (a.algo_kwargs["ent_coef"], a.algo_kwargs["gamma"]) == (0.0, 0.995)
+    assert (b.algo_kwargs["ent_coef"], b.algo_kwargs["gamma"]) == (0.0, 0.99)
 
 
 def test_osa_train_scheduler_needs_a_sweep(tmp_path, capsys):
