@@ -9,7 +9,9 @@ type unknown), the satellites ``nn``, HDOP (``acc_m`` = 1.5 m x HDOP: a typical
 standalone user equivalent range error; it is a proxy, as the log format says) and
 the height: ``alt`` above mean sea level plus the geoid separation ``N`` of the same
 sentence (ellipsoidal = MSL + N), ``--geoid-offset`` when the sentence has none.
-A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``).
+A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``). A GGA
+without a fix and a void RMC (status ``V``) without a date, as a receiver writes them
+before it has a fix and the time (their time or date empty), are ``no_fix``.
 """
 
 from __future__ import annotations
@@ -113,6 +115,13 @@ def _rmc_date(fields: list[str]) -> date | None:
         return None
 
 
+def _void_undated(fields: list[str]) -> bool:
+    """Whether an RMC is a receiver's "void" sentence (status ``V``: no fix) without a
+    date yet, as receivers write them before they have the time."""
+    return (len(fields) > 2 and fields[2].strip().upper() == "V"
+            and (len(fields) < 10 or not fields[9].strip()))
+
+
 class Reader:
     """The GGA fixes of one NMEA file (see the module docstring)."""
 
@@ -151,7 +160,7 @@ class Reader:
                     if kind == "RMC":
                         d = _rmc_date(fields)
                         if d is None:
-                            raise Skip("bad_date")
+                            raise Skip("no_fix" if _void_undated(fields) else "bad_date")
                         dated = (d, _time_of_day_ns(fields[1]))
                         continue
                     if dated is None:
@@ -163,6 +172,11 @@ class Reader:
     def _fix(self, f: list[str], dated: tuple[date, int], tally: Tally) -> Stamped:
         if len(f) < 12:
             raise Skip("missing_field")
+        quality = integer(f[6])  # first: a receiver without a fix leaves the time empty
+        if quality is None:
+            raise Skip("missing_field")
+        if quality not in QUALITY:
+            raise Skip("no_fix")
         tod = _time_of_day_ns(f[1])
         day, rmc_tod = dated
         if tod < rmc_tod - 43_200 * NS_PER_S:  # the GGA is past midnight after the RMC
@@ -171,11 +185,6 @@ class Reader:
             day = day - timedelta(days=1)
         midnight = int(datetime(day.year, day.month, day.day, tzinfo=UTC).timestamp())
         utc_ns = midnight * NS_PER_S + tod
-        quality = integer(f[6])
-        if quality is None:
-            raise Skip("missing_field")
-        if quality not in QUALITY:
-            raise Skip("no_fix")
         lat = _angle(f[2], f[3], 2, "N", "S")
         lon = _angle(f[4], f[5], 3, "E", "W")
         hdop = number(f[8])

@@ -12,7 +12,9 @@ unknown are skipped as ``no_fix``; 1 SBAS and 2 GBAS are ``dgps``; 0 leaves the 
 type unknown) and ``position_covariance``: with a covariance type other than 0
 (unknown), acc_m is the square root of the larger horizontal variance (east or north)
 and vacc_m that of the vertical one. A message with a zero stamp is skipped
-(``no_utc``), one that cannot be deserialised counted as ``corrupt_message``.
+(``no_utc``), one that cannot be deserialised counted as ``corrupt_message``. When the
+storage itself fails midway (a damaged MCAP record or SQLite page), the fixes read
+before are kept and the rest of the topic's messages counted as ``corrupt_data``.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from estimator.importers.common import (
     SourceError,
     Stamped,
     Tally,
+    brief,
     make_fix,
 )
 
@@ -97,10 +100,11 @@ class Reader:
             reader = AnyReader(self.paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
         except (AnyReaderError, OSError, ValueError, KeyError) as exc:
-            raise SourceError(f"{self.source.path}: not a readable ROS 2 bag ({exc})") from None
+            raise SourceError(f"{self.source.path}: not a readable ROS 2 bag "
+                              f"({brief(exc)})") from None
         except Exception as exc:  # storage plugins raise their own (sqlite3, mcap) errors
             raise SourceError(f"{self.source.path}: not a readable ROS 2 bag "
-                              f"({type(exc).__name__}: {exc})") from None
+                              f"({type(exc).__name__}: {brief(exc)})") from None
         return contextlib.closing(reader)
 
     def records(self, tally: Tally) -> Iterator[Stamped]:
@@ -109,7 +113,17 @@ class Reader:
             for conn in reader.connections:
                 if conn.topic != self.topic:
                     tally.counts.unknown_types[conn.topic] += conn.msgcount
-            for conn, _, raw in reader.messages(connections=conns):
+            messages = reader.messages(connections=conns)
+            n = 0
+            while True:
+                try:
+                    conn, _, raw = next(messages)
+                except StopIteration:
+                    break
+                except Exception as exc:  # the storage is damaged from here on
+                    self._damaged(tally, n, sum(c.msgcount for c in conns), exc)
+                    break
+                n += 1
                 tally.counts.lines += 1
                 try:
                     try:
@@ -119,6 +133,16 @@ class Reader:
                     yield self._fix(msg, tally)
                 except Skip as s:
                     tally.skip(s.reason)
+
+    def _damaged(self, tally: Tally, n: int, expected: int, exc: Exception) -> None:
+        """The storage raised after ``n`` messages of the topic (a damaged record or
+        page): those are kept, the rest of the ``expected`` (the bag's count, at least
+        one) are counted as ``corrupt_data``."""
+        lost = max(1, expected - n)
+        tally.counts.lines += lost
+        tally.counts.rejected["corrupt_data"] += lost
+        self.source.warn(f"damaged after message {n} of {self.topic} ({brief(exc)}): the "
+                         f"rest ({lost}) is counted as corrupt_data")
 
     def _fix(self, msg, tally: Tally) -> Stamped:
         stamp = msg.header.stamp

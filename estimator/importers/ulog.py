@@ -38,6 +38,7 @@ from estimator.importers.common import (
     SourceError,
     Stamped,
     Tally,
+    brief,
     ellipsoidal_m,
     float32_decimal,
     make_fix,
@@ -95,7 +96,7 @@ class Reader:
             with contextlib.redirect_stdout(sink):
                 ulog = ULog(str(path), message_name_filter_list=names)
         except (ULogException, OSError, ValueError, KeyError, IndexError) as exc:
-            raise SourceError(f"{path}: not a readable ULog file ({exc})") from None
+            raise SourceError(f"{path}: not a readable ULog file ({brief(exc)})") from None
         self.corrupt = bool(ulog.file_corruption)
         data = {(d.name, d.multi_id): d for d in ulog.data_list}
         name = want or next((t for t in TOPICS if any(k[0] == t for k in data)), None)

@@ -16,6 +16,7 @@ from estimator.importers.dataflash import Reader as DataFlashReader
 from estimator.logio import read_log
 from tests.estimator.importers.writers import (
     Flight,
+    storage_file,
     write_android_csv,
     write_dataflash,
     write_gnsslogger,
@@ -272,3 +273,113 @@ def test_a_bag_with_two_fix_topics_needs_one_named(flight, tmp_path):
     assert {g.acc_m for g in log.gnss} == {4.0} and {g.vacc_m for g in log.gnss} == {6.0}
     with pytest.raises(ImportRefused, match="no NavSatFix topic '/gps'"):
         _run(bag, rtt, tmp_path, topic="/gps")
+
+
+def test_a_time_with_an_exponent_but_no_digits_before_it_is_a_bad_type():
+    """A damaged time cell such as "E749723142525" (its first digit lost) looked like
+    an exponent form and crashed the import with a ValueError traceback."""
+    from estimator.importers.common import Skip, ms_to_ns, time_integer
+
+    for text in ("E749723142525", "e12", ".E5", "+E3"):
+        for parse in (ms_to_ns, time_integer):
+            with pytest.raises(Skip) as skip:
+                parse(text)
+            assert skip.value.reason == "bad_type", (text, parse)
+    assert ms_to_ns("1.749723142525E12") == 1_749_723_142_525_000_000  # every digit kept
+    assert time_integer("3.9853029979635E13") == 39_853_029_979_635
+    assert ms_to_ns(".5E1") == 5_000_000 and time_integer("5.E0") == 5
+
+
+def _mcap_messages(data: bytes) -> list[tuple[int, int, int]]:
+    """(chunk number, offset, length) of the Message records (opcode 0x05) in the
+    uncompressed chunks of an MCAP file (records: opcode, u64 length, content, as the
+    MCAP specification lays them out)."""
+    import struct
+
+    out, off, chunk = [], 8, 0  # after the magic
+    while off + 9 <= len(data):
+        op, n = data[off], struct.unpack_from("<Q", data, off + 1)[0]
+        if op == 0x06:  # Chunk: start, end, size (u64 x3), crc (u32), compression, records
+            c = off + 9 + 28
+            comp_len = struct.unpack_from("<I", data, c)[0]
+            assert data[c + 4:c + 4 + comp_len] == b"", "a compressed chunk"
+            q, end = c + 4 + comp_len + 8, off + 9 + n
+            while q < end:
+                size = struct.unpack_from("<Q", data, q + 1)[0]
+                if data[q] == 0x05:
+                    out.append((chunk, q, size))
+                q += 9 + size
+            chunk += 1
+        if op == 0x0F:  # Footer
+            break
+        off += 9 + n
+    return out
+
+
+def test_a_bag_damaged_midway_keeps_the_fixes_before_the_damage(flight, tmp_path):
+    """A damaged record in the middle of an MCAP bag made rosbags raise while the
+    messages were read: a traceback. The fixes before it are kept; the topic's messages
+    from there on are counted as corrupt_data, with a warning."""
+    import struct
+
+    short = dataclasses.replace(flight, gnss=flight.gnss[:2000])
+    bag = write_rosbag(tmp_path / "bag", short, storage="mcap", extra_topic=False,
+                       image_bytes=20_000)
+    data = bytearray(storage_file(bag).read_bytes())
+    msgs = _mcap_messages(bytes(data))
+    fixes = [m for m in msgs if m[2] < 1000]  # the NavSatFix records, not the images
+    assert len(fixes) == 2000 and msgs[-1][0] >= 3  # several chunks
+    chunk, off, _ = next(m for m in fixes if m[0] == 2)  # the first fix of the third chunk
+    data[off + 1:off + 9] = struct.pack("<Q", 1 << 40)  # its length
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(bytes(data))
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    j, log = _run(broken, rtt, tmp_path)
+    kept = sum(m[0] < chunk for m in fixes)
+    assert j["gnss"]["records_read"] == kept > 400
+    assert j["gnss"]["skipped"] == {"corrupt_data": 2000 - kept}
+    assert any(f"broken.mcap: damaged after message {kept} of /fix" in w
+               for w in j["warnings"])
+    _, ref = _run(storage_file(bag), rtt, tmp_path)
+    assert log.gnss == ref.gnss[:len(log.gnss)] and len(log.gnss) > 300
+
+
+def test_library_errors_are_one_line(flight, tmp_path):
+    """A bag whose SQLite schema is damaged: rosbags' error quotes the schema over
+    several lines; the refusal stays one line."""
+    bag = write_rosbag(tmp_path / "bag", dataclasses.replace(flight, gnss=flight.gnss[:50]),
+                       extra_topic=False)
+    data = storage_file(bag).read_bytes()
+    assert data.count(b"metadata_version INTEGER") == 1
+    bad = tmp_path / "bad.db3"
+    bad.write_bytes(data.replace(b"metadata_version INTEGER", b"`etadata_version INTEGER"))
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    with pytest.raises(ImportRefused, match=r"bad.db3: not a readable ROS 2 bag \(.*"
+                                            r"malformed database schema") as err:
+        _run(bad, rtt, tmp_path)
+    assert "\n" not in str(err.value) and len(str(err.value)) < 300
+
+
+def test_nmea_sentences_of_a_receiver_without_a_fix_yet_are_no_fix(flight, tmp_path):
+    """A u-blox receiver starting up writes GGA and RMC with empty time, position and
+    date (``$GPGGA,,,,,,0,00,99.99,,,,,,*48``, ``$GPRMC,,V,,,,,,,,,,N*53``), then with
+    the time but no fix: they were counted as bad_time and bad_date (a "wrong" time or
+    date), not as what they are: sentences without a fix."""
+    from tests.estimator.importers.writers import _nmea
+
+    start = ["$GPGGA,,,,,,0,00,99.99,,,,,,*48", "$GPRMC,,V,,,,,,,,,,N*53",
+             _nmea("GPGGA,101159.00,,,,,0,03,25.3,,,,,,"),
+             _nmea("GPRMC,101159.00,V,,,,,,,120625,,,N")]
+    good = write_nmea(tmp_path / "good.nmea", flight).read_text().splitlines()
+    gnss = tmp_path / "ublox.nmea"
+    gnss.write_text("\r\n".join(start * 4 + good) + "\r\n")
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    j, _ = _run(gnss, rtt, tmp_path)
+    assert j["gnss"]["skipped"] == {"no_fix": 12}  # the void RMC with a date dates
+    assert j["gnss"]["records_read"] == len(flight.gnss)
+    # a damaged time or date with a fix is still what it is
+    bad = [_nmea("GPGGA,,3642.9000,N,00428.6800,W,1,12,0.60,100.0,M,50.0,M,,"),
+           _nmea("GPRMC,101200.00,A,3642.9000,N,00428.6800,W,1.0,90.0,,,,A")]
+    gnss.write_text("\r\n".join(bad + good) + "\r\n")
+    j, _ = _run(gnss, rtt, tmp_path)
+    assert j["gnss"]["skipped"] == {"bad_time": 1, "bad_date": 1}

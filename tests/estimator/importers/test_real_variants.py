@@ -205,3 +205,42 @@ def test_times_a_spreadsheet_rounded_are_skipped_not_misplaced(flight, tmp_path)
     j, got = _import(gnss, f, tmp_path / "got.jsonl")
     assert j["ranges"]["skipped"] == {"rounded_time": 10}
     assert got.rtt == ref.rtt[10:]  # the exact exponent form read to the same time
+
+
+def test_gnsslogger_nan_accuracies_mean_unknown(flight, tmp_path):
+    """Apps writing the GnssLogger format leave an accuracy they do not have as "NaN":
+    an unknown accuracy (as an empty one), never a reason to drop the fix. A NaN
+    vertical accuracy is left out; a NaN horizontal one is no_accuracy (kept with
+    --gnss-acc)."""
+    gl = write_gnsslogger(tmp_path / "gl.txt", flight)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    out, k = [], 0
+    for ln in gl.read_text().splitlines():
+        if ln.startswith("Fix,GPS"):
+            cells = ln.split(",")
+            if k % 2 == 0:
+                cells[12] = "NaN"  # VerticalAccuracyMeters
+            if k == 1001:
+                cells[6] = "nan"  # AccuracyMeters
+            ln, k = ",".join(cells), k + 1
+        out.append(ln)
+    nan = tmp_path / "nan.txt"
+    nan.write_text("\n".join(out) + "\n")
+    j, log = _import(nan, rtt, tmp_path / "nan.jsonl")
+    assert j["gnss"]["skipped"] == {"no_accuracy": 1}
+    assert j["gnss"]["records_read"] == len(flight.gnss) - 1
+    _, ref = _import(gl, rtt, tmp_path / "ref.jsonl")
+    by_t = {g.t_ns: g for g in ref.gnss}
+    n_unknown = 0
+    for g in log.gnss:
+        r = by_t[g.t_ns]
+        assert (g.lat_deg, g.lon_deg, g.alt_m, g.acc_m) == (r.lat_deg, r.lon_deg, r.alt_m,
+                                                          r.acc_m)
+        assert g.vacc_m in (None, r.vacc_m)
+        n_unknown += g.vacc_m is None
+    assert n_unknown == sum(1 for g in ref.gnss if g.t_ns in {f.t_ns for f in flight.gnss[::2]})
+    kept = import_flight(nan, rtt, tmp_path / "acc.jsonl", ImportOptions(gnss_acc_m=3.0))
+    assert kept.to_json()["gnss"]["records_read"] == len(flight.gnss)
+    given = next(g for g in read_log(tmp_path / "acc.jsonl").gnss
+                 if g.t_ns == flight.gnss[1001].t_ns)
+    assert given.acc_m == 3.0 and given.vacc_m == flight.gnss[1001].vacc_m

@@ -542,11 +542,14 @@ def write_dataflash(path: Path, flight: Flight, *, with_und: bool = True,
 
 def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
                  topic: str = "/fix", covariance: bool = True,
-                 extra_topic: bool = True, second_fix_topic: str | None = None) -> Path:
+                 extra_topic: bool = True, second_fix_topic: str | None = None,
+                 image_bytes: int = 0) -> Path:
     """A ROS 2 bag directory (rosbags' ``Writer``, version 9) with NavSatFix on
     ``topic`` stamped with the fix's UTC, a diagonal covariance (acc^2, acc^2,
     vacc^2), recorded 30 ms after the stamp; plus a ``/battery`` topic of another type
-    and, if asked, a second NavSatFix topic (a worse receiver, every tenth fix)."""
+    and, if asked, a second NavSatFix topic (a worse receiver, every tenth fix) and a
+    ``/camera`` topic of ``image_bytes`` images every tenth fix (a bag's bulk: MCAP
+    then holds several chunks)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -556,6 +559,7 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
     Float32 = ts.types["std_msgs/msg/Float32"]
+    Image = ts.types["sensor_msgs/msg/Image"]
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
         conn = w.add_connection(topic, NavSatFix.__msgtype__, typestore=ts)
@@ -563,6 +567,8 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
             if extra_topic else None
         conn2 = w.add_connection(second_fix_topic, NavSatFix.__msgtype__, typestore=ts) \
             if second_fix_topic else None
+        iconn = w.add_connection("/camera", Image.__msgtype__, typestore=ts) \
+            if image_bytes else None
         for k, g in enumerate(flight.gnss):
             utc = flight.utc_ns(g.t_ns)
             vacc = g.vacc_m if g.vacc_m is not None else 0.0
@@ -583,6 +589,11 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
             if bconn is not None and k % 10 == 0:
                 w.write(bconn, utc + 31_000_000,
                         ts.serialize_cdr(Float32(data=15.9), Float32.__msgtype__))
+            if iconn is not None and k % 10 == 0:
+                img = Image(header=msg.header, height=1, width=image_bytes, encoding="mono8",
+                            is_bigendian=0, step=image_bytes,
+                            data=np.full(image_bytes, k % 256, dtype=np.uint8))
+                w.write(iconn, utc + 32_000_000, ts.serialize_cdr(img, Image.__msgtype__))
     return path
 
 
