@@ -15,7 +15,9 @@ from estimator.importers.common import GnssOptions, Tally
 from estimator.importers.dataflash import Reader as DataFlashReader
 from estimator.logio import read_log
 from tests.estimator.importers.writers import (
+    VEHICLE_GPS_POSITION_V113,
     Flight,
+    logged_dtype,
     storage_file,
     write_android_csv,
     write_dataflash,
@@ -383,3 +385,30 @@ def test_nmea_sentences_of_a_receiver_without_a_fix_yet_are_no_fix(flight, tmp_p
     gnss.write_text("\r\n".join(bad + good) + "\r\n")
     j, _ = _run(gnss, rtt, tmp_path)
     assert j["gnss"]["skipped"] == {"bad_time": 1, "bad_date": 1}
+
+
+def test_a_ulog_cut_off_in_its_last_fix_counts_it(flight, tmp_path):
+    """A PX4 log ends where the power went: in the middle of a message. pyulog stops
+    there and says nothing; a GNSS message cut off is counted (truncated), as in a
+    DataFlash log, and one of another topic is not the GNSS stream's."""
+    ulg = write_ulog(tmp_path / "f.ulg", flight)
+    data = ulg.read_bytes()
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    size = 3 + 2 + logged_dtype(VEHICLE_GPS_POSITION_V113).itemsize  # header, id, fields
+    cases = [(data, len(flight.gnss), {}),
+             (data[:-7], len(flight.gnss) - 1, {"truncated": 1}),  # in the last fix
+             (data[:-size + 5], len(flight.gnss) - 1, {"truncated": 1}),  # its id there
+             (data[:-size + 4], len(flight.gnss) - 1, {}),  # half its id: whose?
+             (data[:-size + 2], len(flight.gnss) - 1, {}),  # in its header
+             (data[:-size], len(flight.gnss) - 1, {})]  # a message boundary
+    # the last battery_status message: 23 bytes (its id 2, 21 of fields)
+    battery = data.rfind(b"\x17\x00D\x02\x00")
+    assert battery > len(data) - 3000
+    cases.append((data[:battery + 10], None, {}))  # cut in another topic's message
+    for k, (content, n, skipped) in enumerate(cases):
+        cut = tmp_path / f"cut{k}.ulg"
+        cut.write_bytes(content)
+        j, _ = _run(cut, rtt, tmp_path)
+        assert j["gnss"]["skipped"] == skipped, k
+        if n is not None:
+            assert j["gnss"]["records_read"] == n, k
