@@ -2,9 +2,10 @@
 
 A bag is its directory (with ``metadata.yaml``), or one storage file, ``.db3``
 (sqlite3) or ``.mcap``, with or without the ``metadata.yaml`` beside it (a directory
-without it is read through the storage files it holds). Messages are deserialised with
-the definitions the bag carries, else with the ROS 2 Humble type store. The topic is
-the bag's only NavSatFix topic, or ``--topic``.
+without it is read through the storage files it holds; so is one whose metadata.yaml
+no longer matches its storage for the topic, as after an edit of its QoS). Messages
+are deserialised with the definitions the bag carries, else with the ROS 2 Humble type
+store. The topic is the bag's only NavSatFix topic, or ``--topic``.
 
 Used: ``header.stamp`` (UTC), ``latitude``, ``longitude``, ``altitude`` (above the
 WGS84 ellipsoid, as the message defines it), ``status.status`` (-1 no fix and -2
@@ -54,19 +55,37 @@ def is_bag_directory(path: Path) -> bool:
         p.suffix in STORAGE_SUFFIXES for p in path.iterdir()))
 
 
+def _storage_files(path: Path) -> list[Path]:
+    """The storage files of a bag directory, read without its metadata.yaml."""
+    files = sorted(p for p in path.iterdir() if p.suffix in STORAGE_SUFFIXES)
+    if not files:
+        raise SourceError(f"{path}: a directory with no metadata.yaml, .db3 or .mcap")
+    return files
+
+
 def _storage_paths(path: Path) -> list[Path]:
     """What rosbags opens: the bag directory when it has its metadata.yaml, else the
     storage files themselves."""
     if path.is_dir():
         if (path / "metadata.yaml").is_file():
             return [path]
-        files = sorted(p for p in path.iterdir() if p.suffix in STORAGE_SUFFIXES)
-        if not files:
-            raise SourceError(f"{path}: a directory with no metadata.yaml, .db3 or .mcap")
-        return files
+        return _storage_files(path)
     if path.suffix not in STORAGE_SUFFIXES:
         raise SourceError(f"{path}: a bag file must be named .db3 (sqlite3) or .mcap")
     return [path]
+
+
+def _unpaired(reader, topic: str) -> bool:
+    """Whether the bag's metadata counts messages on ``topic`` that rosbags yields none
+    of: it pairs the metadata's connections with the storage's by topic, type and QoS,
+    and an edited metadata.yaml pairs none."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not sum(c.msgcount for c in conns):
+        return False
+    try:
+        return next(iter(reader.messages(connections=conns)), None) is None
+    except Exception:  # a damaged storage: records() counts it
+        return False
 
 
 class Reader:
@@ -90,6 +109,12 @@ class Reader:
             else:
                 raise SourceError(f"{path}: several NavSatFix topics ({', '.join(topics)}): "
                                   "name one with --topic")
+            unpaired = path.is_dir() and self.paths == [path] and _unpaired(reader, self.topic)
+        if unpaired:
+            self.paths = _storage_files(path)
+            self.source.warn(f"metadata.yaml does not describe {self.topic} as its storage "
+                             "does (its QoS or type edited?), so none of its messages pair "
+                             "with it: the storage files are read without it")
         self.source.label = f"NavSatFix on {self.topic}"
 
     def _open(self):

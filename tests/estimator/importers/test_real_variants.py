@@ -12,6 +12,7 @@ from estimator.logio import read_log
 from tests.estimator.importers.writers import (
     DataFlashWriter,
     gps_week_ms,
+    storage_file,
     write_android_csv,
     write_gnsslogger,
     write_nmea,
@@ -244,3 +245,41 @@ def test_gnsslogger_nan_accuracies_mean_unknown(flight, tmp_path):
     given = next(g for g in read_log(tmp_path / "acc.jsonl").gnss
                  if g.t_ns == flight.gnss[1001].t_ns)
     assert given.acc_m == 3.0 and given.vacc_m == flight.gnss[1001].vacc_m
+
+
+QOS_EDIT = """offered_qos_profiles:
+      - history: keep_last
+        depth: 10
+        reliability: best_effort
+        durability: volatile
+        deadline:
+          sec: 9223372036
+          nsec: 854775807
+        lifespan:
+          sec: 9223372036
+          nsec: 854775807
+        liveliness: automatic
+        liveliness_lease_duration:
+          sec: 9223372036
+          nsec: 854775807
+        avoid_ros_namespace_conventions: false"""
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_bag_whose_metadata_qos_was_edited_is_read(flight, tmp_path, storage):
+    """Editing a topic's offered_qos_profiles in metadata.yaml is a common cure for
+    ``ros2 bag play`` QoS mismatches; rosbags then pairs no storage connection with the
+    topic and yields none of its messages, and the import said "no usable fix" with
+    nothing skipped. The storage files are read without the metadata instead."""
+    bag = write_rosbag(tmp_path / "bag", flight, storage=storage)
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    assert text.count("offered_qos_profiles: []") == 2  # /fix first, then /battery
+    meta.write_text(text.replace("offered_qos_profiles: []", QOS_EDIT, 1))
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    j, log = _import(bag, rtt, tmp_path / "edited.jsonl")
+    assert j["gnss"]["records_read"] == len(flight.gnss) and j["gnss"]["skipped"] == {}
+    assert j["gnss"]["other_records"] == {"/battery": (len(flight.gnss) + 9) // 10}
+    assert any("metadata.yaml" in w and "/fix" in w for w in j["warnings"])
+    _, ref = _import(storage_file(bag), rtt, tmp_path / "ref.jsonl")
+    assert log.gnss == ref.gnss
