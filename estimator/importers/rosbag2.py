@@ -15,13 +15,17 @@ type unknown) and ``position_covariance``: with a covariance type other than 0
 and vacc_m that of the vertical one. A message with a zero stamp is skipped
 (``no_utc``), one that cannot be deserialised counted as ``corrupt_message``. When the
 storage itself fails midway (a damaged MCAP record or SQLite page), the fixes read
-before are kept and the rest of the topic's messages counted as ``corrupt_data``.
+before are kept and the rest of the topic's messages counted as ``corrupt_data``. A
+``.db3`` with a write-ahead log beside it (``bag.db3-wal``: a recording in SQLite's WAL
+mode that was not closed) is read from a temporary copy with the log merged in.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import shutil
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -75,6 +79,26 @@ def _storage_paths(path: Path) -> list[Path]:
     return [path]
 
 
+def _write_ahead_log(db: Path) -> Path | None:
+    """The SQLite write-ahead log beside a ``.db3``, when it holds anything."""
+    wal = db.with_name(db.name + "-wal")
+    return wal if db.suffix == ".db3" and wal.is_file() and wal.stat().st_size > 0 else None
+
+
+def _merged_copy(db: Path, wal: Path, folder: Path) -> Path:
+    """A copy of ``db`` in ``folder`` with the messages of its write-ahead log merged in
+    (SQLite checkpoints the copied log into the copy); the input files are not touched."""
+    import sqlite3
+
+    out = folder / db.name
+    shutil.copyfile(db, out)
+    shutil.copyfile(wal, folder / wal.name)
+    with contextlib.closing(sqlite3.connect(out)) as con:
+        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        con.execute("PRAGMA journal_mode=DELETE")
+    return out
+
+
 def _unpaired(reader, topic: str) -> bool:
     """Whether the bag's metadata counts messages on ``topic`` that rosbags yields none
     of: it pairs the metadata's connections with the storage's by topic, type and QoS,
@@ -95,6 +119,43 @@ class Reader:
         self.options = options
         self.paths = _storage_paths(path)
         self.source = Source(path=path, format=FORMAT, kind=KIND, utc_uncertainty_ns=1)
+        self._copies: Path | None = None  # a folder of merged copies, removed by close()
+        try:
+            self._merge_write_ahead_logs(path)
+            self._choose_topic(path, options)
+        except BaseException:
+            self.close()
+            raise
+
+    def _merge_write_ahead_logs(self, path: Path) -> None:
+        """A recording that was not closed (``ros2 bag record`` in SQLite's WAL mode, the
+        ``resilient`` preset, killed by a crash) leaves its last messages in
+        ``bag.db3-wal`` and often no metadata.yaml; rosbags opens the database as
+        immutable and does not see them. The storage files are read instead, each one
+        with such a log as a copy with the log merged in."""
+        files = sorted(p for p in path.iterdir() if p.suffix in STORAGE_SUFFIXES) if (
+            path.is_dir()) else [path]
+        logs = {p: w for p in files if (w := _write_ahead_log(p)) is not None}
+        if not logs:
+            return
+        import sqlite3
+
+        self._copies = Path(tempfile.mkdtemp(prefix="osa-bag-"))
+        try:
+            merged = {p: _merged_copy(p, w, self._copies) for p, w in logs.items()}
+        except (OSError, sqlite3.Error) as exc:
+            self.close()
+            for w in logs.values():
+                self.source.warn(f"{w.name} holds messages not merged into the database "
+                                 f"(the recording was not closed), not read: {brief(exc)}")
+            return
+        self.paths = [merged.get(p, p) for p in files]
+        for w in logs.values():
+            self.source.warn(f"{w.name}: the recording was not closed (a crash?); the "
+                             f"messages of this write-ahead log ({w.stat().st_size // 1024}"
+                             " kB) are read from a copy of the database with it merged")
+
+    def _choose_topic(self, path: Path, options: GnssOptions) -> None:
         with self._open() as reader:
             topics = sorted({c.topic for c in reader.connections if c.msgtype == NAVSATFIX})
             if options.topic is not None:
@@ -192,4 +253,6 @@ class Reader:
         return Stamped(fix, utc_ns=utc_ns)
 
     def close(self) -> None:
-        pass
+        if self._copies is not None:
+            shutil.rmtree(self._copies, ignore_errors=True)
+            self._copies = None

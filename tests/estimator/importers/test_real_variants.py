@@ -5,6 +5,11 @@ file the tests write."""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import shutil
+import tempfile
+
 import pytest
 
 from estimator.importers import ImportOptions, ImportRefused, import_flight
@@ -283,3 +288,47 @@ def test_a_bag_whose_metadata_qos_was_edited_is_read(flight, tmp_path, storage):
     assert any("metadata.yaml" in w and "/fix" in w for w in j["warnings"])
     _, ref = _import(storage_file(bag), rtt, tmp_path / "ref.jsonl")
     assert log.gnss == ref.gnss
+
+
+def test_a_crashed_bag_write_ahead_log_is_read(flight, tmp_path, monkeypatch):
+    """``ros2 bag record --storage-preset-profile resilient`` keeps SQLite in WAL mode:
+    when the recorder dies (a drone's power lost), the last messages are still in
+    bag.db3-wal and there is no metadata.yaml. rosbags opens the database as immutable
+    and never sees them: the import silently lost the end of the flight. They are read
+    from a merged copy; the input files are not changed."""
+    import sqlite3
+
+    n = 1500
+    part = write_rosbag(tmp_path / "part", dataclasses.replace(flight, gnss=flight.gnss[:n]),
+                        extra_topic=False)
+    full = write_rosbag(tmp_path / "full", flight, extra_topic=False)
+    with contextlib.closing(sqlite3.connect(storage_file(full))) as src:
+        rest = src.execute("SELECT topic_id, timestamp, data FROM messages "
+                           "ORDER BY timestamp").fetchall()[n:]
+    db = storage_file(part)
+    crash = tmp_path / "crash"
+    crash.mkdir()
+    with contextlib.closing(sqlite3.connect(db)) as con:  # the recorder, still running
+        assert con.execute("PRAGMA journal_mode=WAL").fetchone() == ("wal",)
+        con.execute("PRAGMA wal_autocheckpoint=0")
+        con.executemany("INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)",
+                        rest)
+        con.commit()
+        for f in db.parent.iterdir():  # what the crash left: no metadata.yaml
+            if f.name != "metadata.yaml":
+                shutil.copy(f, crash / f.name)
+    wal = crash / (db.name + "-wal")
+    assert wal.stat().st_size > 100_000
+    before = {f.name: f.read_bytes() for f in crash.iterdir()}
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    _, ref = _import(storage_file(full), rtt, tmp_path / "ref.jsonl")
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))  # where the merged copy goes
+    for bag in (crash, crash / db.name):
+        j, log = _import(bag, rtt, tmp_path / "crash.jsonl")
+        assert j["gnss"]["records_read"] == len(flight.gnss)
+        assert log.gnss == ref.gnss
+        assert any(f"{db.name}-wal" in w for w in j["warnings"])
+    assert {f.name: f.read_bytes() for f in crash.iterdir()} == before
+    assert list(temp.iterdir()) == []  # the copy removed
