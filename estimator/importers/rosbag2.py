@@ -17,7 +17,8 @@ and vacc_m that of the vertical one. A message with a zero stamp is skipped
 storage itself fails midway (a damaged MCAP record or SQLite page), the fixes read
 before are kept and the rest of the topic's messages counted as ``corrupt_data``. A
 ``.db3`` with a write-ahead log beside it (``bag.db3-wal``: a recording in SQLite's WAL
-mode that was not closed) is read from a temporary copy with the log merged in.
+mode that was not closed) is read from a temporary copy with the log merged in; an
+``.mcap`` cut off without its footer, from a copy of its whole records closed with one.
 """
 
 from __future__ import annotations
@@ -99,6 +100,46 @@ def _merged_copy(db: Path, wal: Path, folder: Path) -> Path:
     return out
 
 
+MCAP_FOOTER_BYTES = 37  # Footer record (opcode, length, 20 bytes) and the magic
+
+
+def _mcap_cut_end(path: Path) -> int | None:
+    """The end of the last whole record of an MCAP file that stops before its footer (a
+    recording cut off), or ``None`` when the file ends with its magic."""
+    with open(path, "rb") as fh:
+        size = fh.seek(0, 2)
+        if size >= 8 + MCAP_FOOTER_BYTES:
+            fh.seek(size - 8)
+            if fh.read(8) == MCAP_MAGIC[:5] + b"0\r\n":
+                return None
+        off = 8  # after the leading magic: records of opcode, u64 length, content
+        while off + 9 <= size:
+            fh.seek(off + 1)
+            end = off + 9 + int.from_bytes(fh.read(8), "little")
+            if end > size:
+                break
+            off = end
+        return off
+
+
+def _closed_copy(mcap: Path, end: int, folder: Path) -> Path:
+    """A copy of a cut-off MCAP file in ``folder``: its whole records (``end`` bytes),
+    then a DataEnd record and a footer without a summary (readers then scan it)."""
+    out = folder / mcap.name
+    with open(mcap, "rb") as src, open(out, "wb") as dst:
+        left = end
+        while left > 0:
+            block = src.read(min(left, 1 << 20))
+            if not block:
+                break
+            dst.write(block)
+            left -= len(block)
+        dst.write(b"\x0f" + (4).to_bytes(8, "little") + bytes(4))  # DataEnd, crc 0
+        dst.write(b"\x02" + (20).to_bytes(8, "little") + bytes(20))  # Footer: no summary
+        dst.write(MCAP_MAGIC[:5] + b"0\r\n")
+    return out
+
+
 def _unpaired(reader, topic: str) -> bool:
     """Whether the bag's metadata counts messages on ``topic`` that rosbags yields none
     of: it pairs the metadata's connections with the storage's by topic, type and QoS,
@@ -121,39 +162,54 @@ class Reader:
         self.source = Source(path=path, format=FORMAT, kind=KIND, utc_uncertainty_ns=1)
         self._copies: Path | None = None  # a folder of merged copies, removed by close()
         try:
-            self._merge_write_ahead_logs(path)
+            self._repair(path)
             self._choose_topic(path, options)
         except BaseException:
             self.close()
             raise
 
-    def _merge_write_ahead_logs(self, path: Path) -> None:
-        """A recording that was not closed (``ros2 bag record`` in SQLite's WAL mode, the
-        ``resilient`` preset, killed by a crash) leaves its last messages in
-        ``bag.db3-wal`` and often no metadata.yaml; rosbags opens the database as
-        immutable and does not see them. The storage files are read instead, each one
-        with such a log as a copy with the log merged in."""
-        files = sorted(p for p in path.iterdir() if p.suffix in STORAGE_SUFFIXES) if (
-            path.is_dir()) else [path]
-        logs = {p: w for p in files if (w := _write_ahead_log(p)) is not None}
-        if not logs:
-            return
+    def _repair(self, path: Path) -> None:
+        """A recording that was not closed (``ros2 bag record`` killed by a crash) has no
+        metadata.yaml, and rosbags misses or refuses what it left:
+
+        - SQLite in WAL mode (the ``resilient`` preset) keeps the last messages in
+          ``bag.db3-wal``; rosbags opens the database as immutable and does not see
+          them: a copy with the log merged in is read;
+        - an MCAP file stops without its summary and footer; rosbags refuses it: a copy
+          of its whole records closed with a footer is read (rosbags scans it).
+
+        The storage files are then read without metadata.yaml, such ones as their copies
+        (in a temporary folder that :meth:`close` removes); the inputs are not changed."""
         import sqlite3
 
-        self._copies = Path(tempfile.mkdtemp(prefix="osa-bag-"))
-        try:
-            merged = {p: _merged_copy(p, w, self._copies) for p, w in logs.items()}
-        except (OSError, sqlite3.Error) as exc:
-            self.close()
-            for w in logs.values():
-                self.source.warn(f"{w.name} holds messages not merged into the database "
-                                 f"(the recording was not closed), not read: {brief(exc)}")
-            return
-        self.paths = [merged.get(p, p) for p in files]
-        for w in logs.values():
-            self.source.warn(f"{w.name}: the recording was not closed (a crash?); the "
-                             f"messages of this write-ahead log ({w.stat().st_size // 1024}"
-                             " kB) are read from a copy of the database with it merged")
+        files = sorted(p for p in path.iterdir() if p.suffix in STORAGE_SUFFIXES) if (
+            path.is_dir()) else [path]
+        copies: dict[Path, Path] = {}
+        for p in files:
+            try:
+                wal = _write_ahead_log(p)
+                end = _mcap_cut_end(p) if p.suffix == ".mcap" else None
+                if wal is None and end is None:
+                    continue
+                if self._copies is None:
+                    self._copies = Path(tempfile.mkdtemp(prefix="osa-bag-"))
+                if wal is not None:
+                    copies[p] = _merged_copy(p, wal, self._copies)
+                    self.source.warn(
+                        f"{wal.name}: the recording was not closed (a crash?); the messages "
+                        f"of this write-ahead log ({wal.stat().st_size // 1024} kB) are read "
+                        "from a copy of the database with it merged")
+                else:
+                    copies[p] = _closed_copy(p, end, self._copies)
+                    self.source.warn(
+                        f"{p.name}: the recording was cut off (no MCAP footer: a crash?); "
+                        f"its whole records ({end} bytes) are read, the last "
+                        f"{p.stat().st_size - end} bytes (a record cut short) are not")
+            except (OSError, sqlite3.Error) as exc:
+                self.source.warn(f"{p.name}: a recording that was not closed, and no copy "
+                                 f"of it could be made to read all of it ({brief(exc)})")
+        if copies:
+            self.paths = [copies.get(p, p) for p in files]
 
     def _choose_topic(self, path: Path, options: GnssOptions) -> None:
         with self._open() as reader:

@@ -18,6 +18,7 @@ from tests.estimator.importers.writers import (
     VEHICLE_GPS_POSITION_V113,
     Flight,
     logged_dtype,
+    mcap_messages,
     storage_file,
     write_android_csv,
     write_dataflash,
@@ -292,32 +293,6 @@ def test_a_time_with_an_exponent_but_no_digits_before_it_is_a_bad_type():
     assert ms_to_ns(".5E1") == 5_000_000 and time_integer("5.E0") == 5
 
 
-def _mcap_messages(data: bytes) -> list[tuple[int, int, int]]:
-    """(chunk number, offset, length) of the Message records (opcode 0x05) in the
-    uncompressed chunks of an MCAP file (records: opcode, u64 length, content, as the
-    MCAP specification lays them out)."""
-    import struct
-
-    out, off, chunk = [], 8, 0  # after the magic
-    while off + 9 <= len(data):
-        op, n = data[off], struct.unpack_from("<Q", data, off + 1)[0]
-        if op == 0x06:  # Chunk: start, end, size (u64 x3), crc (u32), compression, records
-            c = off + 9 + 28
-            comp_len = struct.unpack_from("<I", data, c)[0]
-            assert data[c + 4:c + 4 + comp_len] == b"", "a compressed chunk"
-            q, end = c + 4 + comp_len + 8, off + 9 + n
-            while q < end:
-                size = struct.unpack_from("<Q", data, q + 1)[0]
-                if data[q] == 0x05:
-                    out.append((chunk, q, size))
-                q += 9 + size
-            chunk += 1
-        if op == 0x0F:  # Footer
-            break
-        off += 9 + n
-    return out
-
-
 def test_a_bag_damaged_midway_keeps_the_fixes_before_the_damage(flight, tmp_path):
     """A damaged record in the middle of an MCAP bag made rosbags raise while the
     messages were read: a traceback. The fixes before it are kept; the topic's messages
@@ -328,10 +303,10 @@ def test_a_bag_damaged_midway_keeps_the_fixes_before_the_damage(flight, tmp_path
     bag = write_rosbag(tmp_path / "bag", short, storage="mcap", extra_topic=False,
                        image_bytes=20_000)
     data = bytearray(storage_file(bag).read_bytes())
-    msgs = _mcap_messages(bytes(data))
+    msgs = mcap_messages(bytes(data))
     fixes = [m for m in msgs if m[2] < 1000]  # the NavSatFix records, not the images
     assert len(fixes) == 2000 and msgs[-1][0] >= 3  # several chunks
-    chunk, off, _ = next(m for m in fixes if m[0] == 2)  # the first fix of the third chunk
+    chunk, off, _, _ = next(m for m in fixes if m[0] == 2)  # the first fix of chunk 3
     data[off + 1:off + 9] = struct.pack("<Q", 1 << 40)  # its length
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(bytes(data))

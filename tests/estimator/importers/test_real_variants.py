@@ -17,6 +17,7 @@ from estimator.logio import read_log
 from tests.estimator.importers.writers import (
     DataFlashWriter,
     gps_week_ms,
+    mcap_messages,
     storage_file,
     write_android_csv,
     write_gnsslogger,
@@ -332,3 +333,35 @@ def test_a_crashed_bag_write_ahead_log_is_read(flight, tmp_path, monkeypatch):
         assert any(f"{db.name}-wal" in w for w in j["warnings"])
     assert {f.name: f.read_bytes() for f in crash.iterdir()} == before
     assert list(temp.iterdir()) == []  # the copy removed
+
+
+def test_a_crashed_mcap_recording_is_read_up_to_the_cut(flight, tmp_path, monkeypatch):
+    """MCAP is ROS 2's default storage since Iron. A recorder that dies leaves the file
+    without its summary and footer (and no metadata.yaml): rosbags refused it whole
+    ("File end magic is invalid"), the flight lost. The whole records before the cut
+    are read (from a copy closed with a footer), with a warning; the input is not
+    changed."""
+    bag = write_rosbag(tmp_path / "bag", flight, storage="mcap", extra_topic=False,
+                       image_bytes=20_000)
+    mcap = storage_file(bag)
+    data = mcap.read_bytes()
+    fixes = [m for m in mcap_messages(data) if m[2] < 1000]
+    assert len(fixes) == len(flight.gnss)
+    cut_at = (fixes[len(fixes) // 2][1] + fixes[len(fixes) // 2 + 5][1]) // 2  # mid-chunk
+    crash = tmp_path / "crash"
+    crash.mkdir()
+    cut = crash / mcap.name
+    cut.write_bytes(data[:cut_at])
+    kept = sum(m[3] <= cut_at for m in fixes)
+    assert 0.3 * len(fixes) < kept < len(fixes) // 2
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    _, ref = _import(mcap, rtt, tmp_path / "ref.jsonl")
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    for path in (crash, cut):
+        j, log = _import(path, rtt, tmp_path / "cut.jsonl")
+        assert j["gnss"]["records_read"] == kept
+        assert any(f"{mcap.name}: the recording was cut off" in w for w in j["warnings"])
+        assert log.gnss == ref.gnss[:len(log.gnss)] and len(log.gnss) > 0.25 * len(ref.gnss)
+    assert cut.read_bytes() == data[:cut_at] and list(temp.iterdir()) == []

@@ -602,3 +602,27 @@ def storage_file(bag_dir: Path) -> Path:
     (f,) = [p for p in bag_dir.iterdir() if p.suffix in (".db3", ".mcap")]
     return f
 
+
+def mcap_messages(data: bytes) -> list[tuple[int, int, int, int]]:
+    """(chunk number, offset, length, end of the chunk) of each Message record (opcode
+    0x05) in the uncompressed chunks of an MCAP file (records: opcode, u64 length,
+    content, as the MCAP specification lays them out); to damage or cut a bag where
+    its messages are."""
+    out, off, chunk = [], 8, 0  # after the magic
+    while off + 9 <= len(data):
+        op, n = data[off], struct.unpack_from("<Q", data, off + 1)[0]
+        if op == 0x06:  # Chunk: start, end, size (u64 x3), crc (u32), compression, records
+            c = off + 9 + 28
+            comp_len = struct.unpack_from("<I", data, c)[0]
+            assert data[c + 4:c + 4 + comp_len] == b"", "a compressed chunk"
+            q, end = c + 4 + comp_len + 8, off + 9 + n
+            while q < end:
+                size = struct.unpack_from("<Q", data, q + 1)[0]
+                if data[q] == 0x05:
+                    out.append((chunk, q, size, end))
+                q += 9 + size
+            chunk += 1
+        if op == 0x0F:  # DataEnd
+            break
+        off += 9 + n
+    return out
