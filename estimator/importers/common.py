@@ -326,20 +326,27 @@ def status_word(text: str) -> str:
     return ANDROID_RTT_STATUS.get(code, f"status_{code}")
 
 
-def text_lines(fh: IO[bytes], counts: RejectCounts) -> Iterator[tuple[int, str]]:
+def text_lines(fh: IO[bytes], counts: RejectCounts, *,
+               eight_bit: bool = False) -> Iterator[tuple[int, str]]:
     """(line number, text) of a binary file's lines without their line ending; a line
-    that is not UTF-8 is counted (``not_utf8``) and skipped; blank lines are skipped. A
-    UTF-8 byte order mark (Excel and Windows Notepad write one) is not part of the first
-    line: left in, it would hide the first column's name."""
+    that is not UTF-8 is counted (``not_utf8``) and skipped, or, with ``eight_bit``, read
+    as Latin-1 (a spreadsheet's export in a Windows code page, for a reader that uses
+    only ASCII fields: the other bytes land in columns it ignores or fail its checks);
+    blank lines are skipped. A UTF-8 byte order mark (Excel and Windows Notepad write
+    one) is not part of the first line: left in, it would hide the first column's
+    name."""
     for n, raw in enumerate(fh, start=1):
         if n == 1 and raw.startswith(b"\xef\xbb\xbf"):
             raw = raw[3:]
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError:
-            counts.lines += 1
-            counts.reject("not_utf8")
-            continue
+            if eight_bit:
+                line = raw.decode("latin-1")
+            else:
+                counts.lines += 1
+                counts.reject("not_utf8")
+                continue
         line = line.rstrip("\r\n")
         if line.strip():
             yield n, line

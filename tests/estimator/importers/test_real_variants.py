@@ -365,3 +365,20 @@ def test_a_crashed_mcap_recording_is_read_up_to_the_cut(flight, tmp_path, monkey
         assert any(f"{mcap.name}: the recording was cut off" in w for w in j["warnings"])
         assert log.gnss == ref.gnss[:len(log.gnss)] and len(log.gnss) > 0.25 * len(ref.gnss)
     assert cut.read_bytes() == data[:cut_at] and list(temp.iterdir()) == []
+
+
+def test_a_csv_saved_by_excel_in_a_windows_encoding_is_read(flight, tmp_path):
+    """Excel's plain "CSV (Comma delimited)" is saved in the Windows code page: a
+    responder name such as "Café Señor" in an extra column is not UTF-8, and every row
+    was skipped (not_utf8), the import refused. The fields used are ASCII: the rows
+    read as the UTF-8 file's."""
+    gnss = write_gnsslogger(tmp_path / "gnss_log.txt", flight)
+    plain = write_android_csv(tmp_path / "plain.csv", flight)
+    lines = plain.read_text().splitlines()
+    rows = [lines[0] + ",ssid"] + [ln + ",Café Señor" for ln in lines[1:]]
+    excel = tmp_path / "excel.csv"
+    excel.write_bytes(("\r\n".join(rows) + "\r\n").encode("cp1252"))
+    _, ref = _import(gnss, plain, tmp_path / "ref.jsonl")
+    j, got = _import(gnss, excel, tmp_path / "got.jsonl")
+    assert j["ranges"]["skipped"] == {} and got.rtt == ref.rtt
+    assert len(got.rtt) == len(flight.rtt)
