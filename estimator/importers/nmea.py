@@ -9,9 +9,10 @@ type unknown), the satellites ``nn``, HDOP (``acc_m`` = 1.5 m x HDOP: a typical
 standalone user equivalent range error; it is a proxy, as the log format says) and
 the height: ``alt`` above mean sea level plus the geoid separation ``N`` of the same
 sentence (ellipsoidal = MSL + N), ``--geoid-offset`` when the sentence has none.
-A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``). A GGA
-without a fix and a void RMC (status ``V``) without a date, as a receiver writes them
-before it has a fix and the time (their time or date empty), are ``no_fix``.
+A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``); one
+behind binary bytes on its line (a u-center log's UBX messages) is read from its ``$``.
+A GGA without a fix and a void RMC (status ``V``) without a date, as a receiver writes
+them before it has a fix and the time (their time or date empty), are ``no_fix``.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ QUALITY = {1: None, 2: "dgps", 3: None, 4: "rtk_fixed", 5: "rtk_float"}
 _SENTENCE = re.compile(rb"^\$[A-Z]{2}(GGA|RMC),")
 _HHMMSS = re.compile(r"(\d{2})(\d{2})(\d{2}(?:\.\d+)?)")
 _DDMMYY = re.compile(r"\d{6}")
+_START = re.compile(r"\$[A-Z]{5},")  # where a sentence starts, after other bytes too
 
 
 def sniff(head: bytes) -> bool:
@@ -122,6 +124,19 @@ def _void_undated(fields: list[str]) -> bool:
             and (len(fields) < 10 or not fields[9].strip()))
 
 
+def sentences(fh, counts) -> Iterator[str]:
+    """The lines of an NMEA file, each from where its sentence starts: a receiver's log
+    (u-center's) holds binary messages between the sentences, with no line break after
+    them, so a sentence can follow other bytes on its line (read as Latin-1: NMEA is
+    ASCII). A line without a sentence start is given whole."""
+    for _, line in text_lines(fh, counts, eight_bit=True):
+        if not _START.match(line):
+            starts = [m.start() for m in _START.finditer(line)]
+            if starts:
+                line = line[starts[-1]:]
+        yield line
+
+
 class Reader:
     """The GGA fixes of one NMEA file (see the module docstring)."""
 
@@ -132,7 +147,7 @@ class Reader:
 
     def _first_date(self) -> tuple[date, int] | None:
         with open_file(self.source.path) as fh:
-            for _, line in text_lines(fh, Tally().counts):
+            for line in sentences(fh, Tally().counts):
                 if line[3:6] == "RMC":
                     try:
                         f = _checked(line)
@@ -148,7 +163,7 @@ class Reader:
         if dated is None:
             self.source.warn("no RMC sentence with a date: the fixes cannot be dated")
         with open_file(self.source.path) as fh:
-            for _, line in text_lines(fh, tally.counts):
+            for line in sentences(fh, tally.counts):
                 kind = line[3:6] if line.startswith("$") else ""
                 if kind not in ("GGA", "RMC"):
                     tally.counts.unknown_types[line[1:6] if line.startswith("$") else

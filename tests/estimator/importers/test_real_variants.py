@@ -10,6 +10,7 @@ import dataclasses
 import shutil
 import tempfile
 
+import numpy as np
 import pytest
 
 from estimator.importers import ImportOptions, ImportRefused, import_flight
@@ -382,3 +383,26 @@ def test_a_csv_saved_by_excel_in_a_windows_encoding_is_read(flight, tmp_path):
     j, got = _import(gnss, excel, tmp_path / "got.jsonl")
     assert j["ranges"]["skipped"] == {} and got.rtt == ref.rtt
     assert len(got.rtt) == len(flight.rtt)
+
+
+def test_nmea_logged_with_binary_ubx_messages_between_the_sentences(flight, tmp_path):
+    """u-center logs a u-blox receiver's whole output: NMEA sentences with binary UBX
+    messages between them (no line break after a UBX message, which holds any bytes).
+    Every GGA behind one was lost (not_utf8, or a line not starting with "$"). The
+    sentences are found where they start; the binary bytes are other records."""
+    plain = write_nmea(tmp_path / "plain.nmea", flight)
+    rng = np.random.default_rng(5)
+    mixed = bytearray()
+    for line in plain.read_bytes().split(b"\r\n"):
+        if line.startswith(b"$GNGGA"):  # a UBX-NAV-PVT before it: sync, class, id, size
+            mixed += b"\xb5\x62\x01\x07" + (92).to_bytes(2, "little") + rng.bytes(94)
+        if line:
+            mixed += line + b"\r\n"
+    ubx = tmp_path / "COM7_250612_101158.ubx"
+    ubx.write_bytes(bytes(mixed))
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    _, ref = _import(plain, rtt, tmp_path / "ref.jsonl")
+    j, got = _import(ubx, rtt, tmp_path / "got.jsonl")
+    assert j["gnss"]["format"] == "nmea" and j["gnss"]["skipped"] == {}
+    assert j["gnss"]["records_read"] == len(flight.gnss) and got.gnss == ref.gnss
+    assert j["gnss"]["other_records"]["GNGSA"] == len(flight.gnss)
