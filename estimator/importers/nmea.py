@@ -23,6 +23,7 @@ import re
 from collections.abc import Iterator
 from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
+from typing import IO
 
 from estimator.importers.common import (
     NS_PER_S,
@@ -38,6 +39,7 @@ from estimator.importers.common import (
     open_file,
     text_lines,
 )
+from estimator.logio import RejectCounts
 
 FORMAT = "nmea"
 KIND = "gnss"
@@ -124,7 +126,7 @@ def _void_undated(fields: list[str]) -> bool:
             and (len(fields) < 10 or not fields[9].strip()))
 
 
-def sentences(fh, counts) -> Iterator[str]:
+def _sentences(fh: IO[bytes], counts: RejectCounts) -> Iterator[str]:
     """The lines of an NMEA file, each from where its sentence starts: a receiver's log
     (u-center's) holds binary messages between the sentences, with no line break after
     them, so a sentence can follow other bytes on its line (read as Latin-1: NMEA is
@@ -147,7 +149,7 @@ class Reader:
 
     def _first_date(self) -> tuple[date, int] | None:
         with open_file(self.source.path) as fh:
-            for line in sentences(fh, Tally().counts):
+            for line in _sentences(fh, Tally().counts):
                 if line[3:6] == "RMC":
                     try:
                         f = _checked(line)
@@ -163,7 +165,7 @@ class Reader:
         if dated is None:
             self.source.warn("no RMC sentence with a date: the fixes cannot be dated")
         with open_file(self.source.path) as fh:
-            for line in sentences(fh, tally.counts):
+            for line in _sentences(fh, tally.counts):
                 kind = line[3:6] if line.startswith("$") else ""
                 if kind not in ("GGA", "RMC"):
                     tally.counts.unknown_types[line[1:6] if line.startswith("$") else

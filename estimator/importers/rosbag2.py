@@ -100,6 +100,7 @@ def _merged_copy(db: Path, wal: Path, folder: Path) -> Path:
     return out
 
 
+MCAP_END = b"\x89MCAP0\r\n"  # the magic that starts and ends an MCAP file
 MCAP_FOOTER_BYTES = 37  # Footer record (opcode, length, 20 bytes) and the magic
 
 
@@ -110,7 +111,7 @@ def _mcap_cut_end(path: Path) -> int | None:
         size = fh.seek(0, 2)
         if size >= 8 + MCAP_FOOTER_BYTES:
             fh.seek(size - 8)
-            if fh.read(8) == MCAP_MAGIC[:5] + b"0\r\n":
+            if fh.read(8) == MCAP_END:
                 return None
         off = 8  # after the leading magic: records of opcode, u64 length, content
         while off + 9 <= size:
@@ -136,7 +137,7 @@ def _closed_copy(mcap: Path, end: int, folder: Path) -> Path:
             left -= len(block)
         dst.write(b"\x0f" + (4).to_bytes(8, "little") + bytes(4))  # DataEnd, crc 0
         dst.write(b"\x02" + (20).to_bytes(8, "little") + bytes(20))  # Footer: no summary
-        dst.write(MCAP_MAGIC[:5] + b"0\r\n")
+        dst.write(MCAP_END)
     return out
 
 
