@@ -12,13 +12,14 @@ WGS84 ellipsoid, as the message defines it), ``status.status`` (-1 no fix and -2
 unknown are skipped as ``no_fix``; 1 SBAS and 2 GBAS are ``dgps``; 0 leaves the fix
 type unknown) and ``position_covariance``: with a covariance type other than 0
 (unknown), acc_m is the square root of the larger horizontal variance (east or north)
-and vacc_m that of the vertical one. A message with a zero stamp is skipped
-(``no_utc``), one that cannot be deserialised counted as ``corrupt_message``. When the
-storage itself fails midway (a damaged MCAP record or SQLite page), the fixes read
-before are kept and the rest of the topic's messages counted as ``corrupt_data``. A
-``.db3`` with a write-ahead log beside it (``bag.db3-wal``: a recording in SQLite's WAL
-mode that was not closed) is read from a temporary copy with the log merged in; an
-``.mcap`` cut off without its footer, from a copy of its whole records closed with one.
+and vacc_m that of the vertical one (a NaN variance: unknown). A message with a zero
+stamp is skipped (``no_utc``), one that cannot be deserialised counted as
+``corrupt_message``. When the storage itself fails midway (a damaged MCAP record or
+SQLite page), the fixes read before are kept and the rest of the topic's messages
+counted as ``corrupt_data``. A ``.db3`` with a write-ahead log beside it
+(``bag.db3-wal``: a recording in SQLite's WAL mode that was not closed) is read from a
+temporary copy with the log merged in; an ``.mcap`` cut off without its footer, from a
+copy of its whole records closed with one.
 """
 
 from __future__ import annotations
@@ -298,11 +299,15 @@ class Reader:
         acc = vacc = None
         if int(msg.position_covariance_type) != 0:
             c = [float(x) for x in msg.position_covariance]
-            if any(not math.isfinite(x) for x in (c[0], c[4], c[8])):
-                raise Skip("non_finite")
-            if min(c[0], c[4], c[8]) < 0:
+            east, north, up = c[0], c[4], c[8]
+            if min(east, north, up) < 0:
                 raise Skip("bad_value")
-            acc, vacc = math.sqrt(max(c[0], c[4])), math.sqrt(c[8])
+            # a NaN (or infinite) variance is an unknown accuracy: nmea_navsat_driver
+            # squares an empty HDOP into NaN
+            if math.isfinite(east) and math.isfinite(north):
+                acc = math.sqrt(max(east, north))
+            if math.isfinite(up):
+                vacc = math.sqrt(up)
         fix = make_fix(lat_deg=float(msg.latitude), lon_deg=float(msg.longitude),
                        alt_m=float(msg.altitude), acc_m=acc, vacc_m=vacc, fix=STATUS[status],
                        default_acc_m=self.options.default_acc_m)

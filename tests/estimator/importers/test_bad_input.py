@@ -387,3 +387,24 @@ def test_a_ulog_cut_off_in_its_last_fix_counts_it(flight, tmp_path):
         assert j["gnss"]["skipped"] == skipped, k
         if n is not None:
             assert j["gnss"]["records_read"] == n, k
+
+
+def test_a_navsatfix_variance_of_nan_is_an_unknown_accuracy(flight, tmp_path):
+    """nmea_navsat_driver squares an empty HDOP into NaN variances (covariance type
+    1): the fix was skipped as non_finite, even with --gnss-acc. A NaN variance is an
+    unknown accuracy, as an empty one elsewhere: no_accuracy, kept with --gnss-acc; a
+    NaN vertical variance leaves vacc_m out."""
+    bag = write_rosbag(tmp_path / "bag", flight, extra_topic=False, nan_every=10)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    j, log = _run(bag, rtt, tmp_path)
+    n_nan = (len(flight.gnss) + 9) // 10
+    assert j["gnss"]["skipped"] == {"no_accuracy": n_nan}
+    src_t = np.array([g.t_ns for g in flight.gnss])
+    for g in log.gnss:  # each written fix's source: the nearest in time (1 ms of UTC)
+        k = int(np.argmin(np.abs(src_t - g.t_ns)))
+        assert abs(src_t[k] - g.t_ns) < 2_000_000 and k % 10 != 0
+        assert g.acc_m == pytest.approx(flight.gnss[k].acc_m)
+        assert (g.vacc_m is None) == (k % 10 == 1)
+    j, log = _run(bag, rtt, tmp_path, gnss_acc_m=2.5)
+    assert j["gnss"]["skipped"] == {} and j["gnss"]["records_read"] == len(flight.gnss)
+    assert sum(g.acc_m == 2.5 for g in log.gnss) >= 0.9 * len(log.gnss) // 10

@@ -543,13 +543,15 @@ def write_dataflash(path: Path, flight: Flight, *, with_und: bool = True,
 def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
                  topic: str = "/fix", covariance: bool = True,
                  extra_topic: bool = True, second_fix_topic: str | None = None,
-                 image_bytes: int = 0) -> Path:
+                 image_bytes: int = 0, nan_every: int = 0) -> Path:
     """A ROS 2 bag directory (rosbags' ``Writer``, version 9) with NavSatFix on
     ``topic`` stamped with the fix's UTC, a diagonal covariance (acc^2, acc^2,
     vacc^2), recorded 30 ms after the stamp; plus a ``/battery`` topic of another type
     and, if asked, a second NavSatFix topic (a worse receiver, every tenth fix) and a
     ``/camera`` topic of ``image_bytes`` images every tenth fix (a bag's bulk: MCAP
-    then holds several chunks)."""
+    then holds several chunks). With ``nan_every``, every such fix has NaN horizontal
+    variances and every other one a NaN vertical one (nmea_navsat_driver's covariance
+    from an empty HDOP)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -574,6 +576,10 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
             vacc = g.vacc_m if g.vacc_m is not None else 0.0
             cov = (np.array([g.acc_m ** 2, 0, 0, 0, g.acc_m ** 2, 0, 0, 0, vacc ** 2])
                    if covariance else np.zeros(9))
+            if nan_every and k % nan_every == 0:
+                cov[0] = cov[4] = np.nan
+            elif nan_every and k % nan_every == 1:
+                cov[8] = np.nan
             msg = NavSatFix(
                 header=Header(stamp=Time(sec=utc // NS, nanosec=utc % NS), frame_id="gnss"),
                 status=NavSatStatus(status=0, service=1),
