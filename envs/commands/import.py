@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from datetime import UTC, datetime
 
@@ -124,12 +125,16 @@ def run(args: argparse.Namespace) -> int:
     from estimator.importers import ImportOptions, ImportRefused, import_flight
 
     out = args.output
-    try:
+    named = out.endswith(".jsonl") or out.endswith(".jsonl.gz")
+    bad_name = f"{out}: the log must be named .jsonl or .jsonl.gz"
+    if not named and not os.path.lexists(out):  # refused before a folder is created
+        return _fail(bad_name)
+    try:  # an existing file: an input, or one to keep, is said first
         claim_output_file(out, force=args.force, inputs=[args.gnss, args.ranges])
     except OutputRefusedError as exc:
         return _fail(exc)
-    if not (out.endswith(".jsonl") or out.endswith(".jsonl.gz")):
-        return _fail(f"{out}: the log must be named .jsonl or .jsonl.gz")
+    if not named:
+        return _fail(bad_name)
     opts = ImportOptions(
         gnss_format=args.gnss_format, ranges_format=args.ranges_format, topic=args.topic,
         geoid_offset_m=args.geoid_offset, gnss_acc_m=args.gnss_acc,

@@ -6,7 +6,9 @@ The first line names the columns (any order, any case; extra columns are ignored
 ``distance_std_dev_mm``, ``rssi`` (dBm), ``num_attempted``, ``num_successful``, and a
 time: ``utc_ms`` (Unix time of the result in ms) and/or ``elapsed_ns`` (the phone's
 ``elapsedRealtimeNanos``). A row with another number of cells than the header, or a
-bad value, is counted and skipped. A UTF-8 byte order mark is dropped
+bad value, is counted and skipped. A UTF-8 byte order mark is dropped, and a line that
+is not UTF-8 (Excel's plain "CSV" is saved in the Windows code page: an accented name in
+an extra column) is read as Latin-1, the fields used being ASCII
 (:func:`estimator.importers.common.text_lines`). The separator is the comma, or the
 semicolon or tab of a spreadsheet's export when the header line holds no comma (numbers
 keep the decimal point: a decimal comma is a ``bad_type``).
@@ -79,7 +81,7 @@ class Reader:
 
     def _header(self) -> dict[str, int]:
         with open_file(self.source.path) as fh:
-            for _, line in text_lines(fh, Tally().counts):
+            for _, line in text_lines(fh, Tally().counts, eight_bit=True):
                 self.delimiter = separator(line)
                 try:
                     names = _names(line)
@@ -100,7 +102,7 @@ class Reader:
         cols = self.columns
         n_cols = len(cols)
         with open_file(self.source.path) as fh:
-            lines = text_lines(fh, tally.counts)
+            lines = text_lines(fh, tally.counts, eight_bit=True)
             next(lines, None)  # the header
             for _, line in lines:
                 tally.counts.lines += 1

@@ -36,6 +36,13 @@ class SourceError(Exception):
     """A recorder file that cannot be read at all (one line naming the file)."""
 
 
+def brief(exc: BaseException, limit: int = 160) -> str:
+    """A library's error message as one short line, to quote in a one-line refusal or
+    warning: its whitespace (newlines too) collapsed, cut at ``limit`` characters."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 class Skip(Exception):  # noqa: N818 - a counted skip, not an error
     """One line or message that is not used, with the reason it is counted under."""
 
@@ -170,7 +177,7 @@ def integer(text: str | None) -> int | None:
     return int(v)
 
 
-_EXPONENT = re.compile(r"^[+-]?(\d*)(?:\.(\d*))?[eE]([+-]?\d+)$")
+_EXPONENT = re.compile(r"^[+-]?(?=\.?\d)(\d*)(?:\.(\d*))?[eE]([+-]?\d+)$")  # a digit first
 
 
 def _not_rounded(text: str) -> str:
@@ -221,6 +228,14 @@ def float32_decimal(value: float) -> float:
     import numpy as np
 
     return float(np.format_float_positional(np.float32(value), unique=True))
+
+
+def accuracy_field(text: str | None) -> float | None:
+    """An accuracy from a text field: :func:`number`, but ``NaN`` (what apps write for an
+    accuracy they do not have) is unknown, ``None``, as an empty field is."""
+    if text is not None and text.strip().lower() == "nan":
+        return None
+    return number(text)
 
 
 def accuracy_m(value: float | None) -> float | None:
@@ -311,20 +326,27 @@ def status_word(text: str) -> str:
     return ANDROID_RTT_STATUS.get(code, f"status_{code}")
 
 
-def text_lines(fh: IO[bytes], counts: RejectCounts) -> Iterator[tuple[int, str]]:
+def text_lines(fh: IO[bytes], counts: RejectCounts, *,
+               eight_bit: bool = False) -> Iterator[tuple[int, str]]:
     """(line number, text) of a binary file's lines without their line ending; a line
-    that is not UTF-8 is counted (``not_utf8``) and skipped; blank lines are skipped. A
-    UTF-8 byte order mark (Excel and Windows Notepad write one) is not part of the first
-    line: left in, it would hide the first column's name."""
+    that is not UTF-8 is counted (``not_utf8``) and skipped, or, with ``eight_bit``, read
+    as Latin-1 (a spreadsheet's export in a Windows code page, for a reader that uses
+    only ASCII fields: the other bytes land in columns it ignores or fail its checks);
+    blank lines are skipped. A UTF-8 byte order mark (Excel and Windows Notepad write
+    one) is not part of the first line: left in, it would hide the first column's
+    name."""
     for n, raw in enumerate(fh, start=1):
         if n == 1 and raw.startswith(b"\xef\xbb\xbf"):
             raw = raw[3:]
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError:
-            counts.lines += 1
-            counts.reject("not_utf8")
-            continue
+            if eight_bit:
+                line = raw.decode("latin-1")
+            else:
+                counts.lines += 1
+                counts.reject("not_utf8")
+                continue
         line = line.rstrip("\r\n")
         if line.strip():
             yield n, line

@@ -38,6 +38,7 @@ from estimator.importers.common import (
     SourceError,
     Stamped,
     Tally,
+    brief,
     ellipsoidal_m,
     float32_decimal,
     make_fix,
@@ -165,7 +166,7 @@ class Reader:
             with quiet_output():  # pymavlink prints about bad bytes, from C too
                 df = DFReader.DFReader_binary(str(path), zero_time_base=True)
         except Exception as exc:  # pymavlink raises bare Exceptions on foreign data
-            raise SourceError(f"{path}: not a readable DataFlash log ({exc})") from None
+            raise SourceError(f"{path}: not a readable DataFlash log ({brief(exc)})") from None
         try:
             self._load(df, path)
         finally:

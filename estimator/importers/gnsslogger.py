@@ -8,8 +8,9 @@ the file, so any column order works; the app's v3 order is assumed without it). 
 ``Location.getAltitude()``: already above the WGS84 ellipsoid), ``AccuracyMeters``,
 ``VerticalAccuracyMeters``, ``UnixTimeMillis`` (UTC) and ``elapsedRealtimeNanos`` (the
 phone's clock). Older files name them ``Latitude``, ``Longitude``, ``Altitude``,
-``Accuracy`` and ``(UTC)TimeInMs``; both are read. Only fixes of one provider are used:
-``GPS`` unless ``--topic`` names another (``FLP``, ``NLP``); the others are counted.
+``Accuracy`` and ``(UTC)TimeInMs``; both are read. An empty or ``NaN`` accuracy is
+unknown. Only fixes of one provider are used: ``GPS`` unless ``--topic`` names another
+(``FLP``, ``NLP``); the others are counted.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from estimator.importers.common import (
     Source,
     Stamped,
     Tally,
+    accuracy_field,
     make_fix,
     number,
     open_file,
@@ -108,8 +110,8 @@ class Reader:
             lat_deg=number(get("LatitudeDegrees")),
             lon_deg=number(get("LongitudeDegrees")),
             alt_m=number(get("AltitudeMeters")),
-            acc_m=number(get("AccuracyMeters")),
-            vacc_m=number(get("VerticalAccuracyMeters")),
+            acc_m=accuracy_field(get("AccuracyMeters")),
+            vacc_m=accuracy_field(get("VerticalAccuracyMeters")),
             default_acc_m=self.options.default_acc_m,
         )
         tally.heights["ellipsoid"] += 1

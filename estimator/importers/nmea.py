@@ -9,7 +9,10 @@ type unknown), the satellites ``nn``, HDOP (``acc_m`` = 1.5 m x HDOP: a typical
 standalone user equivalent range error; it is a proxy, as the log format says) and
 the height: ``alt`` above mean sea level plus the geoid separation ``N`` of the same
 sentence (ellipsoidal = MSL + N), ``--geoid-offset`` when the sentence has none.
-A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``).
+A sentence whose ``*hh`` checksum does not match is skipped (``bad_checksum``); one
+behind binary bytes on its line (a u-center log's UBX messages) is read from its ``$``.
+A GGA without a fix and a void RMC (status ``V``) without a date, as a receiver writes
+them before it has a fix and the time (their time or date empty), are ``no_fix``.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import re
 from collections.abc import Iterator
 from datetime import UTC, date, datetime, timedelta
 from pathlib import Path
+from typing import IO
 
 from estimator.importers.common import (
     NS_PER_S,
@@ -35,6 +39,7 @@ from estimator.importers.common import (
     open_file,
     text_lines,
 )
+from estimator.logio import RejectCounts
 
 FORMAT = "nmea"
 KIND = "gnss"
@@ -43,6 +48,7 @@ QUALITY = {1: None, 2: "dgps", 3: None, 4: "rtk_fixed", 5: "rtk_float"}
 _SENTENCE = re.compile(rb"^\$[A-Z]{2}(GGA|RMC),")
 _HHMMSS = re.compile(r"(\d{2})(\d{2})(\d{2}(?:\.\d+)?)")
 _DDMMYY = re.compile(r"\d{6}")
+_START = re.compile(r"\$[A-Z]{5},")  # where a sentence starts, after other bytes too
 
 
 def sniff(head: bytes) -> bool:
@@ -113,6 +119,26 @@ def _rmc_date(fields: list[str]) -> date | None:
         return None
 
 
+def _void_undated(fields: list[str]) -> bool:
+    """Whether an RMC is a receiver's "void" sentence (status ``V``: no fix) without a
+    date yet, as receivers write them before they have the time."""
+    return (len(fields) > 2 and fields[2].strip().upper() == "V"
+            and (len(fields) < 10 or not fields[9].strip()))
+
+
+def _sentences(fh: IO[bytes], counts: RejectCounts) -> Iterator[str]:
+    """The lines of an NMEA file, each from where its sentence starts: a receiver's log
+    (u-center's) holds binary messages between the sentences, with no line break after
+    them, so a sentence can follow other bytes on its line (read as Latin-1: NMEA is
+    ASCII). A line without a sentence start is given whole."""
+    for _, line in text_lines(fh, counts, eight_bit=True):
+        if not _START.match(line):
+            starts = [m.start() for m in _START.finditer(line)]
+            if starts:
+                line = line[starts[-1]:]
+        yield line
+
+
 class Reader:
     """The GGA fixes of one NMEA file (see the module docstring)."""
 
@@ -123,7 +149,7 @@ class Reader:
 
     def _first_date(self) -> tuple[date, int] | None:
         with open_file(self.source.path) as fh:
-            for _, line in text_lines(fh, Tally().counts):
+            for line in _sentences(fh, Tally().counts):
                 if line[3:6] == "RMC":
                     try:
                         f = _checked(line)
@@ -139,7 +165,7 @@ class Reader:
         if dated is None:
             self.source.warn("no RMC sentence with a date: the fixes cannot be dated")
         with open_file(self.source.path) as fh:
-            for _, line in text_lines(fh, tally.counts):
+            for line in _sentences(fh, tally.counts):
                 kind = line[3:6] if line.startswith("$") else ""
                 if kind not in ("GGA", "RMC"):
                     tally.counts.unknown_types[line[1:6] if line.startswith("$") else
@@ -151,7 +177,7 @@ class Reader:
                     if kind == "RMC":
                         d = _rmc_date(fields)
                         if d is None:
-                            raise Skip("bad_date")
+                            raise Skip("no_fix" if _void_undated(fields) else "bad_date")
                         dated = (d, _time_of_day_ns(fields[1]))
                         continue
                     if dated is None:
@@ -163,6 +189,11 @@ class Reader:
     def _fix(self, f: list[str], dated: tuple[date, int], tally: Tally) -> Stamped:
         if len(f) < 12:
             raise Skip("missing_field")
+        quality = integer(f[6])  # first: a receiver without a fix leaves the time empty
+        if quality is None:
+            raise Skip("missing_field")
+        if quality not in QUALITY:
+            raise Skip("no_fix")
         tod = _time_of_day_ns(f[1])
         day, rmc_tod = dated
         if tod < rmc_tod - 43_200 * NS_PER_S:  # the GGA is past midnight after the RMC
@@ -171,11 +202,6 @@ class Reader:
             day = day - timedelta(days=1)
         midnight = int(datetime(day.year, day.month, day.day, tzinfo=UTC).timestamp())
         utc_ns = midnight * NS_PER_S + tod
-        quality = integer(f[6])
-        if quality is None:
-            raise Skip("missing_field")
-        if quality not in QUALITY:
-            raise Skip("no_fix")
         lat = _angle(f[2], f[3], 2, "N", "S")
         lon = _angle(f[4], f[5], 3, "E", "W")
         hdop = number(f[8])

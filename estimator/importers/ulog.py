@@ -18,7 +18,9 @@ not with the file. Fields, as the file's own format declares them:
 
 pyulog skips corrupt parts of a file itself (it resumes at the next sync message) and
 does not say how much it skipped: ``corrupt_data`` counts the GNSS messages lost,
-estimated from the gaps in the topic's timestamps (at least 1 for a corrupt file).
+estimated from the gaps in the topic's timestamps (at least 1 for a corrupt file). A
+file that ends in the middle of one of the topic's messages (a recording cut off) has
+it counted as ``truncated``.
 """
 
 from __future__ import annotations
@@ -38,9 +40,11 @@ from estimator.importers.common import (
     SourceError,
     Stamped,
     Tally,
+    brief,
     ellipsoidal_m,
     float32_decimal,
     make_fix,
+    open_file,
 )
 
 FORMAT = "ulog"
@@ -75,6 +79,34 @@ class _Lines(io.TextIOBase):
         return len(s)
 
 
+class _EndWatch:
+    """The file as pyulog reads it, remembering its last two reads: pyulog stops without
+    a word where the file ends in the middle of a message (a recording cut off), and
+    these say which message that was."""
+
+    def __init__(self, path: Path) -> None:
+        self._fh = open_file(path)
+        self.seek, self.tell, self.close = self._fh.seek, self._fh.tell, self._fh.close
+        self.before: tuple[int, bytes] = (0, b"")
+        self.last: tuple[int, bytes] = (0, b"")
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._fh.read(n)
+        self.before, self.last = self.last, (n, data)
+        return data
+
+    def cut_data_id(self) -> int | None:
+        """The message id of the data (``D``) message the file ends in, when pyulog's
+        last reads were its 3-byte header and a payload short of the size it gives
+        (with the id's two bytes in it)."""
+        (n0, head), (n1, body) = self.before, self.last
+        if n0 != 3 or len(head) != 3 or head[2] != ord("D"):
+            return None
+        if n1 != int.from_bytes(head[:2], "little") or not 2 <= len(body) < n1:
+            return None
+        return int.from_bytes(body[:2], "little")
+
+
 class Reader:
     """The fixes of one ULog file's GNSS topic (see the module docstring)."""
 
@@ -91,11 +123,14 @@ class Reader:
             raise SourceError(f"{path}: {exc}") from None
         names = [want] if want else list(TOPICS)
         sink = _Lines()
+        fh = _EndWatch(path)
         try:
             with contextlib.redirect_stdout(sink):
-                ulog = ULog(str(path), message_name_filter_list=names)
+                ulog = ULog(fh, message_name_filter_list=names)
         except (ULogException, OSError, ValueError, KeyError, IndexError) as exc:
-            raise SourceError(f"{path}: not a readable ULog file ({exc})") from None
+            raise SourceError(f"{path}: not a readable ULog file ({brief(exc)})") from None
+        finally:
+            fh.close()
         self.corrupt = bool(ulog.file_corruption)
         data = {(d.name, d.multi_id): d for d in ulog.data_list}
         name = want or next((t for t in TOPICS if any(k[0] == t for k in data)), None)
@@ -113,6 +148,7 @@ class Reader:
         self.data = d.data
         self.n = len(d.data["timestamp"]) if "timestamp" in d.data else 0
         self.lost = self._lost() if self.corrupt else 0
+        self.cut = fh.cut_data_id() == d.msg_id  # the file ends inside one of its fixes
         for need in ("time_utc_usec",):
             if need not in self.data:
                 raise SourceError(f"{path}: {name} has no {need} field")
@@ -156,6 +192,9 @@ class Reader:
     def records(self, tally: Tally) -> Iterator[Stamped]:
         if self.corrupt:
             tally.counts.rejected["corrupt_data"] += self.lost
+        if self.cut:
+            tally.counts.lines += 1
+            tally.skip("truncated")
         lat = self._degrees("lat", "latitude_deg")
         lon = self._degrees("lon", "longitude_deg")
         ell = self._metres("alt_ellipsoid", "altitude_ellipsoid_m")

@@ -15,7 +15,11 @@ from estimator.importers.common import GnssOptions, Tally
 from estimator.importers.dataflash import Reader as DataFlashReader
 from estimator.logio import read_log
 from tests.estimator.importers.writers import (
+    VEHICLE_GPS_POSITION_V113,
     Flight,
+    logged_dtype,
+    mcap_messages,
+    storage_file,
     write_android_csv,
     write_dataflash,
     write_gnsslogger,
@@ -272,3 +276,135 @@ def test_a_bag_with_two_fix_topics_needs_one_named(flight, tmp_path):
     assert {g.acc_m for g in log.gnss} == {4.0} and {g.vacc_m for g in log.gnss} == {6.0}
     with pytest.raises(ImportRefused, match="no NavSatFix topic '/gps'"):
         _run(bag, rtt, tmp_path, topic="/gps")
+
+
+def test_a_time_with_an_exponent_but_no_digits_before_it_is_a_bad_type():
+    """A damaged time cell such as "E749723142525" (its first digit lost) looked like
+    an exponent form and crashed the import with a ValueError traceback."""
+    from estimator.importers.common import Skip, ms_to_ns, time_integer
+
+    for text in ("E749723142525", "e12", ".E5", "+E3"):
+        for parse in (ms_to_ns, time_integer):
+            with pytest.raises(Skip) as skip:
+                parse(text)
+            assert skip.value.reason == "bad_type", (text, parse)
+    assert ms_to_ns("1.749723142525E12") == 1_749_723_142_525_000_000  # every digit kept
+    assert time_integer("3.9853029979635E13") == 39_853_029_979_635
+    assert ms_to_ns(".5E1") == 5_000_000 and time_integer("5.E0") == 5
+
+
+def test_a_bag_damaged_midway_keeps_the_fixes_before_the_damage(flight, tmp_path):
+    """A damaged record in the middle of an MCAP bag made rosbags raise while the
+    messages were read: a traceback. The fixes before it are kept; the topic's messages
+    from there on are counted as corrupt_data, with a warning."""
+    import struct
+
+    short = dataclasses.replace(flight, gnss=flight.gnss[:2000])
+    bag = write_rosbag(tmp_path / "bag", short, storage="mcap", extra_topic=False,
+                       image_bytes=20_000)
+    data = bytearray(storage_file(bag).read_bytes())
+    msgs = mcap_messages(bytes(data))
+    fixes = [m for m in msgs if m[2] < 1000]  # the NavSatFix records, not the images
+    assert len(fixes) == 2000 and msgs[-1][0] >= 3  # several chunks
+    chunk, off, _, _ = next(m for m in fixes if m[0] == 2)  # the first fix of chunk 3
+    data[off + 1:off + 9] = struct.pack("<Q", 1 << 40)  # its length
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(bytes(data))
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight, elapsed=False)
+    j, log = _run(broken, rtt, tmp_path)
+    kept = sum(m[0] < chunk for m in fixes)
+    assert j["gnss"]["records_read"] == kept > 400
+    assert j["gnss"]["skipped"] == {"corrupt_data": 2000 - kept}
+    assert any(f"broken.mcap: damaged after message {kept} of /fix" in w
+               for w in j["warnings"])
+    _, ref = _run(storage_file(bag), rtt, tmp_path)
+    assert log.gnss == ref.gnss[:len(log.gnss)] and len(log.gnss) > 300
+
+
+def test_library_errors_are_one_line(flight, tmp_path):
+    """A bag whose SQLite schema is damaged: rosbags' error quotes the schema over
+    several lines; the refusal stays one line."""
+    bag = write_rosbag(tmp_path / "bag", dataclasses.replace(flight, gnss=flight.gnss[:50]),
+                       extra_topic=False)
+    data = storage_file(bag).read_bytes()
+    assert data.count(b"metadata_version INTEGER") == 1
+    bad = tmp_path / "bad.db3"
+    bad.write_bytes(data.replace(b"metadata_version INTEGER", b"`etadata_version INTEGER"))
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    with pytest.raises(ImportRefused, match=r"bad.db3: not a readable ROS 2 bag \(.*"
+                                            r"malformed database schema") as err:
+        _run(bad, rtt, tmp_path)
+    assert "\n" not in str(err.value) and len(str(err.value)) < 300
+
+
+def test_nmea_sentences_of_a_receiver_without_a_fix_yet_are_no_fix(flight, tmp_path):
+    """A u-blox receiver starting up writes GGA and RMC with empty time, position and
+    date (``$GPGGA,,,,,,0,00,99.99,,,,,,*48``, ``$GPRMC,,V,,,,,,,,,,N*53``), then with
+    the time but no fix: they were counted as bad_time and bad_date (a "wrong" time or
+    date), not as what they are: sentences without a fix."""
+    from tests.estimator.importers.writers import _nmea
+
+    start = ["$GPGGA,,,,,,0,00,99.99,,,,,,*48", "$GPRMC,,V,,,,,,,,,,N*53",
+             _nmea("GPGGA,101159.00,,,,,0,03,25.3,,,,,,"),
+             _nmea("GPRMC,101159.00,V,,,,,,,120625,,,N")]
+    good = write_nmea(tmp_path / "good.nmea", flight).read_text().splitlines()
+    gnss = tmp_path / "ublox.nmea"
+    gnss.write_text("\r\n".join(start * 4 + good) + "\r\n")
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    j, _ = _run(gnss, rtt, tmp_path)
+    assert j["gnss"]["skipped"] == {"no_fix": 12}  # the void RMC with a date dates
+    assert j["gnss"]["records_read"] == len(flight.gnss)
+    # a damaged time or date with a fix is still what it is
+    bad = [_nmea("GPGGA,,3642.9000,N,00428.6800,W,1,12,0.60,100.0,M,50.0,M,,"),
+           _nmea("GPRMC,101200.00,A,3642.9000,N,00428.6800,W,1.0,90.0,,,,A")]
+    gnss.write_text("\r\n".join(bad + good) + "\r\n")
+    j, _ = _run(gnss, rtt, tmp_path)
+    assert j["gnss"]["skipped"] == {"bad_time": 1, "bad_date": 1}
+
+
+def test_a_ulog_cut_off_in_its_last_fix_counts_it(flight, tmp_path):
+    """A PX4 log ends where the power went: in the middle of a message. pyulog stops
+    there and says nothing; a GNSS message cut off is counted (truncated), as in a
+    DataFlash log, and one of another topic is not the GNSS stream's."""
+    ulg = write_ulog(tmp_path / "f.ulg", flight)
+    data = ulg.read_bytes()
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    size = 3 + 2 + logged_dtype(VEHICLE_GPS_POSITION_V113).itemsize  # header, id, fields
+    cases = [(data, len(flight.gnss), {}),
+             (data[:-7], len(flight.gnss) - 1, {"truncated": 1}),  # in the last fix
+             (data[:-size + 5], len(flight.gnss) - 1, {"truncated": 1}),  # its id there
+             (data[:-size + 4], len(flight.gnss) - 1, {}),  # half its id: whose?
+             (data[:-size + 2], len(flight.gnss) - 1, {}),  # in its header
+             (data[:-size], len(flight.gnss) - 1, {})]  # a message boundary
+    # the last battery_status message: 23 bytes (its id 2, 21 of fields)
+    battery = data.rfind(b"\x17\x00D\x02\x00")
+    assert battery > len(data) - 3000
+    cases.append((data[:battery + 10], None, {}))  # cut in another topic's message
+    for k, (content, n, skipped) in enumerate(cases):
+        cut = tmp_path / f"cut{k}.ulg"
+        cut.write_bytes(content)
+        j, _ = _run(cut, rtt, tmp_path)
+        assert j["gnss"]["skipped"] == skipped, k
+        if n is not None:
+            assert j["gnss"]["records_read"] == n, k
+
+
+def test_a_navsatfix_variance_of_nan_is_an_unknown_accuracy(flight, tmp_path):
+    """nmea_navsat_driver squares an empty HDOP into NaN variances (covariance type
+    1): the fix was skipped as non_finite, even with --gnss-acc. A NaN variance is an
+    unknown accuracy, as an empty one elsewhere: no_accuracy, kept with --gnss-acc; a
+    NaN vertical variance leaves vacc_m out."""
+    bag = write_rosbag(tmp_path / "bag", flight, extra_topic=False, nan_every=10)
+    rtt = write_android_csv(tmp_path / "rtt.csv", flight)
+    j, log = _run(bag, rtt, tmp_path)
+    n_nan = (len(flight.gnss) + 9) // 10
+    assert j["gnss"]["skipped"] == {"no_accuracy": n_nan}
+    src_t = np.array([g.t_ns for g in flight.gnss])
+    for g in log.gnss:  # each written fix's source: the nearest in time (1 ms of UTC)
+        k = int(np.argmin(np.abs(src_t - g.t_ns)))
+        assert abs(src_t[k] - g.t_ns) < 2_000_000 and k % 10 != 0
+        assert g.acc_m == pytest.approx(flight.gnss[k].acc_m)
+        assert (g.vacc_m is None) == (k % 10 == 1)
+    j, log = _run(bag, rtt, tmp_path, gnss_acc_m=2.5)
+    assert j["gnss"]["skipped"] == {} and j["gnss"]["records_read"] == len(flight.gnss)
+    assert sum(g.acc_m == 2.5 for g in log.gnss) >= 0.9 * len(log.gnss) // 10

@@ -149,3 +149,12 @@ def test_the_figures_of_a_flight_without_truth_zoom_on_its_estimates(files, tmp_
             y0, y1 = a.get_ylim()
             assert x0 < t.estimate.enu_m[0] < x1 and y0 < t.estimate.enu_m[1] < y1
     pyplot().close(fig)
+
+
+def test_a_refused_log_name_creates_no_folder(files, tmp_path, capsys):
+    """``-o new/dir/f.csv`` was refused for its name only after the folders new/dir had
+    been created: a refused command left them behind."""
+    gnss, rtt = files
+    code, text, err = _import(capsys, gnss, rtt, tmp_path / "new" / "dir" / "f.csv")
+    assert code == 2 and text == "" and ".jsonl or .jsonl.gz" in err
+    assert not (tmp_path / "new").exists()

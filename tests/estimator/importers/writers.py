@@ -542,11 +542,16 @@ def write_dataflash(path: Path, flight: Flight, *, with_und: bool = True,
 
 def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
                  topic: str = "/fix", covariance: bool = True,
-                 extra_topic: bool = True, second_fix_topic: str | None = None) -> Path:
+                 extra_topic: bool = True, second_fix_topic: str | None = None,
+                 image_bytes: int = 0, nan_every: int = 0) -> Path:
     """A ROS 2 bag directory (rosbags' ``Writer``, version 9) with NavSatFix on
     ``topic`` stamped with the fix's UTC, a diagonal covariance (acc^2, acc^2,
     vacc^2), recorded 30 ms after the stamp; plus a ``/battery`` topic of another type
-    and, if asked, a second NavSatFix topic (a worse receiver, every tenth fix)."""
+    and, if asked, a second NavSatFix topic (a worse receiver, every tenth fix) and a
+    ``/camera`` topic of ``image_bytes`` images every tenth fix (a bag's bulk: MCAP
+    then holds several chunks). With ``nan_every``, every such fix has NaN horizontal
+    variances and every other one a NaN vertical one (nmea_navsat_driver's covariance
+    from an empty HDOP)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -556,6 +561,7 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
     Float32 = ts.types["std_msgs/msg/Float32"]
+    Image = ts.types["sensor_msgs/msg/Image"]
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
         conn = w.add_connection(topic, NavSatFix.__msgtype__, typestore=ts)
@@ -563,11 +569,17 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
             if extra_topic else None
         conn2 = w.add_connection(second_fix_topic, NavSatFix.__msgtype__, typestore=ts) \
             if second_fix_topic else None
+        iconn = w.add_connection("/camera", Image.__msgtype__, typestore=ts) \
+            if image_bytes else None
         for k, g in enumerate(flight.gnss):
             utc = flight.utc_ns(g.t_ns)
             vacc = g.vacc_m if g.vacc_m is not None else 0.0
             cov = (np.array([g.acc_m ** 2, 0, 0, 0, g.acc_m ** 2, 0, 0, 0, vacc ** 2])
                    if covariance else np.zeros(9))
+            if nan_every and k % nan_every == 0:
+                cov[0] = cov[4] = np.nan
+            elif nan_every and k % nan_every == 1:
+                cov[8] = np.nan
             msg = NavSatFix(
                 header=Header(stamp=Time(sec=utc // NS, nanosec=utc % NS), frame_id="gnss"),
                 status=NavSatStatus(status=0, service=1),
@@ -583,6 +595,11 @@ def write_rosbag(path: Path, flight: Flight, *, storage: str = "sqlite3",
             if bconn is not None and k % 10 == 0:
                 w.write(bconn, utc + 31_000_000,
                         ts.serialize_cdr(Float32(data=15.9), Float32.__msgtype__))
+            if iconn is not None and k % 10 == 0:
+                img = Image(header=msg.header, height=1, width=image_bytes, encoding="mono8",
+                            is_bigendian=0, step=image_bytes,
+                            data=np.full(image_bytes, k % 256, dtype=np.uint8))
+                w.write(iconn, utc + 32_000_000, ts.serialize_cdr(img, Image.__msgtype__))
     return path
 
 
@@ -591,3 +608,27 @@ def storage_file(bag_dir: Path) -> Path:
     (f,) = [p for p in bag_dir.iterdir() if p.suffix in (".db3", ".mcap")]
     return f
 
+
+def mcap_messages(data: bytes) -> list[tuple[int, int, int, int]]:
+    """(chunk number, offset, length, end of the chunk) of each Message record (opcode
+    0x05) in the uncompressed chunks of an MCAP file (records: opcode, u64 length,
+    content, as the MCAP specification lays them out); to damage or cut a bag where
+    its messages are."""
+    out, off, chunk = [], 8, 0  # after the magic
+    while off + 9 <= len(data):
+        op, n = data[off], struct.unpack_from("<Q", data, off + 1)[0]
+        if op == 0x06:  # Chunk: start, end, size (u64 x3), crc (u32), compression, records
+            c = off + 9 + 28
+            comp_len = struct.unpack_from("<I", data, c)[0]
+            assert data[c + 4:c + 4 + comp_len] == b"", "a compressed chunk"
+            q, end = c + 4 + comp_len + 8, off + 9 + n
+            while q < end:
+                size = struct.unpack_from("<Q", data, q + 1)[0]
+                if data[q] == 0x05:
+                    out.append((chunk, q, size, end))
+                q += 9 + size
+            chunk += 1
+        if op == 0x0F:  # DataEnd
+            break
+        off += 9 + n
+    return out
