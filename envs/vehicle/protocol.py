@@ -24,7 +24,8 @@ switches to the other form, as PX4 negotiates it.
 
 Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_ITEM_INT)
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
-float MISSION_ITEM, as PX4 does); the mission's current item carries ``current=1``.
+float MISSION_ITEM, as PX4 does, an unset x or y as NaN); the mission's current item
+carries ``current=1``.
 MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
 Partial lists (MISSION_WRITE_PARTIAL_LIST, MISSION_REQUEST_PARTIAL_LIST) are refused
 with MAV_MISSION_UNSUPPORTED.
@@ -281,7 +282,9 @@ class MissionServer:
 
     def _item_args(self, w: WireItem, float_form: bool) -> tuple:
         cur = int(w.mission_type == MAV_MISSION_TYPE_MISSION and w.seq == self.current())
-        x, y = (w.x / 1e7, w.y / 1e7) if float_form else (w.x, w.y)
+        x, y = w.x, w.y
+        if float_form:  # "not set" (INT32_MAX) is the float form's NaN
+            x, y = (math.nan if v == UNSET_E7 else v / 1e7 for v in (w.x, w.y))
         return (w.seq, w.frame, w.command, cur, w.autocontinue, w.param1, w.param2, w.param3,
                 w.param4, x, y, w.z, w.mission_type)
 

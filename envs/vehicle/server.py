@@ -35,6 +35,7 @@ import contextlib
 import math
 import os
 import select
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -434,8 +435,9 @@ class VirtualVehicle:
             return
         try:
             handler(peer, msg)
-        except (ValueError, TypeError, OverflowError, KeyError) as exc:
-            # a message the vehicle cannot use never stops it: say so once per kind
+        except (ValueError, TypeError, OverflowError, KeyError, struct.error) as exc:
+            # a message the vehicle cannot use (or an answer that cannot be encoded)
+            # never stops it: say so once per kind
             if kind not in self._bad_kinds:
                 self._bad_kinds.add(kind)
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")

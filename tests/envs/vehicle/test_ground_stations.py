@@ -26,6 +26,8 @@ failed before its fix.
   fence item sent with the mission's type, are answered at once, never left waiting.
 - PX4's payload mission items are taken; INT32_MAX is an unset latitude/longitude; a
   take-off sent again (its ACK lost) is ACCEPTED; ATTITUDE_QUATERNION on request.
+- A legacy float item's NaN position reads back as NaN; one whose x or y no
+  MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
 """
 
 from __future__ import annotations
@@ -754,3 +756,66 @@ def test_mavsdks_listen_everywhere_url() -> None:
             gcs.close()
     finally:
         v.stop()
+
+
+def _upload_float(gcs: Gcs, items: list[tuple[int, int, float, float, float, float]]) -> int:
+    """A legacy upload (float MISSION_ITEMs: command, frame, param2, x, y, z) answering
+    every request; the MISSION_ACK's result."""
+    gcs.conn.mav.mission_count_send(1, 1, len(items))
+    while True:
+        m = gcs.wait(["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"])
+        if m.get_type() == "MISSION_ACK":
+            return int(m.type)
+        cmd, frame, p2, x, y, z = items[m.seq]
+        gcs.conn.mav.mission_item_send(1, 1, m.seq, frame, cmd, int(m.seq == 0), 1, 0, p2,
+                                       0, math.nan, x, y, z)
+
+
+def test_float_items_read_back_nan_and_never_stop_the_vehicle() -> None:
+    """A float MISSION_ITEM's NaN latitude and longitude ("not set", stored as INT32_MAX)
+    read back as NaN in the float form (it read back as 214.748 degrees, INT32_MAX / 1e7),
+    and as INT32_MAX in the INT form. A float item whose x or y no MISSION_ITEM_INT can
+    carry (1e30 in a DO_CHANGE_SPEED's param5/6: beyond int32 degE7) is refused with
+    INVALID_PARAM5_X / 6_Y and the held mission stays (it used to be stored, and the next
+    MISSION_REQUEST_INT for it stopped the vehicle: struct.error in the loop)."""
+    from pymavlink.dialects.v20.common import (
+        MAV_CMD_DO_CHANGE_SPEED,
+        MAV_CMD_NAV_TAKEOFF,
+        MAV_FRAME_MISSION,
+        MAV_MISSION_INVALID_PARAM5_X,
+        MAV_MISSION_INVALID_PARAM6_Y,
+    )
+
+    nan, rel = math.nan, MAV_FRAME_GLOBAL_RELATIVE_ALT
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            (lat, lon, alt), = _waypoints(rv, 1)
+            held = [(MAV_CMD_NAV_TAKEOFF, rel, 0.0, nan, nan, 10.0),
+                    (MAV_CMD_NAV_WAYPOINT, rel, 0.0, lat, lon, alt)]
+            assert _upload_float(gcs, held) == MAV_MISSION_ACCEPTED
+            for k, form in ((0, "MISSION_ITEM"), (1, "MISSION_ITEM"), (0, "MISSION_ITEM_INT")):
+                if form == "MISSION_ITEM":
+                    gcs.conn.mav.mission_request_send(1, 1, k)
+                else:
+                    gcs.conn.mav.mission_request_int_send(1, 1, k)
+                got = gcs.wait(form, where=lambda m, k=k: m.seq == k)
+                if form == "MISSION_ITEM_INT":
+                    assert (got.x, got.y) == (2**31 - 1, 2**31 - 1)
+                elif k == 0:
+                    assert math.isnan(got.x) and math.isnan(got.y), (got.x, got.y)
+                else:
+                    assert (got.x, got.y) == (_f32(lat), _f32(lon))
+            for x, y, result in ((1e30, 0.0, MAV_MISSION_INVALID_PARAM5_X),
+                                 (0.0, -1e30, MAV_MISSION_INVALID_PARAM6_Y)):
+                items = [(MAV_CMD_NAV_WAYPOINT, rel, 0.0, lat, lon, alt),
+                         (MAV_CMD_DO_CHANGE_SPEED, MAV_FRAME_MISSION, 5.0, x, y, 0.0)]
+                assert _upload_float(gcs, items) == result
+            assert rv.upload_count() == 1 and [w.command for w in rv.held()] == \
+                [MAV_CMD_NAV_TAKEOFF, MAV_CMD_NAV_WAYPOINT]
+            for k in range(2):  # every held item is read back in the INT form
+                gcs.conn.mav.mission_request_int_send(1, 1, k)
+                assert gcs.wait("MISSION_ITEM_INT", where=lambda m, k=k: m.seq == k).seq == k
+            assert rv.vehicle.error is None and rv.vehicle._thread.is_alive()
+        finally:
+            gcs.close()
