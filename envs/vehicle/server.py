@@ -376,8 +376,7 @@ class VirtualVehicle:
                 state = ev[1:4]
                 if state != self._last_current:
                     self._last_current = state
-                    mode = 1 if ap.mode is Mode.MISSION else 2 if state[1] else 0
-                    self._broadcast(mavlink.MAVLink_mission_current_message(*state, mode))
+                    self._broadcast(self.telemetry.mission_current(*state))
             elif kind in ("mode", "armed"):
                 self._broadcast(self.telemetry.heartbeat())
             elif kind == "home":

@@ -107,6 +107,7 @@ OFF_BY_DEFAULT = frozenset({MAVLINK_MSG_ID_ATTITUDE_QUATERNION})
 STREAMABLE = frozenset({*DEFAULT_RATES_HZ, *OFF_BY_DEFAULT})
 REQUESTABLE = frozenset({*STREAMABLE, MAVLINK_MSG_ID_HEARTBEAT,
                          MAVLINK_MSG_ID_AUTOPILOT_VERSION, MAVLINK_MSG_ID_PROTOCOL_VERSION})
+NO_MISSION_TOTAL = 0xFFFF  # MISSION_CURRENT.total without a mission (MAVLink)
 UNKNOWN_TERRAIN_M = -1001.0  # ALTITUDE.altitude_terrain below -1000: unknown
 
 CAPABILITIES = (
@@ -285,9 +286,7 @@ class Telemetry:
                 h.enu[1], h.enu[0], -h.enu[2], [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
                 int(ap.t_s * 1e6))
         if msg_id == MAVLINK_MSG_ID_MISSION_CURRENT:
-            seq, total, state = ap.mission_current()
-            mode = 1 if ap.mode is Mode.MISSION else 2 if total else 0
-            return mavlink.MAVLink_mission_current_message(seq, total, state, mode)
+            return self.mission_current(*ap.mission_current())
         if msg_id == MAVLINK_MSG_ID_VFR_HUD:
             v = ap.velocity
             gs = math.hypot(v[0], v[1])
@@ -328,6 +327,14 @@ class Telemetry:
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
                 [0] * 8, [0] * 8, 0, 0, self.fingerprint, [0] * 18)
         return None
+
+    def mission_current(self, seq: int, total: int, state: int) -> object:
+        """MISSION_CURRENT for the mission's (seq, items held, MISSION_STATE): ``total``
+        UINT16_MAX when none is held (MAVLink: 0 would say "not supported");
+        ``mission_mode`` 1 in AUTO.MISSION, else 2 (suspended) with a mission, 0 without."""
+        mode = 1 if self.ap.mode is Mode.MISSION else 2 if total else 0
+        return mavlink.MAVLink_mission_current_message(seq, total or NO_MISSION_TOTAL, state,
+                                                       mode)
 
     def terrain_report(self, lat_e7: int, lon_e7: int) -> object:
         """TERRAIN_REPORT for (lat, lon): the ground there and the vehicle's height

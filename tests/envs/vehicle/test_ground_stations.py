@@ -28,6 +28,7 @@ failed before its fix.
   take-off sent again (its ACK lost) is ACCEPTED; ATTITUDE_QUATERNION on request.
 - A legacy float item's NaN position reads back as NaN; one whose x or y no
   MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
+- MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported").
 """
 
 from __future__ import annotations
@@ -817,5 +818,42 @@ def test_float_items_read_back_nan_and_never_stop_the_vehicle() -> None:
                 gcs.conn.mav.mission_request_int_send(1, 1, k)
                 assert gcs.wait("MISSION_ITEM_INT", where=lambda m, k=k: m.seq == k).seq == k
             assert rv.vehicle.error is None and rv.vehicle._thread.is_alive()
+        finally:
+            gcs.close()
+
+
+def test_mission_current_says_no_mission_with_uint16_max() -> None:
+    """MISSION_CURRENT's ``total`` is the number of items held, and UINT16_MAX when there
+    is no mission (MAVLink: 0 means "not supported"; it used to be 0), before an upload,
+    after one and after MISSION_CLEAR_ALL, in the stream and in the answer to
+    MISSION_SET_CURRENT alike."""
+    from pymavlink.dialects.v20.common import (
+        MISSION_STATE_NO_MISSION,
+        MISSION_STATE_NOT_STARTED,
+    )
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            def current():
+                gcs.collect(0.1)
+                gcs.messages.clear()
+                return gcs.wait("MISSION_CURRENT")
+
+            m = current()
+            assert (m.seq, m.total, m.mission_state) == (0, 65535, MISSION_STATE_NO_MISSION)
+            assert _upload_int(gcs, _waypoints(rv, 3)) == MAV_MISSION_ACCEPTED
+            m = current()
+            assert (m.seq, m.total, m.mission_state) == (0, 3, MISSION_STATE_NOT_STARTED)
+            gcs.conn.mav.mission_set_current_send(1, 1, 2)
+            m = gcs.wait("MISSION_CURRENT", where=lambda m: m.seq == 2)
+            assert m.total == 3
+            gcs.conn.mav.mission_clear_all_send(1, 1)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_ACCEPTED
+            m = gcs.wait("MISSION_CURRENT", where=lambda m: m.mission_state
+                         == MISSION_STATE_NO_MISSION)
+            assert m.total == 65535
+            gcs.conn.mav.mission_set_current_send(1, 1, 0)
+            assert gcs.wait("MISSION_CURRENT").total == 65535
         finally:
             gcs.close()
