@@ -316,7 +316,7 @@ class Telemetry:
         if msg_id == MAVLINK_MSG_ID_ALTITUDE:
             p = ap.position
             lat, lon, alt = ap.geodetic(p)
-            ground = ap.terrain.height_m(lat, lon)
+            ground = ap.terrain.data_height_m(lat, lon)
             above = alt - ground if math.isfinite(ground) else UNKNOWN_TERRAIN_M
             return mavlink.MAVLink_altitude_message(
                 int(ap.t_s * 1e6), alt, alt, p[2], alt - ap.home.alt_m, above, -1.0)

@@ -148,16 +148,22 @@ class TerrainDatabase:
         e, n, u = self.ground_enu(lat_deg, lon_deg)
         return e, n, u + agl_m
 
+    def data_height_m(self, lat_deg: float, lon_deg: float) -> float:
+        """:meth:`height_m` where the terrain has data (:meth:`has_data`), else NaN: what
+        the vehicle reports as the ground (TERRAIN_REPORT, ALTITUDE)."""
+        if not self.available(lat_deg, lon_deg):
+            return math.nan
+        e, n, u = self.ground_enu(lat_deg, lon_deg)
+        if not self.has_data([(e, n)]):
+            return math.nan
+        return float(self.frame.to_geodetic(e, n, u)[2])
+
     def report(self, lat_e7: int, lon_e7: int, vehicle_alt_m: float) -> TerrainReport:
         """TERRAIN_REPORT for (lat, lon) of a vehicle at ``vehicle_alt_m`` (its
         altitude in the same datum); spacing 0 where there is no data."""
-        lat, lon = lat_e7 / 1e7, lon_e7 / 1e7
-        if not self.available(lat, lon):
+        h = self.data_height_m(lat_e7 / 1e7, lon_e7 / 1e7)
+        if not math.isfinite(h):
             return TerrainReport(lat_e7, lon_e7, 0, 0.0, 0.0, 0, self.loaded)
-        e, n, u = self.ground_enu(lat, lon)
-        if not self.has_data([(e, n)]):
-            return TerrainReport(lat_e7, lon_e7, 0, 0.0, 0.0, 0, self.loaded)
-        h = float(self.frame.to_geodetic(e, n, u)[2])
         return TerrainReport(lat_e7, lon_e7, self.spacing, h, vehicle_alt_m - h, 0, self.loaded)
 
     def report_below(self, p: tuple[float, float, float],
