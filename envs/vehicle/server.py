@@ -660,7 +660,10 @@ class VirtualVehicle:
             return (*ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame, p[4], p[5]))),
                     None)
         if cmd == MAV_CMD_DO_SET_MISSION_CURRENT:
-            seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
+            # MAVLink: param1 -1 keeps the current item; param2 is a boolean
+            if not (math.isfinite(p[0]) and p[0] >= -1.0) or p[1] not in (0.0, 1.0):
+                return MAV_RESULT_DENIED, f"set current param1 {p[0]:g}, param2 {p[1]:g}", None
+            seq = int(p[0]) if p[0] >= 0 else ap.mission.seq
             result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
             return result, why, self.telemetry.build(MAVLINK_MSG_ID_MISSION_CURRENT)
         if cmd in (MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_GET_MESSAGE_INTERVAL,

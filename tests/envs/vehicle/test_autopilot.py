@@ -17,6 +17,7 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_NAV_LOITER_TURNS,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
+    MAV_RESULT_FAILED,
     MAV_RESULT_TEMPORARILY_REJECTED,
     MISSION_STATE_COMPLETE,
 )
@@ -248,7 +249,7 @@ def test_command_results() -> None:
     # already flying: ACCEPTED and nothing changes (MAVLink's idempotent TAKEOFF)
     assert ap.takeoff(ap.home.alt_m + 30.0) == (MAV_RESULT_ACCEPTED, "takeoff: already flying")
     assert ap.change_speed(-3.0)[0] == MAV_RESULT_DENIED
-    assert ap.set_current(5)[0] == MAV_RESULT_DENIED
+    assert ap.set_current(5)[0] == MAV_RESULT_FAILED  # no such item (MAVLink)
     s = fly(ap, 20.0)
     assert s[-1].pos[2] == pytest.approx(12.0, abs=0.8) and ap.mode is Mode.LOITER
     assert ap.land()[0] == MAV_RESULT_ACCEPTED

@@ -28,7 +28,8 @@ failed before its fix.
   take-off sent again (its ACK lost) is ACCEPTED; ATTITUDE_QUATERNION on request.
 - A legacy float item's NaN position reads back as NaN; one whose x or y no
   MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
-- MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported").
+- MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported");
+  DO_SET_MISSION_CURRENT to no item is FAILED, as MAVLink and PX4 answer it.
 """
 
 from __future__ import annotations
@@ -855,5 +856,36 @@ def test_mission_current_says_no_mission_with_uint16_max() -> None:
             assert m.total == 65535
             gcs.conn.mav.mission_set_current_send(1, 1, 0)
             assert gcs.wait("MISSION_CURRENT").total == 65535
+        finally:
+            gcs.close()
+
+
+def test_set_mission_current_results_follow_mavlink() -> None:
+    """MAV_CMD_DO_SET_MISSION_CURRENT as the MAVLink definition and PX4 answer it: a
+    sequence number out of range, also with no mission, is FAILED (it was DENIED);
+    param1 -1 keeps the current item (to reset the jump counters only); a malformed one
+    (param1 NaN or below -1, param2 neither 0 nor 1) is DENIED; each ACCEPTED one is
+    followed by MISSION_CURRENT."""
+    from pymavlink.dialects.v20.common import (
+        MAV_CMD_DO_SET_MISSION_CURRENT,
+        MAV_RESULT_DENIED,
+        MAV_RESULT_FAILED,
+    )
+
+    cmd = MAV_CMD_DO_SET_MISSION_CURRENT
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            assert gcs.command(cmd, 0, 0) == MAV_RESULT_FAILED  # no mission
+            assert gcs.command(cmd, -1, 1) == MAV_RESULT_FAILED
+            assert _upload_int(gcs, _waypoints(rv, 3)) == MAV_MISSION_ACCEPTED
+            assert gcs.command(cmd, 3, 0) == MAV_RESULT_FAILED  # seq 0..2 only
+            assert gcs.command(cmd, 2, 0) == MAV_RESULT_ACCEPTED
+            assert gcs.wait("MISSION_CURRENT").seq == 2
+            assert gcs.command(cmd, -1, 1) == MAV_RESULT_ACCEPTED  # counters only
+            assert gcs.wait("MISSION_CURRENT").seq == 2
+            for params in ((math.nan, 0), (-2, 0), (1, 2), (1, math.nan)):
+                assert gcs.command(cmd, *params) == MAV_RESULT_DENIED, params
+            assert rv.autopilot.mission.seq == 2
         finally:
             gcs.close()
