@@ -33,6 +33,7 @@ with MAV_MISSION_UNSUPPORTED.
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -54,6 +55,7 @@ from envs.vehicle.mission import CAPACITY, UNSET_E7, check_item, check_list
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
+REFUSALS_KEPT = 1000  # the last refusals remembered (MissionServer.refused)
 Peer = tuple[int, int, int]  # (link id: envs.vehicle.links, system id, component id)
 Send = Callable[[Peer, str, tuple], None]  # peer, pymavlink message name, args after target
 
@@ -94,7 +96,9 @@ class MissionServer:
         self.held: dict[int, list[WireItem]] = {t: [] for t in CAPACITY}
         self._rx: dict[int, _Upload] = {}
         self._last: dict[int, _Commit] = {}
-        self.refused: list[tuple[int, int]] = []  # (mission_type, MAV_MISSION_RESULT)
+        # (mission_type, MAV_MISSION_RESULT) of the last refusals
+        self.refused: collections.deque[tuple[int, int]] = collections.deque(
+            maxlen=REFUSALS_KEPT)
         self.commits: dict[int, int] = {t: 0 for t in CAPACITY}  # accepted lists per type
         self._float_peers: set[Peer] = set()  # last spoke the float forms
 
