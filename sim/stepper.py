@@ -153,7 +153,12 @@ class Stepper:
         starts: Sequence[VehicleState] | None = None,
         header_agl_m: float | None = None,
         navigate_on_gnss: bool = True,
+        keep_records: bool = True,
     ) -> None:
+        # False: the phone's records and measurement steps are handed out as delivered
+        # and not kept (file_records, gnss_track and ftm_track then see none): a vehicle
+        # that runs for hours passes them on and must not grow with them
+        self.keep_records = keep_records
         self.realisation = realisation
         sc = realisation.scenario
         self.world = realisation.world
@@ -281,9 +286,10 @@ class Stepper:
         t_end = a.vehicle.t_s
         v = a.vehicle
         g = a.gnss.measure_until(t_end, v.position_at)
-        a.gnss_steps.append(g)
         f = a.radio.range_until(t_end, v.position_at, v.antenna_at)
-        a.ftm_steps.append(f)
+        if self.keep_records:
+            a.gnss_steps.append(g)
+            a.ftm_steps.append(f)
         self._queue(a, g, f)
         # emit what was delivered by now, but not past the earliest callback of a
         # request still to be processed: every agent's records leave in delivery order
@@ -291,7 +297,8 @@ class Stepper:
         out = [e for e in a._pending if e.delivery_s <= limit]
         a._pending = [e for e in a._pending if e.delivery_s > limit]
         out.sort(key=_DELIVERY_ORDER)
-        a.emitted.extend(out)
+        if self.keep_records:
+            a.emitted.extend(out)
         return out
 
     def finish(self) -> list[list[Emitted]]:

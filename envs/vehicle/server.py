@@ -175,7 +175,9 @@ class VirtualVehicle:
         self.realisation = realise(scenario, seed)
         # the configured H_AGL of a search is its height (as in osa search)
         agl = scenario.search.height_m if scenario.search is not None else None
-        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
+        # the phone's records leave as they are delivered (the log, the relay): not kept
+        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl,
+                               keep_records=False)
         self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock,
                                    keepouts=scenario.keepouts if keepouts is None else keepouts)
         for name, value in (params or {}).items():

@@ -268,3 +268,18 @@ def test_a_vehicle_holding_on_the_ground_stays_on_it_whatever_its_navigation_err
     st.step_to(25.0)
     g = st.hold(0)
     assert g.name == "hold" and g.point == pytest.approx(st.navigation_position_m(0))
+
+
+def test_a_stepper_that_keeps_no_records_delivers_the_same():
+    """``keep_records=False`` (a vehicle that runs for hours and passes its phone's
+    records on as they come) delivers exactly the records of a stepper that keeps them,
+    and keeps none of them, nor the measurement steps, so it does not grow with them."""
+    sc = _world_scenario()
+    traj = _line([(0, -100, 45), (0, 150, 45), (200, 150, 45)])
+    keep, drop = Stepper(realise(sc, 3)), Stepper(realise(sc, 3), keep_records=False)
+    stops = [7.5, 20.0, 61.0, 90.0]
+    got = _fly(drop, traj, stops)
+    assert got == _fly(keep, traj, stops) and len(got) > 500
+    assert keep.agents[0].emitted and keep.agents[0].gnss_steps
+    a = drop.agents[0]
+    assert (a.emitted, a.gnss_steps, a.ftm_steps) == ([], [], [])

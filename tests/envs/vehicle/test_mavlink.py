@@ -243,3 +243,23 @@ def test_a_speedup_it_cannot_keep_up_with_is_reported() -> None:
     # clock, so about 25x, far below the ask; and on, never stalled
     assert 10.0 < rate < 100.0
     assert all(b[0] > a[0] for a, b in itertools.pairwise(after))
+
+
+def test_a_vehicle_left_running_keeps_no_phone_records(tmp_path: Path) -> None:
+    """The phone's records leave the vehicle as they are delivered (the log, the relay)
+    and are not kept: a vehicle left running does not grow with them (the stepper kept
+    every record and measurement step: about 50 MB per simulated hour)."""
+    import json
+    import math as m
+
+    from tests.envs.vehicle.helpers import until
+
+    log = tmp_path / "phone.jsonl"
+    with running_vehicle(SEARCH_SCENARIO, speedup=m.inf, log_path=log) as rv:
+        def kinds() -> list[str]:
+            text = log.read_text()
+            return [json.loads(x)["type"] for x in text[: text.rfind("\n") + 1].splitlines()]
+
+        assert until(lambda: kinds().count("gnss") > 300 and "rtt" in kinds(), 60.0)
+        a = rv.vehicle.stepper.agents[0]
+        assert (a.emitted, a.gnss_steps, a.ftm_steps) == ([], [], [])
