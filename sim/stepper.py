@@ -145,6 +145,8 @@ class AgentSim:
 class Stepper:
     """All agents of one realised world, advanced together (see the module docstring)."""
 
+    TRACE_KEPT_S = 3600.0  # with keep_records=False: the recent past kept (simulated s)
+
     def __init__(
         self,
         realisation: Realisation,
@@ -156,8 +158,9 @@ class Stepper:
         keep_records: bool = True,
     ) -> None:
         # False: the phone's records and measurement steps are handed out as delivered
-        # and not kept (file_records, gnss_track and ftm_track then see none): a vehicle
-        # that runs for hours passes them on and must not grow with them
+        # and not kept (file_records, gnss_track and ftm_track then see none), and of the
+        # vehicle's trace and the GNSS draws only the last TRACE_KEPT_S to 2 x that are
+        # (vehicle_track starts there): a vehicle that runs for hours does not grow
         self.keep_records = keep_records
         self.realisation = realisation
         sc = realisation.scenario
@@ -299,7 +302,18 @@ class Stepper:
         out.sort(key=_DELIVERY_ORDER)
         if self.keep_records:
             a.emitted.extend(out)
+        else:
+            self._forget(a, t_end)
         return out
+
+    def _forget(self, a: AgentSim, t_s: float) -> None:
+        """Forget what ``a`` flew and drew more than TRACE_KEPT_S before ``t_s``, once
+        that is TRACE_KEPT_S worth (amortised: the trace is copied once per period)."""
+        cut = t_s - self.TRACE_KEPT_S
+        if cut - a.vehicle.trace_start_s >= self.TRACE_KEPT_S:
+            a.vehicle.forget_before(cut)
+            gnss = a.gnss.process
+            gnss.forget_before(max(gnss.last_epoch_at_or_before(cut), 0))
 
     def finish(self) -> list[list[Emitted]]:
         """End of the flight: deliver what is still on its way (measured, not delivered)."""
