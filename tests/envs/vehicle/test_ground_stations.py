@@ -30,6 +30,8 @@ failed before its fix.
   MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
 - MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported");
   DO_SET_MISSION_CURRENT to no item is FAILED, as MAVLink and PX4 answer it.
+- Garbage and odd frames on the port (random bytes, cut frames, MAVLink 1, non-UTF-8
+  names, extreme values) stop nothing.
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ from pymavlink.dialects.v20.common import (
 from envs.vehicle import VirtualVehicle
 from envs.vehicle.px4 import Mode
 from sim import load_scenario
-from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port
+from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port, until
 from tests.net import LOOPBACK
 from tests.vehicles import running_vehicle
 
@@ -889,3 +891,62 @@ def test_set_mission_current_results_follow_mavlink() -> None:
             assert rv.autopilot.mission.seq == 2
         finally:
             gcs.close()
+
+
+def test_garbage_and_odd_frames_on_the_port_stop_nothing() -> None:
+    """Whatever arrives on the vehicle's port (random bytes, frames cut after their
+    magic byte, MAVLink 1 frames, names that are not UTF-8, NaN and extreme values,
+    lists and commands nobody has) leaves it running and answering: a ground station
+    that comes afterwards is greeted, its command acknowledged, nothing changed."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    rng = np.random.default_rng(11)
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        addr = (LOOPBACK, rv.port)
+
+        class _Out:
+            def write(self, buf: bytes) -> None:
+                sock.sendto(buf, addr)
+
+        try:
+            for k in range(200):
+                junk = rng.integers(0, 256, int(rng.integers(1, 300)), dtype=np.uint8)
+                sock.sendto((b"\xfd\xfe"[k % 2:k % 2 + 1] if k % 3 else b"") + junk.tobytes(),
+                            addr)
+            v2 = mavlink2.MAVLink(_Out(), srcSystem=200, srcComponent=190)
+            v1 = mavlink1.MAVLink(_Out(), srcSystem=201, srcComponent=190)
+            nan, big = math.nan, 2**31 - 1
+            v2.param_set_send(1, 1, b"\xff\xfe\x80abc", 1.0, 9)
+            v2.param_request_read_send(1, 1, b"\xff\xfe\x80abc", -1)
+            v2.param_request_read_send(1, 1, b"", 5000)
+            v2.mission_count_send(1, 1, 65535, 0)
+            v2.mission_count_send(1, 1, 3, 77)
+            v2.mission_request_list_send(1, 1, 77)
+            v2.mission_clear_all_send(1, 1, 77)
+            v2.mission_item_int_send(1, 1, 5, 6, 16, 0, 1, 0, 0, 0, 0, big, -big - 1, nan, 0)
+            v2.mission_set_current_send(1, 1, 65535)
+            v2.command_long_send(1, 1, 65535, 255, math.inf, -math.inf, nan, 1e38, -1e38, 0, 0)
+            v2.command_int_send(1, 1, 255, 65535, 0, 0, nan, 0, 0, 0, -big - 1, big, nan)
+            v2.terrain_check_send(-big - 1, big)
+            v2.terrain_request_send(900_000_000, 1_800_000_000, 65535, 2**56 - 1)
+            v2.set_mode_send(1, 255, 2**32 - 1)
+            v2.timesync_send(0, -2**63)
+            v2.tunnel_send(0, 0, 32770, 7, b"\x01\xff\xff\xff\xff\xff\xff" + bytes(121))
+            v2.file_transfer_protocol_send(0, 1, 1, bytes(251))
+            v2.request_data_stream_send(1, 1, 0, 65535, 1)
+            v1.mission_count_send(1, 1, 2)
+            v1.mission_item_send(1, 1, 1, 6, 16, 0, 1, 0, 0, 0, 0, nan, math.inf, 1e30)
+            v1.command_long_send(1, 1, 400, 0, 5, 0, 0, 0, 0, 0, 0)
+            assert until(lambda: rv.vehicle.stats.received >= 20, 20.0)
+            gcs = Gcs(rv.pymavlink_url)
+            try:
+                assert gcs.command(MAV_CMD_REQUEST_MESSAGE, 148) == MAV_RESULT_ACCEPTED
+                assert gcs.wait("AUTOPILOT_VERSION").uid == rv.vehicle.telemetry.fingerprint
+            finally:
+                gcs.close()
+        finally:
+            sock.close()
+        v = rv.vehicle
+        assert v.error is None and v._thread.is_alive() and v._bad_kinds == set()
+        assert not rv.autopilot.armed and rv.held() == [] and rv.upload_count() == 0
