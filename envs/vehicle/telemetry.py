@@ -379,7 +379,8 @@ class Telemetry:
         return mavlink.MAVLink_gps_raw_int_message(
             t_us, _FIX_TYPES.get(f.fix or "3d", mavlink.GPS_FIX_TYPE_3D_FIX), deg_to_e7(f.lat_deg),
             deg_to_e7(f.lon_deg), alt_mm,
-            min(round(acc * 100), 65534), min(round(vacc * 100), 65534), round(gs * 100), cog,
+            65535, 65535,  # eph, epv: HDOP and VDOP, unknown (a phone reports accuracy)
+            round(gs * 100), cog,
             f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
             round(vacc * 1000), 0, 0, 0)
 

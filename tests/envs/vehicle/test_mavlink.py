@@ -263,3 +263,21 @@ def test_a_vehicle_left_running_keeps_no_phone_records(tmp_path: Path) -> None:
         assert until(lambda: kinds().count("gnss") > 300 and "rtt" in kinds(), 60.0)
         a = rv.vehicle.stepper.agents[0]
         assert (a.emitted, a.gnss_steps, a.ftm_steps) == ([], [], [])
+
+
+def test_gps_raw_int_says_accuracy_not_dop() -> None:
+    """GPS_RAW_INT carries the phone's fix accuracy where MAVLink has accuracy fields
+    (h_acc, v_acc in mm) and leaves the dilutions of precision unknown (eph, epv
+    UINT16_MAX: the phone reports no DOP); eph and epv used to carry the accuracy in cm,
+    which ground stations show as HDOP (0.02 with RTK)."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=5.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            gps = gcs.wait("GPS_RAW_INT", 20.0, where=lambda m: m.fix_type == 3)
+            fix = rv.vehicle.telemetry.last_fix
+            assert (gps.eph, gps.epv) == (65535, 65535)
+            assert 0 < gps.h_acc < 20_000 and 0 < gps.v_acc < 40_000  # mm
+            assert gps.v_acc > gps.h_acc  # (vertical worse, as GNSS is)
+            assert fix is not None and fix.acc_m is not None
+        finally:
+            gcs.close()
