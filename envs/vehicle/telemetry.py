@@ -376,11 +376,14 @@ class Telemetry:
         acc = f.acc_m if f.acc_m is not None else 9.99
         vacc = f.vacc_m if f.vacc_m is not None else 2.0 * acc
         alt_mm = round(f.alt_m * 1000.0)
+        eph = epv = 65535  # HDOP, VDOP x 100: unknown without a satellite count
+        if f.sats:  # the receiver model's dilution (sim.gnss: it scales the accuracy)
+            cfg = self.ap.agent.spec.gnss
+            hdop = math.sqrt(cfg.sats_ref / f.sats)
+            eph, epv = (min(round(100.0 * d), 65534) for d in (hdop, hdop * cfg.vacc_ratio))
         return mavlink.MAVLink_gps_raw_int_message(
             t_us, _FIX_TYPES.get(f.fix or "3d", mavlink.GPS_FIX_TYPE_3D_FIX), deg_to_e7(f.lat_deg),
-            deg_to_e7(f.lon_deg), alt_mm,
-            65535, 65535,  # eph, epv: HDOP and VDOP, unknown (a phone reports accuracy)
-            round(gs * 100), cog,
+            deg_to_e7(f.lon_deg), alt_mm, eph, epv, round(gs * 100), cog,
             f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
             round(vacc * 1000), 0, 0, 0)
 

@@ -265,19 +265,21 @@ def test_a_vehicle_left_running_keeps_no_phone_records(tmp_path: Path) -> None:
         assert (a.emitted, a.gnss_steps, a.ftm_steps) == ([], [], [])
 
 
-def test_gps_raw_int_says_accuracy_not_dop() -> None:
-    """GPS_RAW_INT carries the phone's fix accuracy where MAVLink has accuracy fields
-    (h_acc, v_acc in mm) and leaves the dilutions of precision unknown (eph, epv
-    UINT16_MAX: the phone reports no DOP); eph and epv used to carry the accuracy in cm,
-    which ground stations show as HDOP (0.02 with RTK)."""
+def test_gps_raw_int_says_accuracy_and_dop_apart() -> None:
+    """GPS_RAW_INT carries the phone's fix accuracy in its accuracy fields (h_acc, v_acc,
+    mm) and in eph and epv a dilution of precision (x 100), the GNSS model's own:
+    sqrt(sats_ref / satellites) horizontally (1.0 at the reference count), x vacc_ratio
+    vertically. eph and epv used to carry the accuracy in cm, which ground stations show
+    as an HDOP (0.01 with RTK)."""
     with running_vehicle(SEARCH_SCENARIO, speedup=5.0) as rv:
+        cfg = rv.vehicle.scenario.agents[0].gnss
         gcs = Gcs(rv.pymavlink_url)
         try:
-            gps = gcs.wait("GPS_RAW_INT", 20.0, where=lambda m: m.fix_type == 3)
-            fix = rv.vehicle.telemetry.last_fix
-            assert (gps.eph, gps.epv) == (65535, 65535)
-            assert 0 < gps.h_acc < 20_000 and 0 < gps.v_acc < 40_000  # mm
-            assert gps.v_acc > gps.h_acc  # (vertical worse, as GNSS is)
-            assert fix is not None and fix.acc_m is not None
+            for _ in range(3):
+                gps = gcs.wait("GPS_RAW_INT", 20.0, where=lambda m: m.fix_type == 3)
+                hdop = math.sqrt(cfg.sats_ref / gps.satellites_visible)
+                assert gps.eph == round(100 * hdop)
+                assert gps.epv == round(100 * hdop * cfg.vacc_ratio)
+                assert 0 < gps.h_acc < 20_000 and gps.h_acc < gps.v_acc < 40_000  # mm
         finally:
             gcs.close()
