@@ -110,6 +110,7 @@ class BlockedGaussMarkov:
         self.block = block
         self.phi = math.exp(-dt_s / tau_s)
         self._blocks: list[np.ndarray] = []
+        self._first = 0  # the block index of _blocks[0] (those before: forgotten)
         self._state: np.ndarray | None = None  # recursion state after the last block
 
     @property
@@ -117,7 +118,7 @@ class BlockedGaussMarkov:
         return len(self.sigma)
 
     def _make_block(self) -> np.ndarray:
-        b = len(self._blocks)
+        b = self._first + len(self._blocks)
         rng = child_rng(self.seq, b)
         n, phi = self.block, self.phi
         w = rng.standard_normal((n, self.cols))
@@ -154,13 +155,23 @@ class BlockedGaussMarkov:
         if k0 < 0:
             raise ValueError("negative grid index")
         last = (k1 - 1) // self.block
-        while len(self._blocks) <= last:
+        while self._first + len(self._blocks) <= last:
             self._make_block()
         b0 = k0 // self.block
-        parts = self._blocks[b0 : last + 1]
+        if b0 < self._first:
+            raise ValueError(f"grid index {k0} was forgotten (forget_before)")
+        parts = self._blocks[b0 - self._first : last - self._first + 1]
         x = parts[0] if len(parts) == 1 else np.concatenate(parts)
         off = b0 * self.block
         return x[k0 - off : k1 - off] * self.sigma
+
+    def forget_before(self, k: int) -> None:
+        """Forget the blocks wholly before grid index ``k`` (the last one made stays):
+        a process that runs for hours keeps its recent values only."""
+        drop = min(k // self.block - self._first, len(self._blocks) - 1)
+        if drop > 0:
+            del self._blocks[:drop]
+            self._first += drop
 
     def at(self, t_s: ArrayLike) -> np.ndarray:
         """Linear interpolation of the grid values at times ``t_s`` (>= 0), (M, cols)."""

@@ -174,6 +174,7 @@ class GnssErrorProcess:
         self.sats = BlockedGaussMarkov(child_seed(seq, 2), self.dt_s, [cfg.sats_sigma],
                                        cfg.sats_tau_s, block=self.BLOCK)
         self._epochs: list[np.ndarray] = []
+        self._first = 0  # the block index of _epochs[0] (those before: forgotten)
 
     def epoch_time_s(self, k: np.ndarray | int) -> np.ndarray | float:
         return self.phase_s + np.asarray(k) * self.dt_s
@@ -184,9 +185,12 @@ class GnssErrorProcess:
 
     def _epoch_block(self, b: int) -> np.ndarray:
         cfg = self.cfg
-        while len(self._epochs) <= b:
-            k0 = len(self._epochs) * self.BLOCK
-            rng = child_rng(self.seq, 3, len(self._epochs))
+        if b < self._first:
+            raise ValueError(f"epoch block {b} was forgotten (forget_before)")
+        while self._first + len(self._epochs) <= b:
+            nb = self._first + len(self._epochs)
+            k0 = nb * self.BLOCK
+            rng = child_rng(self.seq, 3, nb)
             n = self.BLOCK
             white = rng.standard_normal((n, 3)) * np.array(
                 [cfg.white_sigma_h_m, cfg.white_sigma_h_m, cfg.white_sigma_v_m])
@@ -207,7 +211,17 @@ class GnssErrorProcess:
             self._epochs.append(np.column_stack([t, self.bias.values(k0, k0 + n), white, sats,
                                                  acc, vacc, drop, t + self.clock.gnss_latency_s
                                                  + jitter]))
-        return self._epochs[b]
+        return self._epochs[b - self._first]
+
+    def forget_before(self, k: int) -> None:
+        """Forget the epochs (and the bias and satellite draws) wholly before epoch
+        ``k``: a receiver that runs for hours keeps its recent epochs only."""
+        drop = min(k // self.BLOCK - self._first, len(self._epochs) - 1)
+        if drop > 0:
+            del self._epochs[:drop]
+            self._first += drop
+        self.bias.forget_before(k)
+        self.sats.forget_before(k)
 
     def epochs(self, k0: int, k1: int) -> np.ndarray:
         """What epochs k0 <= k < k1 report besides the truth, (k1 - k0, 12), columns

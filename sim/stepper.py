@@ -145,6 +145,8 @@ class AgentSim:
 class Stepper:
     """All agents of one realised world, advanced together (see the module docstring)."""
 
+    TRACE_KEPT_S = 3600.0  # with keep_records=False: the recent past kept (simulated s)
+
     def __init__(
         self,
         realisation: Realisation,
@@ -153,7 +155,13 @@ class Stepper:
         starts: Sequence[VehicleState] | None = None,
         header_agl_m: float | None = None,
         navigate_on_gnss: bool = True,
+        keep_records: bool = True,
     ) -> None:
+        # False: the phone's records and measurement steps are handed out as delivered
+        # and not kept (file_records, gnss_track and ftm_track then see none), and of the
+        # vehicle's trace and the GNSS draws only the last TRACE_KEPT_S to 2 x that are
+        # (vehicle_track starts there): a vehicle that runs for hours does not grow
+        self.keep_records = keep_records
         self.realisation = realisation
         sc = realisation.scenario
         self.world = realisation.world
@@ -281,9 +289,10 @@ class Stepper:
         t_end = a.vehicle.t_s
         v = a.vehicle
         g = a.gnss.measure_until(t_end, v.position_at)
-        a.gnss_steps.append(g)
         f = a.radio.range_until(t_end, v.position_at, v.antenna_at)
-        a.ftm_steps.append(f)
+        if self.keep_records:
+            a.gnss_steps.append(g)
+            a.ftm_steps.append(f)
         self._queue(a, g, f)
         # emit what was delivered by now, but not past the earliest callback of a
         # request still to be processed: every agent's records leave in delivery order
@@ -291,8 +300,20 @@ class Stepper:
         out = [e for e in a._pending if e.delivery_s <= limit]
         a._pending = [e for e in a._pending if e.delivery_s > limit]
         out.sort(key=_DELIVERY_ORDER)
-        a.emitted.extend(out)
+        if self.keep_records:
+            a.emitted.extend(out)
+        else:
+            self._forget(a, t_end)
         return out
+
+    def _forget(self, a: AgentSim, t_s: float) -> None:
+        """Forget what ``a`` flew and drew more than TRACE_KEPT_S before ``t_s``, once
+        that is TRACE_KEPT_S worth (amortised: the trace is copied once per period)."""
+        cut = t_s - self.TRACE_KEPT_S
+        if cut - a.vehicle.trace_start_s >= self.TRACE_KEPT_S:
+            a.vehicle.forget_before(cut)
+            gnss = a.gnss.process
+            gnss.forget_before(max(gnss.last_epoch_at_or_before(cut), 0))
 
     def finish(self) -> list[list[Emitted]]:
         """End of the flight: deliver what is still on its way (measured, not delivered)."""

@@ -399,6 +399,13 @@ class _Columns:
     def view(self) -> np.ndarray:
         return self._a[: self.n]
 
+    def drop_front(self, k: int) -> None:
+        """Forget the first ``k`` rows (the others move to the front)."""
+        k = min(max(k, 0), self.n)
+        if k:
+            self._a[: self.n - k] = self._a[k : self.n]
+            self.n -= k
+
 
 _NO_NAV = np.empty((0, 3))  # placeholders of the kernel's unused arguments
 _NO_POINT = np.zeros(3)
@@ -595,6 +602,22 @@ class Multirotor:
             )
 
     # ------------------------------------------------------------------ trace
+    @property
+    def trace_start_s(self) -> float:
+        """The first time of the trace kept (0 unless :meth:`forget_before`)."""
+        return float(self.state_log.view[0, 0])
+
+    def forget_before(self, t_s: float) -> None:
+        """Forget the trace (and the wander's draws) before ``t_s``: a vehicle that
+        flies for hours keeps its recent past only; :meth:`position_at`, :meth:`track`
+        and the like then start there."""
+        k = min(int((t_s - self.trace_start_s) / self.dt), self.state_log.n - 1)
+        if k > 0:
+            self.state_log.drop_front(k)
+            self.out_log.drop_front(k)
+        if self.wander is not None:
+            self.wander.forget_before(round(self.trace_start_s / self.dt))
+
     def position_at(self, t_s: ArrayLike) -> np.ndarray:
         """(M, 3) GNSS-antenna positions (output) at times within the flown span."""
         return _interp_grid(self.out_log.view, self.state_log.view[0, 0], self.dt, t_s)

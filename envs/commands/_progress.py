@@ -41,9 +41,11 @@ class QuantityProgress:
                 self._next_line += self.every
         self.value = value
 
-    def close(self, note: str = "done") -> None:
+    def close(self, note: str = "done", *, line: bool = True) -> None:
+        """End the progress with ``note``; off a terminal as a line of its own unless
+        ``line`` is False (a failure the caller states in its one line)."""
         if self.bar is not None:
             self.bar.set_postfix_str(note)
             self.bar.close()
-        elif self.enabled:
+        elif self.enabled and line:
             print(f"{self.desc}: {note}", file=self.stream, flush=True)

@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
                                       realisation=vehicle.realisation)
                     result = fly(loop, policy, progress=bar.update, should_stop=stop)
                 except (VehicleLinkError, UploadError, OSError) as exc:
-                    bar.close("failed")
+                    bar.close("failed", line=False)  # the reason is the one line
                     print(f"osa search: {type(exc).__name__}: {' '.join(str(exc).split())}",
                           file=sys.stderr)
                     return 1

@@ -28,6 +28,7 @@ why. docs/vehicle.md has the tables and the deviations from PX4.
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -132,13 +133,14 @@ class Autopilot:
         return self.executor.progress
 
     @property
-    def reached_log(self) -> list[tuple[int, float, Vec3]]:
-        """(seq, t_s, navigation position) of every item reached, in order."""
+    def reached_log(self) -> collections.deque[tuple[int, float, Vec3]]:
+        """(seq, t_s, navigation position) of the items reached, in order (the last
+        :data:`envs.vehicle.executor.HISTORY`)."""
         return self.executor.reached_log
 
     @property
-    def mission_set_at(self) -> list[float]:
-        """Simulated times of the mission changes."""
+    def mission_set_at(self) -> collections.deque[float]:
+        """Simulated times of the mission changes (the last HISTORY)."""
         return self.executor.mission_set_at
 
     @property

@@ -24,13 +24,14 @@ and the item being flown, and turns items into flight tasks on the autopilot:
 - the end of the mission in the air switches to AUTO.LOITER; after landing a
   finished mission starts over from item 0.
 
-The executor records the items reached (``reached_log``) and emits the ``current``
-and ``reached`` events the MAVLink side publishes. Mode changes go through the
+The executor records the last :data:`HISTORY` items reached (``reached_log``) and
+emits the ``current`` and ``reached`` events the MAVLink side publishes. Mode changes go through the
 autopilot's mode machine (:mod:`envs.vehicle.modes`).
 """
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -72,6 +73,8 @@ from planner.mission import (
 
 if TYPE_CHECKING:
     from envs.vehicle.autopilot import Autopilot
+
+HISTORY = 10_000  # items reached and mission changes remembered (the last ones)
 
 
 @dataclass
@@ -116,8 +119,11 @@ class MissionExecutor:
         self.ap = ap
         self.progress = MissionProgress()
         self.item: FlownItem | None = None
-        self.reached_log: list[tuple[int, float, Vec3]] = []  # (seq, t_s, position)
-        self.mission_set_at: list[float] = []  # simulated times of mission changes
+        # (seq, t_s, position) of the last HISTORY items reached; the simulated times
+        # of the last HISTORY mission changes (a patrol looping for ever grows nothing)
+        self.reached_log: collections.deque[tuple[int, float, Vec3]] = collections.deque(
+            maxlen=HISTORY)
+        self.mission_set_at: collections.deque[float] = collections.deque(maxlen=HISTORY)
 
     # ------------------------------------------------------------------ reports
     def mission_current(self) -> tuple[int, int, int]:

@@ -85,9 +85,11 @@ def vehicle_url(url: str) -> str:
     except ValueError:
         raise ConnectionURLError(f"bad connection URL {url!r}: port {port!r} "
                                  "is not a number") from None
-    if not host and scheme in ("udpin", "udp", "tcpin") and 0 < p < 65536:
+    if not 0 < p < 65536:
+        raise ConnectionURLError(f"bad connection URL {url!r}: port {p} is not in 1..65535")
+    if not host and scheme in ("udpin", "udp", "tcpin"):
         return f"{scheme}:0.0.0.0:{p}"  # MAVSDK's "udp://:14540": every interface
-    if not host or not 0 < p < 65536:
+    if not host:
         raise ConnectionURLError(f"bad connection URL {url!r}: expected HOST:PORT")
     return u
 

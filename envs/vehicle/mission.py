@@ -118,6 +118,7 @@ MAX_ALTITUDE_M = 10_000.0  # |altitude| of a positioned item or command, at most
 # x or y INT32_MAX: "not set" (MAVLink: INT32_MAX in an integer param is the NaN of a
 # float one; a float MISSION_ITEM's NaN is stored so); x = y = 0 too (older senders)
 UNSET_E7 = 2**31 - 1
+INT32_MIN = -(2**31)
 
 
 def has_position(w: WireItem) -> bool:
@@ -148,6 +149,12 @@ def _check_position(w: WireItem, *, unset_ok: bool = False) -> int:
 
 def check_item(w: WireItem, count: int) -> int:
     """MAV_MISSION_RESULT of one uploaded item of a list of ``count`` (0 = accepted)."""
+    # storage is MISSION_ITEM_INT's: a float MISSION_ITEM's x or y beyond int32 degE7
+    # (214.7 degrees), whatever the command, could never be sent back
+    if not INT32_MIN <= w.x <= UNSET_E7:
+        return MAV_MISSION_INVALID_PARAM5_X
+    if not INT32_MIN <= w.y <= UNSET_E7:
+        return MAV_MISSION_INVALID_PARAM6_Y
     if w.mission_type == MAV_MISSION_TYPE_MISSION:
         if w.command not in MISSION_COMMANDS:
             return MAV_MISSION_UNSUPPORTED

@@ -28,6 +28,7 @@ from pymavlink.dialects.v20.common import (
     MAV_LANDED_STATE_TAKEOFF,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
+    MAV_RESULT_FAILED,
     MAV_RESULT_TEMPORARILY_REJECTED,
     MAV_SEVERITY_CRITICAL,
     MAV_SEVERITY_INFO,
@@ -256,8 +257,8 @@ class ModeMachine:
     def set_current(self, seq: int, reset_jumps: bool = False) -> Result:
         """MISSION_SET_CURRENT / MAV_CMD_DO_SET_MISSION_CURRENT."""
         ex = self.ap.executor
-        if not 0 <= seq < len(ex.progress.items):
-            return MAV_RESULT_DENIED, f"set current denied: no item {seq}"
+        if not 0 <= seq < len(ex.progress.items):  # FAILED, as MAVLink defines it
+            return MAV_RESULT_FAILED, f"set current failed: no item {seq}"
         ex.select(seq, reset_jumps)
         return MAV_RESULT_ACCEPTED, ""
 

@@ -24,7 +24,8 @@ switches to the other form, as PX4 negotiates it.
 
 Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_ITEM_INT)
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
-float MISSION_ITEM, as PX4 does); the mission's current item carries ``current=1``.
+float MISSION_ITEM, as PX4 does, an unset x or y as NaN); the mission's current item
+carries ``current=1``.
 MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
 Partial lists (MISSION_WRITE_PARTIAL_LIST, MISSION_REQUEST_PARTIAL_LIST) are refused
 with MAV_MISSION_UNSUPPORTED.
@@ -32,6 +33,7 @@ with MAV_MISSION_UNSUPPORTED.
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -53,6 +55,7 @@ from envs.vehicle.mission import CAPACITY, UNSET_E7, check_item, check_list
 from planner.mavlink_wire import WireItem
 from planner.mission import MAV_MISSION_TYPE_MISSION, deg_to_e7
 
+REFUSALS_KEPT = 1000  # the last refusals remembered (MissionServer.refused)
 Peer = tuple[int, int, int]  # (link id: envs.vehicle.links, system id, component id)
 Send = Callable[[Peer, str, tuple], None]  # peer, pymavlink message name, args after target
 
@@ -93,7 +96,9 @@ class MissionServer:
         self.held: dict[int, list[WireItem]] = {t: [] for t in CAPACITY}
         self._rx: dict[int, _Upload] = {}
         self._last: dict[int, _Commit] = {}
-        self.refused: list[tuple[int, int]] = []  # (mission_type, MAV_MISSION_RESULT)
+        # (mission_type, MAV_MISSION_RESULT) of the last refusals
+        self.refused: collections.deque[tuple[int, int]] = collections.deque(
+            maxlen=REFUSALS_KEPT)
         self.commits: dict[int, int] = {t: 0 for t in CAPACITY}  # accepted lists per type
         self._float_peers: set[Peer] = set()  # last spoke the float forms
 
@@ -281,7 +286,9 @@ class MissionServer:
 
     def _item_args(self, w: WireItem, float_form: bool) -> tuple:
         cur = int(w.mission_type == MAV_MISSION_TYPE_MISSION and w.seq == self.current())
-        x, y = (w.x / 1e7, w.y / 1e7) if float_form else (w.x, w.y)
+        x, y = w.x, w.y
+        if float_form:  # "not set" (INT32_MAX) is the float form's NaN
+            x, y = (math.nan if v == UNSET_E7 else v / 1e7 for v in (w.x, w.y))
         return (w.seq, w.frame, w.command, cur, w.autocontinue, w.param1, w.param2, w.param3,
                 w.param4, x, y, w.z, w.mission_type)
 

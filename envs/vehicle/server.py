@@ -35,6 +35,7 @@ import contextlib
 import math
 import os
 import select
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -174,7 +175,9 @@ class VirtualVehicle:
         self.realisation = realise(scenario, seed)
         # the configured H_AGL of a search is its height (as in osa search)
         agl = scenario.search.height_m if scenario.search is not None else None
-        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl)
+        # the phone's records leave as they are delivered (the log, the relay): not kept
+        self.stepper = Stepper(self.realisation, agents=scenario.agents[:1], header_agl_m=agl,
+                               keep_records=False)
         self.autopilot = Autopilot(self.stepper, wall_clock=wall_clock,
                                    keepouts=scenario.keepouts if keepouts is None else keepouts)
         for name, value in (params or {}).items():
@@ -375,8 +378,7 @@ class VirtualVehicle:
                 state = ev[1:4]
                 if state != self._last_current:
                     self._last_current = state
-                    mode = 1 if ap.mode is Mode.MISSION else 2 if state[1] else 0
-                    self._broadcast(mavlink.MAVLink_mission_current_message(*state, mode))
+                    self._broadcast(self.telemetry.mission_current(*state))
             elif kind in ("mode", "armed"):
                 self._broadcast(self.telemetry.heartbeat())
             elif kind == "home":
@@ -434,8 +436,9 @@ class VirtualVehicle:
             return
         try:
             handler(peer, msg)
-        except (ValueError, TypeError, OverflowError, KeyError) as exc:
-            # a message the vehicle cannot use never stops it: say so once per kind
+        except (ValueError, TypeError, OverflowError, KeyError, struct.error) as exc:
+            # a message the vehicle cannot use (or an answer that cannot be encoded)
+            # never stops it: say so once per kind
             if kind not in self._bad_kinds:
                 self._bad_kinds.add(kind)
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
@@ -659,7 +662,10 @@ class VirtualVehicle:
             return (*ap.set_home((p[4], p[5], self._alt_amsl(p[6], frame, p[4], p[5]))),
                     None)
         if cmd == MAV_CMD_DO_SET_MISSION_CURRENT:
-            seq = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else ap.mission.seq
+            # MAVLink: param1 -1 keeps the current item; param2 is a boolean
+            if not (math.isfinite(p[0]) and p[0] >= -1.0) or p[1] not in (0.0, 1.0):
+                return MAV_RESULT_DENIED, f"set current param1 {p[0]:g}, param2 {p[1]:g}", None
+            seq = int(p[0]) if p[0] >= 0 else ap.mission.seq
             result, why = ap.set_current(seq, reset_jumps=p[1] == 1.0)
             return result, why, self.telemetry.build(MAVLINK_MSG_ID_MISSION_CURRENT)
         if cmd in (MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_GET_MESSAGE_INTERVAL,

@@ -107,6 +107,7 @@ OFF_BY_DEFAULT = frozenset({MAVLINK_MSG_ID_ATTITUDE_QUATERNION})
 STREAMABLE = frozenset({*DEFAULT_RATES_HZ, *OFF_BY_DEFAULT})
 REQUESTABLE = frozenset({*STREAMABLE, MAVLINK_MSG_ID_HEARTBEAT,
                          MAVLINK_MSG_ID_AUTOPILOT_VERSION, MAVLINK_MSG_ID_PROTOCOL_VERSION})
+NO_MISSION_TOTAL = 0xFFFF  # MISSION_CURRENT.total without a mission (MAVLink)
 UNKNOWN_TERRAIN_M = -1001.0  # ALTITUDE.altitude_terrain below -1000: unknown
 
 CAPABILITIES = (
@@ -285,9 +286,7 @@ class Telemetry:
                 h.enu[1], h.enu[0], -h.enu[2], [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
                 int(ap.t_s * 1e6))
         if msg_id == MAVLINK_MSG_ID_MISSION_CURRENT:
-            seq, total, state = ap.mission_current()
-            mode = 1 if ap.mode is Mode.MISSION else 2 if total else 0
-            return mavlink.MAVLink_mission_current_message(seq, total, state, mode)
+            return self.mission_current(*ap.mission_current())
         if msg_id == MAVLINK_MSG_ID_VFR_HUD:
             v = ap.velocity
             gs = math.hypot(v[0], v[1])
@@ -317,7 +316,7 @@ class Telemetry:
         if msg_id == MAVLINK_MSG_ID_ALTITUDE:
             p = ap.position
             lat, lon, alt = ap.geodetic(p)
-            ground = ap.terrain.height_m(lat, lon)
+            ground = ap.terrain.data_height_m(lat, lon)
             above = alt - ground if math.isfinite(ground) else UNKNOWN_TERRAIN_M
             return mavlink.MAVLink_altitude_message(
                 int(ap.t_s * 1e6), alt, alt, p[2], alt - ap.home.alt_m, above, -1.0)
@@ -328,6 +327,14 @@ class Telemetry:
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(VEHICLE_TAG.ljust(8, b"\0")),
                 [0] * 8, [0] * 8, 0, 0, self.fingerprint, [0] * 18)
         return None
+
+    def mission_current(self, seq: int, total: int, state: int) -> object:
+        """MISSION_CURRENT for the mission's (seq, items held, MISSION_STATE): ``total``
+        UINT16_MAX when none is held (MAVLink: 0 would say "not supported");
+        ``mission_mode`` 1 in AUTO.MISSION, else 2 (suspended) with a mission, 0 without."""
+        mode = 1 if self.ap.mode is Mode.MISSION else 2 if total else 0
+        return mavlink.MAVLink_mission_current_message(seq, total or NO_MISSION_TOTAL, state,
+                                                       mode)
 
     def terrain_report(self, lat_e7: int, lon_e7: int) -> object:
         """TERRAIN_REPORT for (lat, lon): the ground there and the vehicle's height
@@ -369,10 +376,14 @@ class Telemetry:
         acc = f.acc_m if f.acc_m is not None else 9.99
         vacc = f.vacc_m if f.vacc_m is not None else 2.0 * acc
         alt_mm = round(f.alt_m * 1000.0)
+        eph = epv = 65535  # HDOP, VDOP x 100: unknown without a satellite count
+        if f.sats:  # the receiver model's dilution (sim.gnss: it scales the accuracy)
+            cfg = self.ap.agent.spec.gnss
+            hdop = math.sqrt(cfg.sats_ref / f.sats)
+            eph, epv = (min(round(100.0 * d), 65534) for d in (hdop, hdop * cfg.vacc_ratio))
         return mavlink.MAVLink_gps_raw_int_message(
             t_us, _FIX_TYPES.get(f.fix or "3d", mavlink.GPS_FIX_TYPE_3D_FIX), deg_to_e7(f.lat_deg),
-            deg_to_e7(f.lon_deg), alt_mm,
-            min(round(acc * 100), 65534), min(round(vacc * 100), 65534), round(gs * 100), cog,
+            deg_to_e7(f.lon_deg), alt_mm, eph, epv, round(gs * 100), cog,
             f.sats if f.sats is not None else 255, alt_mm, round(acc * 1000),
             round(vacc * 1000), 0, 0, 0)
 

@@ -14,9 +14,11 @@ As ArduPilot speaks the protocol (the vehicle's side):
 - TERRAIN_CHECK (lat, lon) is answered with TERRAIN_REPORT: ``terrain_height`` the
   ground's height there, ``current_height`` the vehicle's own height above it (its
   altitude minus ``terrain_height``), ``spacing`` the database's grid spacing (0: no
-  terrain there, beyond :data:`sim.world.MAX_EXTENT_M` of the origin), ``pending`` 0,
-  ``loaded`` the 4x4 blocks of that spacing that cover the database's extent (at most
-  65535, the field's limit);
+  terrain data there, :meth:`TerrainDatabase.has_data`: beyond
+  :data:`sim.world.MAX_EXTENT_M` of the origin, or beyond a grid or the part of a DEM
+  read for the scenario, where the ground flown is its edge value held, which no data
+  backs), ``pending`` 0, ``loaded`` the 4x4 blocks of that spacing that cover the
+  database's data (at most 65535, the field's limit);
 - TERRAIN_REPORT for its own position (the ground below its navigation position) is
   sent about once a second (simulated time);
 - TERRAIN_REQUEST (a ground station asking for blocks; normally the vehicle asks) is
@@ -36,6 +38,8 @@ import math
 from dataclasses import dataclass
 
 from planner.mission import deg_to_e7
+from sim.dem import DemError, DemTerrain
+from sim.terrain import GridTerrain
 from sim.world import MAX_EXTENT_M, World
 
 NOMINAL_SPACING_M = 100  # an analytic terrain has no grid: ArduPilot's TERRAIN_SPACING
@@ -71,8 +75,40 @@ class TerrainDatabase:
             NOMINAL_SPACING_M
         self._h0 = float(self.frame.to_geodetic(0.0, 0.0, 0.0)[2])  # the origin's height
         block = BLOCK_POINTS * self.spacing
-        per_side = math.ceil(2.0 * MAX_EXTENT_M / block)
-        self.loaded = min(per_side * per_side, 65535)
+        width, height = self._data_size_m()
+        self.loaded = min(math.ceil(width / block) * math.ceil(height / block), 65535)
+
+    def _data_size_m(self) -> tuple[float, float]:
+        """East and north size of the terrain's data (an analytic one: the world's)."""
+        t = self.world.terrain
+        if isinstance(t, GridTerrain):
+            ny, nx = t.heights_m.shape
+            return (nx - 1) * t.spacing_m, (ny - 1) * t.spacing_m
+        if isinstance(t, DemTerrain):
+            ny, nx = t.values_m.shape
+            return (nx - 1) * t.pixel_m[0], (ny - 1) * t.pixel_m[1]
+        return 2.0 * MAX_EXTENT_M, 2.0 * MAX_EXTENT_M
+
+    def has_data(self, points_en: list[tuple[float, float]]) -> bool:
+        """Whether the terrain's own data gives the ground at every ENU (e, n) point: an
+        analytic terrain everywhere (within the world's extent), a grid inside it, a DEM
+        where its bilinear support lies in the part of the file read for the scenario, off
+        nodata cells (:meth:`sim.dem.DemTerrain.require_points`). Elsewhere the ground the
+        vehicle flies over is an edge value held, which it does not report as data."""
+        if any(math.hypot(e, n) > MAX_EXTENT_M for e, n in points_en):
+            return False
+        t = self.world.terrain
+        if isinstance(t, GridTerrain):
+            ny, nx = t.heights_m.shape
+            s = t.spacing_m
+            return all(0.0 <= e - t.e0_m <= (nx - 1) * s and 0.0 <= n - t.n0_m <= (ny - 1) * s
+                       for e, n in points_en)
+        if isinstance(t, DemTerrain):
+            try:
+                t.require_points(points_en, "a terrain check")
+            except DemError:
+                return False
+        return True
 
     def ground_m(self, e_m: float, n_m: float) -> float:
         """Ground height (ENU up) at ENU (e, n)."""
@@ -112,10 +148,20 @@ class TerrainDatabase:
         e, n, u = self.ground_enu(lat_deg, lon_deg)
         return e, n, u + agl_m
 
+    def data_height_m(self, lat_deg: float, lon_deg: float) -> float:
+        """:meth:`height_m` where the terrain has data (:meth:`has_data`), else NaN: what
+        the vehicle reports as the ground (TERRAIN_REPORT, ALTITUDE)."""
+        if not self.available(lat_deg, lon_deg):
+            return math.nan
+        e, n, u = self.ground_enu(lat_deg, lon_deg)
+        if not self.has_data([(e, n)]):
+            return math.nan
+        return float(self.frame.to_geodetic(e, n, u)[2])
+
     def report(self, lat_e7: int, lon_e7: int, vehicle_alt_m: float) -> TerrainReport:
         """TERRAIN_REPORT for (lat, lon) of a vehicle at ``vehicle_alt_m`` (its
-        altitude in the same datum)."""
-        h = self.height_m(lat_e7 / 1e7, lon_e7 / 1e7)
+        altitude in the same datum); spacing 0 where there is no data."""
+        h = self.data_height_m(lat_e7 / 1e7, lon_e7 / 1e7)
         if not math.isfinite(h):
             return TerrainReport(lat_e7, lon_e7, 0, 0.0, 0.0, 0, self.loaded)
         return TerrainReport(lat_e7, lon_e7, self.spacing, h, vehicle_alt_m - h, 0, self.loaded)
@@ -126,8 +172,10 @@ class TerrainDatabase:
         ground straight below it: its height above the ground along ENU up is its height
         above it along the ellipsoid's normal to a millimetre (the two differ by the
         angle from the origin, 0.003 rad at 20 km), so no second conversion is needed."""
-        agl = p[2] - self.ground_m(p[0], p[1])
         lat, lon, alt = geodetic
+        if not self.has_data([(p[0], p[1])]):
+            return TerrainReport(deg_to_e7(lat), deg_to_e7(lon), 0, 0.0, 0.0, 0, self.loaded)
+        agl = p[2] - self.ground_m(p[0], p[1])
         return TerrainReport(deg_to_e7(lat), deg_to_e7(lon), self.spacing, alt - agl, agl, 0,
                              self.loaded)
 
@@ -142,12 +190,13 @@ class TerrainDatabase:
         step = BLOCK_POINTS * spacing_m
         be = e0 + step * (gridbit % REQUEST_BLOCKS_E)
         bn = n0 + step * (gridbit // REQUEST_BLOCKS_E)
+        points = [(be + spacing_m * (i % BLOCK_POINTS),  # east along a row
+                   bn + spacing_m * (i // BLOCK_POINTS))  # rows to the north
+                  for i in range(BLOCK_POINTS * BLOCK_POINTS)]
+        if not self.has_data(points):
+            return None
         out = []
-        for i in range(BLOCK_POINTS * BLOCK_POINTS):
-            e = be + spacing_m * (i % BLOCK_POINTS)  # east along a row
-            n = bn + spacing_m * (i // BLOCK_POINTS)  # rows to the north
-            if math.hypot(e, n) > MAX_EXTENT_M:
-                return None
+        for e, n in points:
             h = float(self.frame.to_geodetic(e, n, self.ground_m(e, n))[2])
             out.append(max(-32768, min(32767, round(h))))
         return out

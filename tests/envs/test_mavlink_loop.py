@@ -597,6 +597,18 @@ def test_osa_search_over_mavlink_refusals(tmp_path: Path, capsys) -> None:
                           "than search-ap1f-short seed 0")
 
 
+def test_a_refused_vehicle_is_one_line_with_the_progress_on(tmp_path: Path, capsys) -> None:
+    """With its progress on (the default; off a terminal a line per minute of flight), a
+    vehicle link failure is still one line on stderr, the reason (the progress used to
+    close with a second one, "osa search adaptive: failed")."""
+    with running_vehicle(SHORT, seed=1, speedup=20.0) as rv:
+        status = osa_main(["search", SHORT, "--seed", "0", "--connection", rv.pymavlink_url,
+                           "-o", str(tmp_path / "o"), "--no-figures"])
+        err = capsys.readouterr().err
+    assert status == 1 and err.count("\n") == 1, err
+    assert err.startswith("osa search: VehicleLinkError: the vehicle flies another world ")
+
+
 def test_a_lost_vehicle_ends_the_loop_in_bounded_time() -> None:
     sc = load_scenario(SHORT)
     with running_vehicle(SHORT, speedup=20.0) as rv:

@@ -268,3 +268,29 @@ def test_a_vehicle_holding_on_the_ground_stays_on_it_whatever_its_navigation_err
     st.step_to(25.0)
     g = st.hold(0)
     assert g.name == "hold" and g.point == pytest.approx(st.navigation_position_m(0))
+
+
+def test_a_stepper_that_keeps_no_records_delivers_the_same(monkeypatch):
+    """``keep_records=False`` (a vehicle that runs for hours and passes its phone's
+    records on as they come) delivers exactly the records of a stepper that keeps them,
+    and keeps none of them, nor the measurement steps; of the vehicle's trace, the
+    wander's and the GNSS receiver's draws it keeps the recent past only (here the last
+    30 to 60 s), so it does not grow with the flight."""
+    monkeypatch.setattr(Stepper, "TRACE_KEPT_S", 30.0)
+    sc = _world_scenario()
+    square = [(0, -100, 45), (0, 150, 45), (200, 150, 45), (200, -100, 45)]
+    traj = _line(square * 2 + square[:1])  # twice round: 330 s
+    keep, drop = Stepper(realise(sc, 3)), Stepper(realise(sc, 3), keep_records=False)
+    stops = [7.5 * k + 0.3 for k in range(1, 46)]
+    got = _fly(drop, traj, stops)
+    assert got == _fly(keep, traj, stops) and len(got) > 2000
+    assert keep.agents[0].emitted and keep.agents[0].gnss_steps
+    a = drop.agents[0]
+    assert (a.emitted, a.gnss_steps, a.ftm_steps) == ([], [], [])
+    # the trace kept: its last 30 to 60 s, the same as the whole one's end
+    whole, recent = keep.vehicle_track(0), drop.vehicle_track(0)
+    assert 30.0 <= recent.t_s[-1] - recent.t_s[0] <= 60.0 + 1e-9
+    np.testing.assert_array_equal(whole.enu_m[-len(recent.t_s):], recent.enu_m)
+    # the draws kept: the last blocks only (1024 epochs, 1024 ticks each)
+    assert len(a.gnss.process._epochs) <= 2 < len(keep.agents[0].gnss.process._epochs)
+    assert len(a.vehicle.wander._blocks) <= 2 < len(keep.agents[0].vehicle.wander._blocks)

@@ -17,6 +17,7 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_NAV_LOITER_TURNS,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_DENIED,
+    MAV_RESULT_FAILED,
     MAV_RESULT_TEMPORARILY_REJECTED,
     MISSION_STATE_COMPLETE,
 )
@@ -248,7 +249,7 @@ def test_command_results() -> None:
     # already flying: ACCEPTED and nothing changes (MAVLink's idempotent TAKEOFF)
     assert ap.takeoff(ap.home.alt_m + 30.0) == (MAV_RESULT_ACCEPTED, "takeoff: already flying")
     assert ap.change_speed(-3.0)[0] == MAV_RESULT_DENIED
-    assert ap.set_current(5)[0] == MAV_RESULT_DENIED
+    assert ap.set_current(5)[0] == MAV_RESULT_FAILED  # no such item (MAVLink)
     s = fly(ap, 20.0)
     assert s[-1].pos[2] == pytest.approx(12.0, abs=0.8) and ap.mode is Mode.LOITER
     assert ap.land()[0] == MAV_RESULT_ACCEPTED
@@ -266,3 +267,25 @@ def test_preflight_disarm_on_the_wall_clock() -> None:
     assert ap.armed
     ap.on_wall_clock(110.5)  # COM_DISARM_PRFLT 10 s without a take-off
     assert not ap.armed
+
+
+def test_the_items_reached_kept_are_bounded(monkeypatch) -> None:
+    """A patrol that loops for ever (DO_JUMP -1) grows no memory: the autopilot keeps the
+    last HISTORY items reached and mission changes (both lists used to grow with every
+    lap of a vehicle left running)."""
+    from envs.vehicle import executor
+
+    monkeypatch.setattr(executor, "HISTORY", 12)
+    ap = make_autopilot()
+    ap.set_mission(numbered([item(ap, MAV_CMD_NAV_TAKEOFF, 0, 0, 10.0),
+                             item(ap, e=8, n=0, alt=10.0), item(ap, e=0, n=8, alt=10.0),
+                             item(ap, MAV_CMD_DO_JUMP, p1=1.0, p2=-1.0)]))
+    for _ in range(20):  # mission changes: the same mission again
+        ap.set_mission(list(ap.mission.items))
+    assert ap.set_mode(Mode.MISSION)[0] == MAV_RESULT_ACCEPTED and ap.arm()[0] == 0
+    laps = []
+    fly(ap, 900.0, until=lambda a: laps.append(a.reached_log[-1][1] if a.reached_log else 0)
+        or sum(1 for t in set(laps) if t) > 30)
+    assert len(ap.reached_log) == 12 and len(ap.mission_set_at) == 12
+    assert [r[0] for r in ap.reached_log][-4:] in ([1, 2, 1, 2], [2, 1, 2, 1])
+    assert ap.reached_log[-1][1] == max(laps)  # the newest kept

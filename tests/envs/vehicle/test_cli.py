@@ -94,6 +94,10 @@ def test_vehicle_bad_input_is_one_line_and_status_2(capsys) -> None:
         cases = [
             ([SEARCH_SCENARIO, "--connection", "serial:/dev/null"], "unsupported connection"),
             ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:abc"], "is not a number"),
+            ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:0"],
+             "port 0 is not in 1..65535"),  # (it said "expected HOST:PORT")
+            ([SEARCH_SCENARIO, "--connection", "tcpin:0.0.0.0:70000"],
+             "port 70000 is not in 1..65535"),
             ([SEARCH_SCENARIO, "--connection", f"udpin:127.0.0.1:{port}"], "cannot listen"),
             ([SEARCH_SCENARIO, "--connection", "udpin:127.0.0.1:1", "--param", "NOPE=1"],
              "unknown parameter NOPE"),

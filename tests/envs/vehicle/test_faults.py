@@ -145,7 +145,7 @@ def test_nacked_mission_leaves_the_previous_one(tmp_path: Path, capsys) -> None:
             assert err.startswith("osa upload: MissionRejectedError: vehicle rejected the "
                                   f"mission upload: {name}")
             assert rv.held() == held
-        assert rv.vehicle.protocol.refused[-2:] == [(0, 3), (0, 3)]  # MAV_MISSION_UNSUPPORTED
+        assert list(rv.vehicle.protocol.refused)[-2:] == [(0, 3), (0, 3)]  # MAV_MISSION_UNSUPPORTED
 
 
 def test_upload_abandoned_while_flying_is_never_flown() -> None:

@@ -26,6 +26,12 @@ failed before its fix.
   fence item sent with the mission's type, are answered at once, never left waiting.
 - PX4's payload mission items are taken; INT32_MAX is an unset latitude/longitude; a
   take-off sent again (its ACK lost) is ACCEPTED; ATTITUDE_QUATERNION on request.
+- A legacy float item's NaN position reads back as NaN; one whose x or y no
+  MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
+- MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported");
+  DO_SET_MISSION_CURRENT to no item is FAILED, as MAVLink and PX4 answer it.
+- Garbage and odd frames on the port (random bytes, cut frames, MAVLink 1, non-UTF-8
+  names, extreme values) stop nothing.
 """
 
 from __future__ import annotations
@@ -52,7 +58,7 @@ from pymavlink.dialects.v20.common import (
 from envs.vehicle import VirtualVehicle
 from envs.vehicle.px4 import Mode
 from sim import load_scenario
-from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port
+from tests.envs.vehicle.helpers import SEARCH_SCENARIO, Gcs, free_tcp_port, until
 from tests.net import LOOPBACK
 from tests.vehicles import running_vehicle
 
@@ -754,3 +760,193 @@ def test_mavsdks_listen_everywhere_url() -> None:
             gcs.close()
     finally:
         v.stop()
+
+
+def _upload_float(gcs: Gcs, items: list[tuple[int, int, float, float, float, float]]) -> int:
+    """A legacy upload (float MISSION_ITEMs: command, frame, param2, x, y, z) answering
+    every request; the MISSION_ACK's result."""
+    gcs.conn.mav.mission_count_send(1, 1, len(items))
+    while True:
+        m = gcs.wait(["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"])
+        if m.get_type() == "MISSION_ACK":
+            return int(m.type)
+        cmd, frame, p2, x, y, z = items[m.seq]
+        gcs.conn.mav.mission_item_send(1, 1, m.seq, frame, cmd, int(m.seq == 0), 1, 0, p2,
+                                       0, math.nan, x, y, z)
+
+
+def test_float_items_read_back_nan_and_never_stop_the_vehicle() -> None:
+    """A float MISSION_ITEM's NaN latitude and longitude ("not set", stored as INT32_MAX)
+    read back as NaN in the float form (it read back as 214.748 degrees, INT32_MAX / 1e7),
+    and as INT32_MAX in the INT form. A float item whose x or y no MISSION_ITEM_INT can
+    carry (1e30 in a DO_CHANGE_SPEED's param5/6: beyond int32 degE7) is refused with
+    INVALID_PARAM5_X / 6_Y and the held mission stays (it used to be stored, and the next
+    MISSION_REQUEST_INT for it stopped the vehicle: struct.error in the loop)."""
+    from pymavlink.dialects.v20.common import (
+        MAV_CMD_DO_CHANGE_SPEED,
+        MAV_CMD_NAV_TAKEOFF,
+        MAV_FRAME_MISSION,
+        MAV_MISSION_INVALID_PARAM5_X,
+        MAV_MISSION_INVALID_PARAM6_Y,
+    )
+
+    nan, rel = math.nan, MAV_FRAME_GLOBAL_RELATIVE_ALT
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            (lat, lon, alt), = _waypoints(rv, 1)
+            held = [(MAV_CMD_NAV_TAKEOFF, rel, 0.0, nan, nan, 10.0),
+                    (MAV_CMD_NAV_WAYPOINT, rel, 0.0, lat, lon, alt)]
+            assert _upload_float(gcs, held) == MAV_MISSION_ACCEPTED
+            for k, form in ((0, "MISSION_ITEM"), (1, "MISSION_ITEM"), (0, "MISSION_ITEM_INT")):
+                if form == "MISSION_ITEM":
+                    gcs.conn.mav.mission_request_send(1, 1, k)
+                else:
+                    gcs.conn.mav.mission_request_int_send(1, 1, k)
+                got = gcs.wait(form, where=lambda m, k=k: m.seq == k)
+                if form == "MISSION_ITEM_INT":
+                    assert (got.x, got.y) == (2**31 - 1, 2**31 - 1)
+                elif k == 0:
+                    assert math.isnan(got.x) and math.isnan(got.y), (got.x, got.y)
+                else:
+                    assert (got.x, got.y) == (_f32(lat), _f32(lon))
+            for x, y, result in ((1e30, 0.0, MAV_MISSION_INVALID_PARAM5_X),
+                                 (0.0, -1e30, MAV_MISSION_INVALID_PARAM6_Y)):
+                items = [(MAV_CMD_NAV_WAYPOINT, rel, 0.0, lat, lon, alt),
+                         (MAV_CMD_DO_CHANGE_SPEED, MAV_FRAME_MISSION, 5.0, x, y, 0.0)]
+                assert _upload_float(gcs, items) == result
+            assert rv.upload_count() == 1 and [w.command for w in rv.held()] == \
+                [MAV_CMD_NAV_TAKEOFF, MAV_CMD_NAV_WAYPOINT]
+            for k in range(2):  # every held item is read back in the INT form
+                gcs.conn.mav.mission_request_int_send(1, 1, k)
+                assert gcs.wait("MISSION_ITEM_INT", where=lambda m, k=k: m.seq == k).seq == k
+            assert rv.vehicle.error is None and rv.vehicle._thread.is_alive()
+        finally:
+            gcs.close()
+
+
+def test_mission_current_says_no_mission_with_uint16_max() -> None:
+    """MISSION_CURRENT's ``total`` is the number of items held, and UINT16_MAX when there
+    is no mission (MAVLink: 0 means "not supported"; it used to be 0), before an upload,
+    after one and after MISSION_CLEAR_ALL, in the stream and in the answer to
+    MISSION_SET_CURRENT alike."""
+    from pymavlink.dialects.v20.common import (
+        MISSION_STATE_NO_MISSION,
+        MISSION_STATE_NOT_STARTED,
+    )
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            def current():
+                gcs.collect(0.1)
+                gcs.messages.clear()
+                return gcs.wait("MISSION_CURRENT")
+
+            m = current()
+            assert (m.seq, m.total, m.mission_state) == (0, 65535, MISSION_STATE_NO_MISSION)
+            assert _upload_int(gcs, _waypoints(rv, 3)) == MAV_MISSION_ACCEPTED
+            m = current()
+            assert (m.seq, m.total, m.mission_state) == (0, 3, MISSION_STATE_NOT_STARTED)
+            gcs.conn.mav.mission_set_current_send(1, 1, 2)
+            m = gcs.wait("MISSION_CURRENT", where=lambda m: m.seq == 2)
+            assert m.total == 3
+            gcs.conn.mav.mission_clear_all_send(1, 1)
+            assert gcs.wait("MISSION_ACK").type == MAV_MISSION_ACCEPTED
+            m = gcs.wait("MISSION_CURRENT", where=lambda m: m.mission_state
+                         == MISSION_STATE_NO_MISSION)
+            assert m.total == 65535
+            gcs.conn.mav.mission_set_current_send(1, 1, 0)
+            assert gcs.wait("MISSION_CURRENT").total == 65535
+        finally:
+            gcs.close()
+
+
+def test_set_mission_current_results_follow_mavlink() -> None:
+    """MAV_CMD_DO_SET_MISSION_CURRENT as the MAVLink definition and PX4 answer it: a
+    sequence number out of range, also with no mission, is FAILED (it was DENIED);
+    param1 -1 keeps the current item (to reset the jump counters only); a malformed one
+    (param1 NaN or below -1, param2 neither 0 nor 1) is DENIED; each ACCEPTED one is
+    followed by MISSION_CURRENT."""
+    from pymavlink.dialects.v20.common import (
+        MAV_CMD_DO_SET_MISSION_CURRENT,
+        MAV_RESULT_DENIED,
+        MAV_RESULT_FAILED,
+    )
+
+    cmd = MAV_CMD_DO_SET_MISSION_CURRENT
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            assert gcs.command(cmd, 0, 0) == MAV_RESULT_FAILED  # no mission
+            assert gcs.command(cmd, -1, 1) == MAV_RESULT_FAILED
+            assert _upload_int(gcs, _waypoints(rv, 3)) == MAV_MISSION_ACCEPTED
+            assert gcs.command(cmd, 3, 0) == MAV_RESULT_FAILED  # seq 0..2 only
+            assert gcs.command(cmd, 2, 0) == MAV_RESULT_ACCEPTED
+            assert gcs.wait("MISSION_CURRENT").seq == 2
+            assert gcs.command(cmd, -1, 1) == MAV_RESULT_ACCEPTED  # counters only
+            assert gcs.wait("MISSION_CURRENT").seq == 2
+            for params in ((math.nan, 0), (-2, 0), (1, 2), (1, math.nan)):
+                assert gcs.command(cmd, *params) == MAV_RESULT_DENIED, params
+            assert rv.autopilot.mission.seq == 2
+        finally:
+            gcs.close()
+
+
+def test_garbage_and_odd_frames_on_the_port_stop_nothing() -> None:
+    """Whatever arrives on the vehicle's port (random bytes, frames cut after their
+    magic byte, MAVLink 1 frames, names that are not UTF-8, NaN and extreme values,
+    lists and commands nobody has) leaves it running and answering: a ground station
+    that comes afterwards is greeted, its command acknowledged, nothing changed."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    rng = np.random.default_rng(11)
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        addr = (LOOPBACK, rv.port)
+
+        class _Out:
+            def write(self, buf: bytes) -> None:
+                sock.sendto(buf, addr)
+
+        try:
+            for k in range(200):
+                junk = rng.integers(0, 256, int(rng.integers(1, 300)), dtype=np.uint8)
+                sock.sendto((b"\xfd\xfe"[k % 2:k % 2 + 1] if k % 3 else b"") + junk.tobytes(),
+                            addr)
+            v2 = mavlink2.MAVLink(_Out(), srcSystem=200, srcComponent=190)
+            v1 = mavlink1.MAVLink(_Out(), srcSystem=201, srcComponent=190)
+            nan, big = math.nan, 2**31 - 1
+            v2.param_set_send(1, 1, b"\xff\xfe\x80abc", 1.0, 9)
+            v2.param_request_read_send(1, 1, b"\xff\xfe\x80abc", -1)
+            v2.param_request_read_send(1, 1, b"", 5000)
+            v2.mission_count_send(1, 1, 65535, 0)
+            v2.mission_count_send(1, 1, 3, 77)
+            v2.mission_request_list_send(1, 1, 77)
+            v2.mission_clear_all_send(1, 1, 77)
+            v2.mission_item_int_send(1, 1, 5, 6, 16, 0, 1, 0, 0, 0, 0, big, -big - 1, nan, 0)
+            v2.mission_set_current_send(1, 1, 65535)
+            v2.command_long_send(1, 1, 65535, 255, math.inf, -math.inf, nan, 1e38, -1e38, 0, 0)
+            v2.command_int_send(1, 1, 255, 65535, 0, 0, nan, 0, 0, 0, -big - 1, big, nan)
+            v2.terrain_check_send(-big - 1, big)
+            v2.terrain_request_send(900_000_000, 1_800_000_000, 65535, 2**56 - 1)
+            v2.set_mode_send(1, 255, 2**32 - 1)
+            v2.timesync_send(0, -2**63)
+            v2.tunnel_send(0, 0, 32770, 7, b"\x01\xff\xff\xff\xff\xff\xff" + bytes(121))
+            v2.file_transfer_protocol_send(0, 1, 1, bytes(251))
+            v2.request_data_stream_send(1, 1, 0, 65535, 1)
+            v1.mission_count_send(1, 1, 2)
+            v1.mission_item_send(1, 1, 1, 6, 16, 0, 1, 0, 0, 0, 0, nan, math.inf, 1e30)
+            v1.command_long_send(1, 1, 400, 0, 5, 0, 0, 0, 0, 0, 0)
+            assert until(lambda: rv.vehicle.stats.received >= 20, 20.0)
+            gcs = Gcs(rv.pymavlink_url)
+            try:
+                assert gcs.command(MAV_CMD_REQUEST_MESSAGE, 148) == MAV_RESULT_ACCEPTED
+                assert gcs.wait("AUTOPILOT_VERSION").uid == rv.vehicle.telemetry.fingerprint
+            finally:
+                gcs.close()
+        finally:
+            sock.close()
+        v = rv.vehicle
+        assert v.error is None and v._thread.is_alive() and v._bad_kinds == set()
+        assert not rv.autopilot.armed and rv.held() == [] and rv.upload_count() == 0

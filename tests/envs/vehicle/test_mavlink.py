@@ -243,3 +243,43 @@ def test_a_speedup_it_cannot_keep_up_with_is_reported() -> None:
     # clock, so about 25x, far below the ask; and on, never stalled
     assert 10.0 < rate < 100.0
     assert all(b[0] > a[0] for a, b in itertools.pairwise(after))
+
+
+def test_a_vehicle_left_running_keeps_no_phone_records(tmp_path: Path) -> None:
+    """The phone's records leave the vehicle as they are delivered (the log, the relay)
+    and are not kept: a vehicle left running does not grow with them (the stepper kept
+    every record and measurement step: about 50 MB per simulated hour)."""
+    import json
+    import math as m
+
+    from tests.envs.vehicle.helpers import until
+
+    log = tmp_path / "phone.jsonl"
+    with running_vehicle(SEARCH_SCENARIO, speedup=m.inf, log_path=log) as rv:
+        def kinds() -> list[str]:
+            text = log.read_text()
+            return [json.loads(x)["type"] for x in text[: text.rfind("\n") + 1].splitlines()]
+
+        assert until(lambda: kinds().count("gnss") > 300 and "rtt" in kinds(), 60.0)
+        a = rv.vehicle.stepper.agents[0]
+        assert (a.emitted, a.gnss_steps, a.ftm_steps) == ([], [], [])
+
+
+def test_gps_raw_int_says_accuracy_and_dop_apart() -> None:
+    """GPS_RAW_INT carries the phone's fix accuracy in its accuracy fields (h_acc, v_acc,
+    mm) and in eph and epv a dilution of precision (x 100), the GNSS model's own:
+    sqrt(sats_ref / satellites) horizontally (1.0 at the reference count), x vacc_ratio
+    vertically. eph and epv used to carry the accuracy in cm, which ground stations show
+    as an HDOP (0.01 with RTK)."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=5.0) as rv:
+        cfg = rv.vehicle.scenario.agents[0].gnss
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            for _ in range(3):
+                gps = gcs.wait("GPS_RAW_INT", 20.0, where=lambda m: m.fix_type == 3)
+                hdop = math.sqrt(cfg.sats_ref / gps.satellites_visible)
+                assert gps.eph == round(100 * hdop)
+                assert gps.epv == round(100 * hdop * cfg.vacc_ratio)
+                assert 0 < gps.h_acc < 20_000 and gps.h_acc < gps.v_acc < 40_000  # mm
+        finally:
+            gcs.close()

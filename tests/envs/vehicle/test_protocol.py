@@ -276,3 +276,21 @@ def test_int32_max_is_no_position_only_for_a_mission_item() -> None:
         upload(link, items, mission_type=t)
         assert link.acks() == [MISSION_INVALID_PARAM5_X], items
         assert t not in {c[0] for c in link.commits}
+
+
+def test_refusals_kept_are_bounded() -> None:
+    """A ground station that keeps sending what is refused (partial lists, counts beyond
+    the storage) grows no memory: the last REFUSALS_KEPT refusals are kept (the list
+    used to grow with every one)."""
+    from envs.vehicle.protocol import REFUSALS_KEPT
+
+    link = Link()
+    for k in range(3 * REFUSALS_KEPT):
+        if k % 2:
+            link.server.refuse_partial(GCS, 0)
+        else:
+            link.server.on_count(GCS, CAPACITY[0] + 1, 0)
+    assert len(link.server.refused) == REFUSALS_KEPT
+    assert link.server.refused[-1] == (0, MISSION_UNSUPPORTED)
+    assert link.server.refused[-2] == (0, MISSION_NO_SPACE)
+    assert len(link.acks()) == 3 * REFUSALS_KEPT  # every one answered

@@ -9,7 +9,9 @@ simulated second; TERRAIN_REQUEST is answered with the blocks of its mask; TERRA
 changes nothing. A frame-11 mission over the hills is flown at its height above the
 ground, along the legs too: within 1 m of it with RTK GNSS (measured within 0.3 m), and
 the autopilot's own height above the ground (from its estimate) within 1 m with
-standalone GNSS, whose vertical error the true height then carries."""
+standalone GNSS, whose vertical error the true height then carries. On a DEM site the
+reports are the GeoTIFF's own heights, computed by hand with rasterio and pyproj, and
+where the DEM gives none the answer is "no data" (spacing 0)."""
 
 from __future__ import annotations
 
@@ -264,7 +266,9 @@ def test_terrain_frame_commands() -> None:
 
 def test_the_database_of_a_grid_terrain() -> None:
     """A grid terrain (the planner's terrain protocol, any kind): its cell size is the
-    database's spacing, heights are the grid's, in the world's datum."""
+    database's spacing, heights are the grid's, in the world's datum; ``loaded`` counts the
+    blocks of the grid's 2 km square, and beyond the grid (its edge value held) there is
+    no data: spacing 0."""
     from envs.vehicle.terrain import TerrainDatabase
     from sim.terrain import GridTerrain
     from sim.world import Origin, World
@@ -273,7 +277,7 @@ def test_the_database_of_a_grid_terrain() -> None:
     grid = GridTerrain(rng.uniform(-20.0, 60.0, size=(41, 41)), -1000.0, -1000.0, 50.0)
     world = World(Origin(lat_deg=47.3, lon_deg=8.5, h_m=400.0), grid, ())
     db = TerrainDatabase(world)
-    assert db.spacing == 50 and db.loaded == min((40_000 // 200) ** 2, 65535)
+    assert db.spacing == 50 and db.loaded == (2000 // 200) ** 2
     for e, n in ((0.0, 0.0), (-975.0, 630.0), (412.5, -333.3), (999.0, 999.0)):
         u = float(grid.height_m(e, n))
         lat, lon, h = world.frame.to_geodetic(e, n, u)
@@ -282,6 +286,9 @@ def test_the_database_of_a_grid_terrain() -> None:
         assert r.current_height_m == pytest.approx(25.0, abs=0.02)
         assert (r.spacing, r.pending) == (50, 0)
         assert db.above_ground(lat, lon, 12.0)[2] - u == pytest.approx(12.0, abs=0.02)
+    for e, n in ((1010.0, 0.0), (0.0, -1500.0)):
+        lat, lon, _ = world.frame.to_geodetic(e, n, 0.0)
+        assert db.report(deg_to_e7(lat), deg_to_e7(lon), 500.0).spacing == 0
 
 
 def test_a_dem_site_database_and_a_terrain_following_tour() -> None:
@@ -312,3 +319,68 @@ def test_a_dem_site_database_and_a_terrain_following_tour() -> None:
     ground = [float(dem.height_m(x.truth[0], x.truth[1])) for x in legs]
     assert max(ground) - min(ground) > 20.0
     assert max(abs(x.truth[2] - g - 45.0) for x, g in zip(legs, ground, strict=True)) < 1.0
+
+
+def _dem_file_height(path, lat: float, lon: float, offset_m: float) -> float:
+    """The DEM file's height at (lat, lon), by hand: the GeoTIFF's band with rasterio, WGS84
+    to its CRS with pyproj, its affine transform inverted, bilinear between the pixel
+    centres (PixelIsArea), plus the scenario's ``datum_offset_m``."""
+    import pyproj
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        z = ds.read(1).astype(float)
+        to_px = ~ds.transform
+        x, y = pyproj.Transformer.from_crs("EPSG:4326", ds.crs, always_xy=True).transform(
+            lon, lat)
+    col, row = to_px @ (x, y)
+    c, r = col - 0.5, row - 0.5  # from the pixel's corner to its centre
+    c0, r0 = math.floor(c), math.floor(r)
+    fc, fr = c - c0, r - r0
+    cell = z[r0:r0 + 2, c0:c0 + 2]
+    return float(cell[0, 0] * (1 - fc) * (1 - fr) + cell[0, 1] * fc * (1 - fr)
+                 + cell[1, 0] * (1 - fc) * fr + cell[1, 1] * fc * fr) + offset_m
+
+
+def test_terrain_check_on_a_dem_site_against_the_file() -> None:
+    """site-valley (a UTM GeoTIFF, datum_offset_m 51), over MAVLink: TERRAIN_CHECK answers
+    the file's own height, computed by hand from the GeoTIFF (to 1 cm), with the DEM's
+    pixel as spacing, nothing pending, and ``loaded`` the blocks of the DEM it holds (not
+    of 20 km about the origin); where the DEM gives no height (beyond the part read for
+    the scenario, here 3 km east, outside the file) ``spacing`` is 0 and a TERRAIN_REQUEST
+    there gets no TERRAIN_DATA. It used to answer the DEM's edge value held out there, as
+    if it were the file's (spacing 10), and 65535 blocks loaded."""
+    from pathlib import Path
+
+    import sim
+
+    # the preset's DEM and its datum_offset_m (sim/scenarios/site-valley.toml)
+    path, offset = Path(sim.__file__).parent / "scenarios" / "site" / "valley-dem.tif", 51.0
+    with running_vehicle("site-valley", speedup=5.0) as rv:
+        world = rv.vehicle.realisation.world
+        gcs = Gcs(rv.pymavlink_url, timeout_s=30.0)
+        try:
+            pos = gcs.wait("GLOBAL_POSITION_INT")
+            for e, n in ((0.0, 0.0), (310.0, 120.0), (-250.0, -330.0), (480.0, 400.0)):
+                lat, lon, _ = world.frame.to_geodetic(e, n, 150.0)
+                where = (deg_to_e7(float(lat)), deg_to_e7(float(lon)))
+                gcs.conn.mav.terrain_check_send(*where)
+                r = gcs.wait("TERRAIN_REPORT", where=lambda m, w=where: (m.lat, m.lon) == w)
+                h = _dem_file_height(path, where[0] / 1e7, where[1] / 1e7, offset)
+                assert r.terrain_height == pytest.approx(h, abs=0.01)
+                assert (r.spacing, r.pending) == (10, 0)
+                assert r.current_height == pytest.approx(pos.alt / 1e3 - h, abs=1.0)
+                # the DEM held: more than the scenario's 1 km square, less than the
+                # file's 2.6 km square (260 x 260 pixels of 10 m), in 40 m blocks
+                assert 25 * 25 <= r.loaded <= 65 * 65
+            lat, lon, _ = world.frame.to_geodetic(3000.0, 0.0, 150.0)
+            where = (deg_to_e7(float(lat)), deg_to_e7(float(lon)))
+            gcs.conn.mav.terrain_check_send(*where)
+            r = gcs.wait("TERRAIN_REPORT", where=lambda m: (m.lat, m.lon) == where)
+            assert (r.spacing, r.pending) == (0, 0)
+            gcs.conn.mav.terrain_request_send(*where, 10, 0b111)
+            gcs.conn.mav.terrain_check_send(*where)  # answered after any TERRAIN_DATA
+            gcs.wait("TERRAIN_REPORT", where=lambda m: (m.lat, m.lon) == where)
+            assert [m for m in gcs.messages if m.get_type() == "TERRAIN_DATA"] == []
+        finally:
+            gcs.close()
