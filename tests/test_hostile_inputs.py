@@ -360,6 +360,15 @@ def test_evaluate_interrupted_then_resumed_gives_the_uninterrupted_rows(
     assert one_line(capsys) == (f"osa evaluate: interrupted: 2 of 4 episodes kept in {journal}; "
                                 "run the same command with --resume to finish")
     assert not out.exists() and len(journal.read_text().splitlines()) == 3
+    # with the progress on (off a terminal: a line per 10 % of the episodes), the last
+    # line is still the one that says what happened, and the progress adds no second
+    calls.clear()
+    on = [a for a in _evaluate(short_search, tmp_path / "on" / "rows.csv", "--no-figures")
+          if a != "--no-progress"]
+    assert status_of(on) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].startswith("osa evaluate: interrupted: 2 of 4 episodes kept in ")
+    assert all(line.startswith("osa evaluate: ") and "episodes" in line for line in err), err
     # a new run over the journal must say what it does with it
     assert status_of(_evaluate(short_search, out, "--no-figures")) == 2
     assert "continue it with --resume, or start again with --force" in one_line(capsys)

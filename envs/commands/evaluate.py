@@ -255,13 +255,13 @@ def run(args: argparse.Namespace) -> int:
                       progress=lambda k, note: bar.update(k, note),
                       done=list(journal.episodes), on_episode=journal.append)
     except (EpisodeError, EvaluationTimeoutError) as exc:
-        bar.close("failed")
+        bar.close("failed", line=False)  # the reason is the one line
         journal.close()
         print(f"osa evaluate: {exc} ({len(journal.episodes)} of {n} episodes {kept})",
               file=sys.stderr)
         return 1
     except (KeyboardInterrupt, Terminated) as exc:
-        bar.close("interrupted")
+        bar.close("interrupted", line=False)
         journal.close()
         print(f"osa evaluate: interrupted: {len(journal.episodes)} of {n} episodes {kept}",
               file=sys.stderr)
