@@ -248,7 +248,12 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
                     dem.require_points(np.array([home_en]), "--home")
                 except DemError as exc:
                     raise PlanError(str(exc)) from None
-            vertices = follow_terrain(path2, targets, dem, below_m=BELOW_M, above_m=ABOVE_M)
+            band = (height - BELOW_M, height + ABOVE_M)
+            if targets.min() < band[0] or targets.max() > band[1]:
+                warnings.append(f"{args.pattern} flies {targets.min():.0f} to "
+                                f"{targets.max():.0f} m: held within {band[0]:g} to "
+                                f"{band[1]:g} m above the DEM (--agl {height:g})")
+            vertices = follow_terrain(path2, targets, dem, band_m=band)
         else:
             vertices = np.column_stack([path2, targets])
     if home_en is None:
@@ -289,8 +294,12 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     if dem is not None:
         flown = np.vstack([[home_en[0], home_en[1], float(dem.height_m(*home_en)) + height],
                            vertices])
-        a = agl_along(flown, dem, 0.5)
+        a = agl_along(flown, dem, 0.25)
         agl_range = (float(a.min()), float(a.max()))
+        if agl_range[0] < height - BELOW_M - 0.01 or agl_range[1] > height + ABOVE_M + 0.01:
+            raise PlanError(f"{args.pattern}: the legs fly {agl_range[0]:.1f} to "
+                            f"{agl_range[1]:.1f} m above the DEM, outside {height - BELOW_M:g} "
+                            f"to {height + ABOVE_M:g}: not flyable as planned", 1)
     length = float(np.sum(seg)) + math.dist(vertices[-1][:2], home_en)
     flight_s = length / args.speed
     if flight_s > MAX_FLIGHT_S:

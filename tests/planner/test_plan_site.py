@@ -74,12 +74,18 @@ def site(tmp_path_factory):
          "geometry": {"type": "Polygon",
                       "coordinates": [[[lo, la] for la, lo in [*wires, wires[0]]]]}},
     ]}), encoding="utf-8")
+    return {"dir": d, "dem": str(dem), "area": str(area), "keep": str(keep),
+            "ground": _ground_of(dem), "area_en": area_en, "frame": frame}
+
+
+def _ground_of(dem):
+    """The DEM's height at (lat, lon) arrays: bilinear between cell centres, by hand."""
     with rasterio.open(dem) as src:
         heights, inv = src.read(1).astype(float), ~src.transform
+        to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
 
     def ground(lat, lon):
-        """The DEM's height at (lat, lon): bilinear between cell centres, by hand."""
-        x, y = to_utm.transform(np.asarray(lon), np.asarray(lat))
+        x, y = to_crs.transform(np.asarray(lon), np.asarray(lat))
         c, r = inv @ (np.asarray(x), np.asarray(y))
         ci, cj = np.asarray(c) - 0.5, np.asarray(r) - 0.5
         i0, j0 = np.floor(ci).astype(int), np.floor(cj).astype(int)
@@ -88,12 +94,11 @@ def site(tmp_path_factory):
         return ((h[j0, i0] * (1 - ti) + h[j0, i0 + 1] * ti) * (1 - tj)
                 + (h[j0 + 1, i0] * (1 - ti) + h[j0 + 1, i0 + 1] * ti) * tj)
 
-    return {"dir": d, "dem": str(dem), "area": str(area), "keep": str(keep),
-            "ground": ground, "area_en": area_en, "frame": frame}
+    return ground
 
 
-def _legs(mission, home_h):
-    """(lat, lon, absolute height) every ~0.5 m along the straight legs between the
+def _legs(mission, home_h, step_m=0.5):
+    """(lat, lon, absolute height) every ~``step_m`` along the straight legs between the
     positioned items (takeoff at home, then the waypoints), as an autopilot flies them."""
     items = [it for it in mission.items if it.command in (MAV_CMD_NAV_TAKEOFF,
                                                           MAV_CMD_NAV_WAYPOINT)]
@@ -104,7 +109,7 @@ def _legs(mission, home_h):
     out = []
     for a, b in itertools.pairwise(items):
         d = math.hypot((b.lat_deg - a.lat_deg) * 111_000.0, (b.lon_deg - a.lon_deg) * 89_000.0)
-        f = np.linspace(0.0, 1.0, max(2, int(d / 0.5) + 2))
+        f = np.linspace(0.0, 1.0, max(2, int(d / step_m) + 2))
         out.append(np.column_stack([a.lat_deg + f * (b.lat_deg - a.lat_deg),
                                     a.lon_deg + f * (b.lon_deg - a.lon_deg),
                                     absolute(a) + f * (absolute(b) - absolute(a))]))
@@ -150,6 +155,62 @@ def test_lawnmower_over_a_rough_dem_covers_the_polygon_and_keeps_its_height(site
     assert "1 avoided, 1 flown over" in text and "min home to home" in text
     # the fence: the area (inclusion), the tower (exclusion circle); the wires are not fenced
     assert [p.inclusion for p in m.polygons] == [True] and len(m.circles) == 1
+
+
+@pytest.mark.parametrize("pattern", ["lawnmower", "helix"])
+def test_cliffs_of_a_one_metre_lidar_dem(tmp_path, pattern, capsys):
+    """A 1 m GeoTIFF with cliffs (25 m, one across the tracks and one diagonal to them)
+    and a 60 m quarry wall: every leg within [M - 2, M + 25] of the DEM, sampled every
+    5 cm by hand (a lawnmower's legs dipped to 26.3 m above it, cut into a cliff's
+    edge; a helix climbing its default 30 m rose beyond M + 25). The helix's climb
+    beyond the band is held in it, with a warning."""
+    to_utm = Transformer.from_crs("EPSG:4326", UTM, always_xy=True)
+    x0, y0 = to_utm.transform(LON0, LAT0)
+    n = 600
+    X, Y = np.meshgrid(np.arange(n) + 0.5 - n / 2, n / 2 - np.arange(n) - 0.5)
+    z = (400.0 + 25.0 * (X > 60.3) + 25.0 * (X + Y > 140.7) + 60.0 * (Y < -150.2)
+         + 30.0 * np.exp(-((X + 80.0) / 20.0) ** 2))
+    dem = tmp_path / "lidar.tif"
+    with rasterio.open(dem, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32",
+                       crs=UTM, transform=from_origin(x0 - n / 2, y0 + n / 2, 1.0, 1.0),
+                       tiled=True, blockxsize=256, blockysize=256, compress="deflate") as dst:
+        dst.write(z.astype("float32"), 1)
+    frame = ExactENU(LAT0, LON0, 0.0)
+    ring = [frame.to_geodetic(e, n_, 0.0)[:2] for e, n_ in
+            [(-200.0, -200.0), (200.0, -200.0), (200.0, 200.0), (-200.0, 200.0)]]
+    area = tmp_path / "area.geojson"
+    area.write_text(json.dumps({"type": "Polygon", "coordinates": [
+        [[float(lo), float(la)] for la, lo in [*ring, ring[0]]]]}), encoding="utf-8")
+    out = tmp_path / f"{pattern}.plan"
+    extra = (["--spacing", "45"] if pattern == "lawnmower"
+             else ["--center", f"{LAT0},{LON0 + 0.0007}", "--radius", "60"])
+    rc = main(["plan", pattern, "--area", str(area), "--dem", str(dem), "--agl", str(AGL),
+               *extra, "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert ("held within 38 to 65 m above the DEM" in err) == (pattern == "helix")
+    m = read_mission(out)
+    pts = _legs(m, m.home[2], step_m=0.05)
+    agl = pts[:, 2] - _ground_of(dem)(pts[:, 0], pts[:, 1])
+    assert agl.min() >= AGL - 2.0 and agl.max() <= AGL + 25.0
+
+
+def test_legs_outside_the_band_are_refused_not_written(site, monkeypatch, capsys):
+    """The last check: legs that leave [M - 2, M + 25] above the DEM (here a follower
+    that flies the pattern flat at M above home) are refused, status 1, no file."""
+    import planner.terrain_follow
+
+    def flat(path, targets, terrain, **kw):
+        return np.column_stack([path, targets])
+
+    monkeypatch.setattr(planner.terrain_follow, "follow_terrain", flat)
+    out = site["dir"] / "flat.plan"
+    rc = main(["plan", "lawnmower", "--area", site["area"], "--dem", site["dem"],
+               "--agl", str(AGL), "--spacing", "80", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1, err
+    assert "m above the DEM, outside 38 to 65: not flyable as planned" in err
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("frame", ["amsl", "terrain"])
