@@ -111,8 +111,7 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     if args.home is not None:
         o_lat, o_lon = args.home[0], args.home[1]
     elif area_deg is not None:
-        o_lat = float(np.mean([v[0] for v in area_deg]))
-        o_lon = float(np.mean([v[1] for v in area_deg]))
+        o_lat, o_lon = _middle(area_deg)
     else:
         o_lat, o_lon = args.center
     home_alt = args.home[2] if args.home is not None and len(args.home) > 2 else 0.0
@@ -324,6 +323,16 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
                     agl_range_m=agl_range, flight_s=flight_s, kml=kml,
                     n_avoided=len(blocking), n_flown_over=len(keep_outs) - len(blocking),
                     note=note, warnings=tuple(warnings))
+
+
+def _middle(vertices_deg) -> tuple[float, float]:
+    """The mean (lat, lon) of vertices, longitudes taken about the first one (an area
+    across 180 degrees has its middle there, not at their plain mean, 0)."""
+    lat = np.array([v[0] for v in vertices_deg], dtype=float)
+    lon = np.array([v[1] for v in vertices_deg], dtype=float)
+    lon = lon[0] + (lon - lon[0] + 180.0) % 360.0 - 180.0
+    mid = (float(np.mean(lon)) + 180.0) % 360.0 - 180.0
+    return float(np.mean(lat)), mid
 
 
 def _default_radius(pattern: str) -> float:

@@ -213,6 +213,26 @@ def test_legs_outside_the_band_are_refused_not_written(site, monkeypatch, capsys
     assert not out.exists()
 
 
+def test_an_area_across_the_antimeridian(tmp_path, capsys):
+    """A 440 x 330 m area in Fiji across 180 degrees of longitude (vertices at 179.998 E
+    and 179.998 W): planned there, not about the mean of its longitudes (0, on the far
+    side of the Earth, where the mission was written)."""
+    lat0 = -16.5
+    ring = [[179.998, lat0 - 0.0015], [-179.998, lat0 - 0.0015], [-179.998, lat0 + 0.0015],
+            [179.998, lat0 + 0.0015], [179.998, lat0 - 0.0015]]
+    area = tmp_path / "fiji.geojson"
+    area.write_text(json.dumps({"type": "Polygon", "coordinates": [ring]}), encoding="utf-8")
+    out = tmp_path / "fiji.plan"
+    rc = main(["plan", "lawnmower", "--area", str(area), "--spacing", "60", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    m = read_mission(out)
+    wps = [it for it in m.items if it.command == MAV_CMD_NAV_WAYPOINT]
+    lat = np.array([m.home[0], *(w.lat_deg for w in wps)])
+    lon = np.array([m.home[1], *(w.lon_deg for w in wps)])
+    assert np.all(np.abs(lat - lat0) < 0.0015) and np.all(np.abs(lon) > 179.998)
+    assert (lon > 0).any() and (lon < 0).any()  # both sides of the line are swept
+
+
 @pytest.mark.parametrize("frame", ["amsl", "terrain"])
 def test_altitude_frames(site, frame, capsys):
     out = site["dir"] / f"x-{frame}.plan"
