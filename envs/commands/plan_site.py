@@ -281,6 +281,7 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     except ValueError as exc:
         raise PlanError(str(exc)) from None
     mission = _site_fence(mission, frame, area_en, blocking)
+    drawn = mission  # the KML's path: absolute heights (home's + relative) with a DEM
     if frame_name != "relative" and dem is not None:
         mission = _reframe(mission, frame_name, traj, dem, home_h)
     if len(mission.items) > args.max_items:
@@ -311,7 +312,7 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
         kml_shapes.append(KmlShape(name=s.name or f"keep-out {k + 1}", vertices_deg=s.vertices_deg,
                                    center_deg=s.center_deg, radius_m=s.radius_m, top_m=s.top_m,
                                    flown_over=not any(ko is b for b in blocking)))
-    path_deg, above_ground = _kml_path(mission, home)
+    path_deg, above_ground = _kml_path(drawn, home)
     kml = mission_kml(path_deg, home=(home[0], home[1], home[2] if not above_ground else 0.0),
                       above_ground=above_ground, area_deg=area_deg, keep_outs=kml_shapes,
                       name=f"osa plan {args.pattern}",

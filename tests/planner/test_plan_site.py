@@ -259,10 +259,14 @@ def test_altitude_frames(site, frame, capsys):
     assert agl[0] == pytest.approx(AGL, abs=0.01)
 
 
-def test_kml_output_for_google_earth(site, capsys):
-    out = site["dir"] / "mission.kml"
+@pytest.mark.parametrize("frame", ["relative", "terrain", "amsl"])
+def test_kml_output_for_google_earth(site, frame, capsys):
+    """Absolute altitudes whatever the mission's frame when the DEM is known (frame 11
+    items were drawn relativeToGround: each vertex at M over the ground)."""
+    out = site["dir"] / f"mission-{frame}.kml"
     rc = main(["plan", "lawnmower", "--area", site["area"], "--keepout", site["keep"],
-               "--dem", site["dem"], "--agl", str(AGL), "--spacing", "80", "-o", str(out)])
+               "--dem", site["dem"], "--agl", str(AGL), "--spacing", "80",
+               "--alt-frame", frame, "-o", str(out)])
     assert rc == 0, capsys.readouterr().err
     root = ET.parse(out).getroot()
     ns = {"k": "http://www.opengis.net/kml/2.2"}
