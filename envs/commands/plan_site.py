@@ -148,6 +148,8 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
                 dem.require_polygon(np.array(area_en), "the area")
             if center_en is not None:
                 dem.require_points(np.array([center_en]), "--center")
+            if args.home is not None:  # the frame's origin
+                dem.require_points(np.zeros((1, 2)), "--home")
         except DemError as exc:
             raise PlanError(str(exc)) from None
     origin = (frame.lat0_deg, frame.lon0_deg, frame.h0_m)
@@ -240,13 +242,6 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
             raise PlanError(f"{args.pattern} path {problems[0]}; move the area, --center or "
                             "--home", 1)
         if dem is not None:
-            if home_en is not None:
-                from sim.dem import DemError
-
-                try:
-                    dem.require_points(np.array([home_en]), "--home")
-                except DemError as exc:
-                    raise PlanError(str(exc)) from None
             band = (height - BELOW_M, height + ABOVE_M)
             if targets.min() < band[0] or targets.max() > band[1]:
                 warnings.append(f"{args.pattern} flies {targets.min():.0f} to "

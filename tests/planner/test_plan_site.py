@@ -306,3 +306,16 @@ def test_site_refusals_are_one_line_and_status_2(site, extra, needle, capsys, tm
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and needle in err, err
     assert not (tmp_path / "x.plan").exists()
+
+
+@pytest.mark.parametrize("pattern", ["optimal", "helix"])
+def test_home_beyond_the_dem_is_refused_for_every_pattern(site, pattern, capsys, tmp_path):
+    """--home 1.3 km east of the origin, beyond the 2 km DEM: exit 2 naming the file (the
+    optimal pattern planned from the DEM's edge height held there instead: "no feasible
+    plan: ... height above terrain -510.27..54.71 m", exit 1)."""
+    rc = main(["plan", pattern, "--dem", site["dem"], "--agl", str(AGL),
+               "--center", f"{LAT0},{LON0 + 0.008}", "--radius", "700",
+               "--home", f"{LAT0},{LON0 + 0.0145}", "-o", str(tmp_path / "x.plan")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "rough.tif: --home leaves the DEM's extent at (0.0, 0.0) m" in err
