@@ -319,3 +319,25 @@ def test_home_beyond_the_dem_is_refused_for_every_pattern(site, pattern, capsys,
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1, err
     assert "rough.tif: --home leaves the DEM's extent at (0.0, 0.0) m" in err
+
+
+@pytest.mark.parametrize("home", [None, f"{LAT0},{LON0},612.5"])
+def test_kml_without_a_dem(site, home, capsys, tmp_path):
+    """No DEM: with --home's ALT the path is absolute (ALT + the relative altitude);
+    without it, home's height is unknown and the path is drawn relativeToGround at the
+    items' heights above home (it was "absolute" over a home at 0 m: underground
+    wherever the ground is above 45 m)."""
+    out = tmp_path / "m.kml"
+    rc = main(["plan", "lawnmower", "--area", site["area"], "--spacing", "80",
+               *(["--home", home] if home else []), "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    line = ET.parse(out).getroot().find(".//k:LineString", ns)
+    alt = np.array([float(c.split(",")[2]) for c in line.find("k:coordinates", ns).text.split()])
+    mode = line.find("k:altitudeMode", ns).text
+    if home is None:
+        assert mode == "relativeToGround" and alt[0] == 0.0
+        assert np.allclose(alt[1:], 45.0, atol=0.01)
+    else:
+        assert mode == "absolute" and alt[0] == 612.5
+        assert np.allclose(alt[1:], 612.5 + 45.0, atol=0.01)
