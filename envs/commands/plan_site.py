@@ -13,8 +13,10 @@ there); the planner gets objects only.
 - With ``--dem`` the heights follow the ground (:func:`planner.terrain_follow.
   follow_terrain`): every point of every straight leg between items is within
   [M - 2, M + 25] m of the DEM (M = ``--agl``), vertices added where the ground
-  changes; a keep-out whose ``top_m`` + 10 m is at most M - 2 is then flown over, the
-  others are avoided. Without a DEM every keep-out is avoided.
+  changes (a pattern's own heights beyond that band, a helix's climb, held in it with a
+  warning; legs still outside it: refused, exit 1); a keep-out whose ``top_m`` + 10 m
+  is at most M - 2 is then flown over, the others are avoided. Without a DEM every
+  keep-out is avoided.
 - ``--alt-frame``: items in frame 6 (relative to home; home's height from the DEM at
   home), 11 (above the terrain) or 0 (above mean sea level: the DEM's datum).
 - The summary gives the lowest and highest height above the DEM along the legs (as an
