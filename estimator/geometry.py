@@ -80,7 +80,7 @@ def point_in_polygon(polygon_m: ArrayLike, points_m: ArrayLike) -> np.ndarray:
     """Even-odd rule: which of the (M, 2) points lie inside the (N, 2) polygon."""
     poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
-    if len(poly) > INDEX_ABOVE:
+    if _indexed(poly, p):
         return _edge_index(poly).inside(p)
     every = np.arange(len(poly))[None, :]
     return np.concatenate([np.count_nonzero(_crossings(poly, every, q[:, None, :]), axis=1) % 2
@@ -91,7 +91,7 @@ def polygon_edge_distance_m(polygon_m: ArrayLike, points_m: ArrayLike) -> np.nda
     """Distance from each of the (M, 2) points to the polygon's boundary."""
     poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
-    if len(poly) > INDEX_ABOVE and len(p) and np.all(np.isfinite(p)):
+    if _indexed(poly, p):
         return _edge_index(poly).distance(p)
     every = np.arange(len(poly))[None, :]
     return np.concatenate([_edge_distances(poly, every, q[:, None, :]).min(axis=1)
@@ -105,7 +105,7 @@ def polygon_edge_within_m(polygon_m: ArrayLike, points_m: ArrayLike,
     distance of the points farther (of many vertices: only the edges near each point)."""
     poly = np.asarray(polygon_m, dtype=float).reshape(-1, 2)
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
-    if len(poly) > INDEX_ABOVE and len(p) and np.all(np.isfinite(p)) and radius_m >= 0:
+    if _indexed(poly, p) and radius_m >= 0:
         return _edge_index(poly).within(p, float(radius_m))
     return polygon_edge_distance_m(poly, p) <= radius_m
 
@@ -123,6 +123,12 @@ def signed_distance_to_polygon_m(polygon_m: ArrayLike, points_m: ArrayLike) -> n
 INDEX_ABOVE = 64  # vertices
 _PAIRS = 1 << 21  # point-edge pairs evaluated at once (memory bound)
 _INDEX_CACHE: dict[bytes, _EdgeIndex] = {}
+
+
+def _indexed(poly: np.ndarray, p: np.ndarray) -> bool:
+    """Query through the edge index: many vertices, some points, all finite."""
+    return bool(len(poly) > INDEX_ABOVE and len(p) and np.all(np.isfinite(poly))
+                and np.all(np.isfinite(p)))
 
 
 def _chunks(p: np.ndarray, n_edges: int):
@@ -182,7 +188,7 @@ class _EdgeIndex:
         self.tree = cKDTree(mid)
 
     def _band(self, y: np.ndarray) -> np.ndarray:
-        b = np.floor((np.nan_to_num(y, nan=self.y0) - self.y0) / self.width)
+        b = np.floor((y - self.y0) / self.width)
         return np.clip(b, 0, self.n_bands - 1).astype(int)
 
     def inside(self, p: np.ndarray) -> np.ndarray:
