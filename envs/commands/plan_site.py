@@ -20,7 +20,8 @@ there); the planner gets objects only.
 - ``--alt-frame``: items in frame 6 (relative to home; home's height from the DEM at
   home), 11 (above the terrain) or 0 (above mean sea level: the DEM's datum).
 - The summary gives the lowest and highest height above the DEM along the legs (as an
-  autopilot flies them) and the flight time.
+  autopilot flies them) and the flight time. A leg beyond the DEM or over its nodata
+  is refused (exit 2, naming the file), as are the area, ``--center`` and ``--home``.
 """
 
 from __future__ import annotations
@@ -289,8 +290,15 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     # heights above the DEM along the legs as an autopilot flies them (straight)
     agl_range = None
     if dem is not None:
+        from planner.patterns import densify
+        from sim.dem import DemError
+
         flown = np.vstack([[home_en[0], home_en[1], float(dem.height_m(*home_en)) + height],
                            vertices])
+        try:  # the ground under every leg is the file's (not beyond it, not a void)
+            dem.require_points(densify(flown, 0.25 * min(dem.pixel_m))[:, :2], "the path")
+        except DemError as exc:
+            raise PlanError(str(exc)) from None
         a = agl_along(flown, dem, 0.25)
         agl_range = (float(a.min()), float(a.max()))
         if agl_range[0] < height - BELOW_M - 0.01 or agl_range[1] > height + ABOVE_M + 0.01:

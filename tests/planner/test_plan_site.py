@@ -341,3 +341,29 @@ def test_kml_without_a_dem(site, home, capsys, tmp_path):
     else:
         assert mode == "absolute" and alt[0] == 612.5
         assert np.allclose(alt[1:], 612.5 + 45.0, atol=0.01)
+
+
+@pytest.mark.parametrize("case", ["edge", "void"])
+def test_a_path_beyond_the_dem_or_over_a_void_is_refused(site, case, capsys, tmp_path):
+    """A helix of 50 m about a --center 25 m inside the DEM's east edge, or about the
+    origin over a void (nodata 40-60 m east): exit 2 naming the file (it was planned
+    over the edge's heights held beyond it, or over the void filled from around it)."""
+    dem = site["dem"]
+    lon = LON0 + 975.0 / 89_230.0
+    if case == "void":
+        with rasterio.open(dem) as src:
+            profile, z = src.profile, src.read(1)
+        z[98:102, 104:106] = -9999.0  # rows about the origin, columns 40-60 m east
+        profile.update(nodata=-9999.0)
+        dem = tmp_path / "void.tif"
+        with rasterio.open(dem, "w", **profile) as dst:
+            dst.write(z, 1)
+        lon = LON0
+    rc = main(["plan", "helix", "--dem", str(dem), "--agl", str(AGL), "--center",
+               f"{LAT0},{lon}", "--radius", "50", "-o", str(tmp_path / "x.plan")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    want = ("rough.tif: the path leaves the DEM's extent at" if case == "edge"
+            else "void.tif: the path touches nodata cells at")
+    assert want in err, err
+    assert not (tmp_path / "x.plan").exists()
