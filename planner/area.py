@@ -48,6 +48,7 @@ from estimator.geometry import (
     point_in_polygon,
     polygon_area_m2,
     polygon_crossing,
+    polygon_edge_within_m,
     polygon_is_convex,
     signed_distance_to_polygon_m,
 )
@@ -222,8 +223,14 @@ class SearchArea:
             nrm, c = self._halfplanes
             q = np.asarray(xy, dtype=float).reshape(-1, 2)
             ok = (q @ nrm.T - c).min(axis=1) >= m - 1e-9
-        else:
-            ok = self.signed_distance_m(xy) <= -m + 1e-9
+        else:  # signed distance <= -m + 1e-9, the distance computed only near the edge
+            q = np.asarray(xy, dtype=float).reshape(-1, 2)
+            limit = -m + 1e-9
+            inside = point_in_polygon(self._ccw, q)
+            if limit < 0.0:  # inside, and not within -limit of the edge
+                ok = inside & ~polygon_edge_within_m(self._ccw, q, np.nextafter(-limit, -1.0))
+            else:  # inside, or outside by at most limit
+                ok = inside | polygon_edge_within_m(self._ccw, q, limit)
         if keep_outs and self._blocking:
             q = np.asarray(xy, dtype=float).reshape(-1, 2)
             for k in self._blocking:

@@ -734,12 +734,22 @@ class OptimalPlanner:
         params = (pts.T, start, vel, dt, lim, band4, fence_rows, keep_rows, *poly_rows)
         t0 = time.perf_counter()
         error = None
-        try:
-            x, _fv, lam, _ = solve(*params, x0, f0, lam0)
-            stats = solve.stats()
-        except RuntimeError as exc:  # CasADi evaluation errors: no optimiser path
-            error = f"error: {exc}".splitlines()[0]
+        m_lo, m_hi = sag_margins_m(cfg.terrain, lim[0] * dt / 2.0)
+        if band[0] + m_lo > band[1] - m_hi or band4[2] + m_lo > band4[3] - m_hi:
+            # the legs' sag margins over the terrain's sharpest curvature (a cliff in a
+            # DEM) leave no height: ill-posed bounds, which CasADi would refuse (printing
+            # every input on stderr)
+            error = (f"not solved: the terrain's curvature shuts the height band "
+                     f"{band[0]:g}..{band[1]:g} m (legs may sag {m_lo:.1f} m and bulge "
+                     f"{m_hi:.1f} m; shorten the horizon)")
             x, lam, stats = x0, lam0, {"return_status": error}
+        else:
+            try:
+                x, _fv, lam, _ = solve(*params, x0, f0, lam0)
+                stats = solve.stats()
+            except RuntimeError as exc:  # CasADi evaluation errors: no optimiser path
+                error = f"error: {exc}".splitlines()[0]
+                x, lam, stats = x0, lam0, {"return_status": error}
         solve_time = time.perf_counter() - t0
         status = str(stats.get("return_status", "unknown"))
         W = np.asarray(x).T * S
@@ -762,7 +772,8 @@ class OptimalPlanner:
         feasible = not violations
         if error is not None:
             # the solver raised: what we hold is the initial guess, never an optimiser result
-            violations = [f"no solver path (CasADi {error})", *violations]
+            what = error if error.startswith("not solved") else f"CasADi {error}"
+            violations = [f"no solver path ({what})", *violations]
             if feasible:
                 fallback = f"initial guess: {guess}"
         if not feasible:

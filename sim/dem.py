@@ -55,6 +55,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -116,15 +118,13 @@ class DemTerrain:
         e0, e1, n0, n1 = (float(v) for v in box_enu_m)
         if not (all(map(math.isfinite, (e0, e1, n0, n1))) and e0 <= e1 and n0 <= n1):
             raise DemError(f"{self.name}: the scenario's box {box_enu_m!r} is not finite")
-        try:
-            src = rasterio.open(self.path)
-        except (OSError, rasterio.errors.RasterioError) as exc:
-            hint = ""
-            if self.path.suffix.lower() == ".hgt" and self.path.is_file():
-                hint = (" (an SRTM .hgt tile must keep its tile's name, such as "
-                        "N36W005.hgt: the name places it)")
-            raise DemError(f"{self.name}: cannot read the DEM: {_first_line(exc)}{hint}") \
-                from None
+        with warnings.catch_warnings():  # a picture's "no geotransform": refused below
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            try:
+                src = rasterio.open(self.path)
+            except (OSError, rasterio.errors.RasterioError) as exc:
+                raise DemError(f"{self.name}: cannot read the DEM: "
+                               f"{_hgt_problem(self.path) or _first_line(exc)}") from None
         with src:
             if src.count < 1:
                 raise DemError(f"{self.name}: the file holds no raster band")
@@ -564,8 +564,32 @@ def _extent_text(src) -> str:
 
 
 def _first_line(exc: BaseException) -> str:
+    """An exception's first line; rasterio's "See previous exception" gives GDAL's own."""
     text = str(exc).strip() or type(exc).__name__
+    if "previous exception" in text and exc.__cause__ is not None:
+        return _first_line(exc.__cause__)
     return text.splitlines()[0]
+
+
+_HGT_NAME = re.compile(r"^[NS]\d{2}[EW]\d{3}$", re.IGNORECASE)
+_HGT_POSTS = (1201, 3601)  # 3 and 1 arc-second tiles
+
+
+def _hgt_problem(path: Path) -> str:
+    """Why GDAL refused an ``.hgt`` file, when it is SRTM's: the tile's name (which
+    places it) or its size (a truncated download); empty for other files."""
+    if path.suffix.lower() != ".hgt" or not path.is_file():
+        return ""
+    if not _HGT_NAME.match(path.stem):
+        return (f"'{path.name}' is not an SRTM tile's name (an SRTM .hgt tile must keep "
+                "its tile's name, such as N36W005.hgt: the name places it)")
+    size = path.stat().st_size
+    sizes = [2 * n * n for n in _HGT_POSTS]
+    if size not in sizes:
+        posts = " or ".join(f"{n} x {n}" for n in _HGT_POSTS)
+        return (f"{size:,} bytes: an SRTM tile holds {posts} two-byte posts "
+                f"({' or '.join(f'{b:,}' for b in sizes)} bytes): a truncated download?")
+    return ""
 
 
 def box_of(points_en: Sequence[ArrayLike]) -> tuple[float, float, float, float]:

@@ -13,12 +13,15 @@ there); the planner gets objects only.
 - With ``--dem`` the heights follow the ground (:func:`planner.terrain_follow.
   follow_terrain`): every point of every straight leg between items is within
   [M - 2, M + 25] m of the DEM (M = ``--agl``), vertices added where the ground
-  changes; a keep-out whose ``top_m`` + 10 m is at most M - 2 is then flown over, the
-  others are avoided. Without a DEM every keep-out is avoided.
+  changes (a pattern's own heights beyond that band, a helix's climb, held in it with a
+  warning; legs still outside it: refused, exit 1); a keep-out whose ``top_m`` + 10 m
+  is at most M - 2 is then flown over, the others are avoided. Without a DEM every
+  keep-out is avoided.
 - ``--alt-frame``: items in frame 6 (relative to home; home's height from the DEM at
   home), 11 (above the terrain) or 0 (above mean sea level: the DEM's datum).
 - The summary gives the lowest and highest height above the DEM along the legs (as an
-  autopilot flies them) and the flight time.
+  autopilot flies them) and the flight time. A leg beyond the DEM or over its nodata
+  is refused (exit 2, naming the file), as are the area, ``--center`` and ``--home``.
 """
 
 from __future__ import annotations
@@ -111,8 +114,7 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     if args.home is not None:
         o_lat, o_lon = args.home[0], args.home[1]
     elif area_deg is not None:
-        o_lat = float(np.mean([v[0] for v in area_deg]))
-        o_lon = float(np.mean([v[1] for v in area_deg]))
+        o_lat, o_lon = _middle(area_deg)
     else:
         o_lat, o_lon = args.center
     home_alt = args.home[2] if args.home is not None and len(args.home) > 2 else 0.0
@@ -149,6 +151,8 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
                 dem.require_polygon(np.array(area_en), "the area")
             if center_en is not None:
                 dem.require_points(np.array([center_en]), "--center")
+            if args.home is not None:  # the frame's origin
+                dem.require_points(np.zeros((1, 2)), "--home")
         except DemError as exc:
             raise PlanError(str(exc)) from None
     origin = (frame.lat0_deg, frame.lon0_deg, frame.h0_m)
@@ -241,14 +245,12 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
             raise PlanError(f"{args.pattern} path {problems[0]}; move the area, --center or "
                             "--home", 1)
         if dem is not None:
-            if home_en is not None:
-                from sim.dem import DemError
-
-                try:
-                    dem.require_points(np.array([home_en]), "--home")
-                except DemError as exc:
-                    raise PlanError(str(exc)) from None
-            vertices = follow_terrain(path2, targets, dem, below_m=BELOW_M, above_m=ABOVE_M)
+            band = (height - BELOW_M, height + ABOVE_M)
+            if targets.min() < band[0] or targets.max() > band[1]:
+                warnings.append(f"{args.pattern} flies {targets.min():.0f} to "
+                                f"{targets.max():.0f} m: held within {band[0]:g} to "
+                                f"{band[1]:g} m above the DEM (--agl {height:g})")
+            vertices = follow_terrain(path2, targets, dem, band_m=band)
         else:
             vertices = np.column_stack([path2, targets])
     if home_en is None:
@@ -277,6 +279,7 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     except ValueError as exc:
         raise PlanError(str(exc)) from None
     mission = _site_fence(mission, frame, area_en, blocking)
+    drawn = mission  # the KML's path: absolute heights (home's + relative) with a DEM
     if frame_name != "relative" and dem is not None:
         mission = _reframe(mission, frame_name, traj, dem, home_h)
     if len(mission.items) > args.max_items:
@@ -287,10 +290,21 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
     # heights above the DEM along the legs as an autopilot flies them (straight)
     agl_range = None
     if dem is not None:
+        from planner.patterns import densify
+        from sim.dem import DemError
+
         flown = np.vstack([[home_en[0], home_en[1], float(dem.height_m(*home_en)) + height],
                            vertices])
-        a = agl_along(flown, dem, 0.5)
+        try:  # the ground under every leg is the file's (not beyond it, not a void)
+            dem.require_points(densify(flown, 0.25 * min(dem.pixel_m))[:, :2], "the path")
+        except DemError as exc:
+            raise PlanError(str(exc)) from None
+        a = agl_along(flown, dem, 0.25)
         agl_range = (float(a.min()), float(a.max()))
+        if agl_range[0] < height - BELOW_M - 0.01 or agl_range[1] > height + ABOVE_M + 0.01:
+            raise PlanError(f"{args.pattern}: the legs fly {agl_range[0]:.1f} to "
+                            f"{agl_range[1]:.1f} m above the DEM, outside {height - BELOW_M:g} "
+                            f"to {height + ABOVE_M:g}: not flyable as planned", 1)
     length = float(np.sum(seg)) + math.dist(vertices[-1][:2], home_en)
     flight_s = length / args.speed
     if flight_s > MAX_FLIGHT_S:
@@ -303,7 +317,8 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
         kml_shapes.append(KmlShape(name=s.name or f"keep-out {k + 1}", vertices_deg=s.vertices_deg,
                                    center_deg=s.center_deg, radius_m=s.radius_m, top_m=s.top_m,
                                    flown_over=not any(ko is b for b in blocking)))
-    path_deg, above_ground = _kml_path(mission, home)
+    home_known = dem is not None or (args.home is not None and len(args.home) > 2)
+    path_deg, above_ground = _kml_path(drawn, home, home_known)
     kml = mission_kml(path_deg, home=(home[0], home[1], home[2] if not above_ground else 0.0),
                       above_ground=above_ground, area_deg=area_deg, keep_outs=kml_shapes,
                       name=f"osa plan {args.pattern}",
@@ -315,6 +330,16 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
                     agl_range_m=agl_range, flight_s=flight_s, kml=kml,
                     n_avoided=len(blocking), n_flown_over=len(keep_outs) - len(blocking),
                     note=note, warnings=tuple(warnings))
+
+
+def _middle(vertices_deg) -> tuple[float, float]:
+    """The mean (lat, lon) of vertices, longitudes taken about the first one (an area
+    across 180 degrees has its middle there, not at their plain mean, 0)."""
+    lat = np.array([v[0] for v in vertices_deg], dtype=float)
+    lon = np.array([v[1] for v in vertices_deg], dtype=float)
+    lon = lon[0] + (lon - lon[0] + 180.0) % 360.0 - 180.0
+    mid = (float(np.mean(lon)) + 180.0) % 360.0 - 180.0
+    return float(np.mean(lat)), mid
 
 
 def _default_radius(pattern: str) -> float:
@@ -384,9 +409,12 @@ def _reframe(mission, frame_name: str, traj, dem, home_h: float):
     return dataclasses.replace(mission, items=tuple(items))
 
 
-def _kml_path(mission, home) -> tuple[list[tuple[float, float, float]], bool]:
+def _kml_path(mission, home,
+              home_known: bool = True) -> tuple[list[tuple[float, float, float]], bool]:
     """Home and the positioned items as (lat, lon, absolute alt), or above the ground
-    for frame-11 items."""
+    for frame-11 items and, when home's height is not known (no DEM, no ALT in
+    --home), for items relative to home (drawn at that height over the ground, not
+    over a home at sea level)."""
     from planner.mission import (
         MAV_CMD_NAV_WAYPOINT,
         MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
@@ -394,10 +422,12 @@ def _kml_path(mission, home) -> tuple[list[tuple[float, float, float]], bool]:
     )
 
     wps = [it for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT]
-    above = bool(wps) and wps[0].frame == MAV_FRAME_GLOBAL_TERRAIN_ALT_INT
-    out = [(home[0], home[1], 0.0 if above else home[2])]
+    above = bool(wps) and (wps[0].frame == MAV_FRAME_GLOBAL_TERRAIN_ALT_INT or (
+        not home_known and wps[0].frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT))
+    h0 = 0.0 if above else home[2]
+    out = [(home[0], home[1], h0)]
     for it in wps:
-        alt = home[2] + it.alt_m if it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT else it.alt_m
+        alt = h0 + it.alt_m if it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT else it.alt_m
         out.append((it.lat_deg, it.lon_deg, alt))
     return out, above
 

@@ -106,3 +106,62 @@ def test_crossing_edges_are_found_and_refused_in_one_line(tmp_path):
         SearchArea(tuple(bow), 5.0)
     with pytest.raises(ValueError, match=r"^the keep-out polygon: its edges 1 and 3 cross"):
         KeepOutPolygon(vertices_m=tuple(bow))
+
+
+def test_many_vertex_polygons_answer_as_every_edge_does(monkeypatch):
+    """Inside and distance for polygons of 65 to 1500 vertices (stars, combs of tall
+    teeth, integer vertices with horizontal edges; points anywhere, on vertices and on
+    edges): the edge index gives the same numbers, bit for bit, as every edge."""
+    import estimator.geometry as geo
+
+    rng = np.random.default_rng(5)
+    for trial in range(8):
+        n = int(rng.integers(65, 1500))
+        if trial % 3:
+            a = np.sort(rng.uniform(0.0, 2 * math.pi, n))
+            r = rng.uniform(50.0, 300.0, n)
+            poly = np.column_stack([r * np.cos(a), r * np.sin(a)])
+        else:  # a comb: tall teeth, every band crossed by every tooth
+            poly = np.array([(x + dx, y) for x in range(0, n, 2)
+                             for dx, y in ((0, 0), (0, 100), (1, 100), (1, 0))], dtype=float)
+        if trial % 4 == 0:
+            poly = np.round(poly)
+        pts = np.vstack([rng.uniform(poly.min(0) - 20, poly.max(0) + 20, (800, 2)),
+                         poly[:40], 0.5 * (poly[:40] + np.roll(poly, -1, axis=0)[:40])])
+        got = geo.point_in_polygon(poly, pts), geo.polygon_edge_distance_m(poly, pts)
+        monkeypatch.setattr(geo, "INDEX_ABOVE", 10**9)
+        want = geo.point_in_polygon(poly, pts), geo.polygon_edge_distance_m(poly, pts)
+        monkeypatch.undo()
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), trial
+    assert 0 < got[0].sum() < len(pts)
+
+
+def test_a_twenty_thousand_vertex_boundary_is_queried_through_few_edges(monkeypatch):
+    """A 500 m area traced with 20 000 vertices: each point meets a few edges, not all
+    of them (osa plan lawnmower compared every path sample with every edge: stopped
+    after 5 min), with the same answers; and the test of a margin meets fewer still."""
+    import estimator.geometry as geo
+
+    t = np.linspace(0.0, 2 * math.pi, 20_000, endpoint=False)
+    poly = np.column_stack([250 * np.cos(t) * (1 + 0.1 * np.sin(20 * t)), 250 * np.sin(t)])
+    pts = np.random.default_rng(2).uniform(-300.0, 300.0, (2000, 2))
+    pairs = []
+    for name in ("_crossings", "_edge_distances"):
+        real = getattr(geo, name)
+
+        def counted(poly_, edges, q, real=real):
+            pairs.append(len(edges))
+            return real(poly_, edges, q)
+
+        monkeypatch.setattr(geo, name, counted)
+    d = geo.signed_distance_to_polygon_m(poly, pts)
+    assert sum(pairs) < 100 * len(pts)  # 62 per point; every edge: 2 x 20 000
+    monkeypatch.undo()
+    monkeypatch.setattr(geo, "INDEX_ABOVE", 10**9)
+    assert np.array_equal(d[:200], geo.signed_distance_to_polygon_m(poly, pts[:200]))
+    monkeypatch.undo()
+    monkeypatch.setattr(geo, "_edge_distances", counted)
+    pairs.clear()
+    near = geo.polygon_edge_within_m(poly, pts, 10.0)
+    assert np.array_equal(near, np.abs(d) <= 10.0) and 0 < near.sum() < len(pts)
+    assert sum(pairs) < 25 * len(pts)  # 17 per point

@@ -175,3 +175,27 @@ def test_terrain_following_keeps_every_leg_in_the_band():
     climb = follow_terrain(path, [45.0, 45.0, 60.0, 75.0], t)
     a3 = agl_along(climb[-2:], t, 0.1)
     assert a3.min() >= 58.0 - 0.01
+
+
+def test_terrain_following_over_cliffs_of_a_one_metre_dem():
+    """A 1 m LiDAR grid with a 25 m cliff (one cell wide, across the path and diagonal to
+    it) and a 60 m quarry wall: bilinear ground rising 25-60 m within a metre, the path
+    off the grid's nodes. Every point of every leg stays in [M - 2, M + 25], checked
+    every 2 cm (the legs were sampled every metre with a fixed 0.5 m margin: they dipped
+    to 29.6 m above the ground, into the cliffs' edges, and rose to 64.8)."""
+    from sim.terrain import GridTerrain
+
+    n = np.arange(-200, 201, dtype=float)
+    E, N = np.meshgrid(n, n)
+    h = 25.0 * (E > 40.5) + 25.0 * (E + N > 100.5) + 60.0 * (N < -80.5)
+    h += 30.0 * np.exp(-((E + 60.0) / 20.0) ** 2)  # and a ridge
+    t = GridTerrain(h, -200.0, -200.0, 1.0)
+    path = np.array([[-150.0, -120.0], [150.0, -120.0], [150.0, -40.0], [-150.0, -40.0],
+                     [-150.0, 60.0], [150.0, 60.0], [0.0, 150.0], [0.0, -150.0]]) + 0.37
+    v = follow_terrain(path, 40.0, t)
+    agl = agl_along(v, t, 0.02)
+    assert agl.min() >= 38.0 and agl.max() <= 65.0
+    # an absolute band: a pattern climbing beyond it (a helix's 40 to 75 m) is held in it
+    climb = follow_terrain(path, np.linspace(40.0, 75.0, len(path)), t, band_m=(38.0, 65.0))
+    a2 = agl_along(climb, t, 0.02)
+    assert a2.min() >= 38.0 and a2.max() <= 65.0 and a2[-100:].min() > 60.0

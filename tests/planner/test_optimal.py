@@ -315,3 +315,22 @@ def test_a_solver_error_returns_a_labelled_fallback_and_no_warm_start(
     assert r.fallback == "initial guess: previous plan, shifted" or r.fallback.startswith("orbit")
     assert r.violations[0].startswith("no solver path") and planner._warm is None
     planner.reset_warm_start()
+
+
+def test_a_band_the_terrains_curvature_shuts_is_not_sent_to_the_solver(capfd) -> None:
+    """A DEM with a 40 m cliff between two 10 m cells (curvature 0.6 /m) and 30 m legs:
+    the sag margins (41 + 41 m) exceed the 27 m band. The planner says so and falls back,
+    without calling Ipopt on ill-posed bounds (CasADi refused them and printed its 300
+    inputs on stderr, in every replan of a search over such a site)."""
+    from sim.terrain import GridTerrain
+
+    g = np.arange(-300.0, 301.0, 10.0)
+    E, _ = np.meshgrid(g, g)
+    p = OptimalPlanner(OptimalConfig(terrain=GridTerrain(40.0 * (E > 60.0), -300.0, -300.0,
+                                                         10.0)))
+    r = p.plan((0.0, 0.0, 0.0), np.diag([400.0, 400.0, 4.0]), (-100.0, -100.0, 45.0),
+               agl_band_m=(38.0, 65.0), horizon_s=240.0)
+    assert capfd.readouterr().err == ""
+    assert r.status.startswith("not solved: the terrain's curvature shuts the height band")
+    assert r.violations[0].startswith("no solver path (not solved: the terrain's curvature")
+    assert r.fallback is not None and p._warm is None

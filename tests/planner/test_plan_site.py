@@ -74,12 +74,18 @@ def site(tmp_path_factory):
          "geometry": {"type": "Polygon",
                       "coordinates": [[[lo, la] for la, lo in [*wires, wires[0]]]]}},
     ]}), encoding="utf-8")
+    return {"dir": d, "dem": str(dem), "area": str(area), "keep": str(keep),
+            "ground": _ground_of(dem), "area_en": area_en, "frame": frame}
+
+
+def _ground_of(dem):
+    """The DEM's height at (lat, lon) arrays: bilinear between cell centres, by hand."""
     with rasterio.open(dem) as src:
         heights, inv = src.read(1).astype(float), ~src.transform
+        to_crs = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
 
     def ground(lat, lon):
-        """The DEM's height at (lat, lon): bilinear between cell centres, by hand."""
-        x, y = to_utm.transform(np.asarray(lon), np.asarray(lat))
+        x, y = to_crs.transform(np.asarray(lon), np.asarray(lat))
         c, r = inv @ (np.asarray(x), np.asarray(y))
         ci, cj = np.asarray(c) - 0.5, np.asarray(r) - 0.5
         i0, j0 = np.floor(ci).astype(int), np.floor(cj).astype(int)
@@ -88,12 +94,11 @@ def site(tmp_path_factory):
         return ((h[j0, i0] * (1 - ti) + h[j0, i0 + 1] * ti) * (1 - tj)
                 + (h[j0 + 1, i0] * (1 - ti) + h[j0 + 1, i0 + 1] * ti) * tj)
 
-    return {"dir": d, "dem": str(dem), "area": str(area), "keep": str(keep),
-            "ground": ground, "area_en": area_en, "frame": frame}
+    return ground
 
 
-def _legs(mission, home_h):
-    """(lat, lon, absolute height) every ~0.5 m along the straight legs between the
+def _legs(mission, home_h, step_m=0.5):
+    """(lat, lon, absolute height) every ~``step_m`` along the straight legs between the
     positioned items (takeoff at home, then the waypoints), as an autopilot flies them."""
     items = [it for it in mission.items if it.command in (MAV_CMD_NAV_TAKEOFF,
                                                           MAV_CMD_NAV_WAYPOINT)]
@@ -104,7 +109,7 @@ def _legs(mission, home_h):
     out = []
     for a, b in itertools.pairwise(items):
         d = math.hypot((b.lat_deg - a.lat_deg) * 111_000.0, (b.lon_deg - a.lon_deg) * 89_000.0)
-        f = np.linspace(0.0, 1.0, max(2, int(d / 0.5) + 2))
+        f = np.linspace(0.0, 1.0, max(2, int(d / step_m) + 2))
         out.append(np.column_stack([a.lat_deg + f * (b.lat_deg - a.lat_deg),
                                     a.lon_deg + f * (b.lon_deg - a.lon_deg),
                                     absolute(a) + f * (absolute(b) - absolute(a))]))
@@ -152,6 +157,82 @@ def test_lawnmower_over_a_rough_dem_covers_the_polygon_and_keeps_its_height(site
     assert [p.inclusion for p in m.polygons] == [True] and len(m.circles) == 1
 
 
+@pytest.mark.parametrize("pattern", ["lawnmower", "helix"])
+def test_cliffs_of_a_one_metre_lidar_dem(tmp_path, pattern, capsys):
+    """A 1 m GeoTIFF with cliffs (25 m, one across the tracks and one diagonal to them)
+    and a 60 m quarry wall: every leg within [M - 2, M + 25] of the DEM, sampled every
+    5 cm by hand (a lawnmower's legs dipped to 26.3 m above it, cut into a cliff's
+    edge; a helix climbing its default 30 m rose beyond M + 25). The helix's climb
+    beyond the band is held in it, with a warning."""
+    to_utm = Transformer.from_crs("EPSG:4326", UTM, always_xy=True)
+    x0, y0 = to_utm.transform(LON0, LAT0)
+    n = 600
+    X, Y = np.meshgrid(np.arange(n) + 0.5 - n / 2, n / 2 - np.arange(n) - 0.5)
+    z = (400.0 + 25.0 * (X > 60.3) + 25.0 * (X + Y > 140.7) + 60.0 * (Y < -150.2)
+         + 30.0 * np.exp(-((X + 80.0) / 20.0) ** 2))
+    dem = tmp_path / "lidar.tif"
+    with rasterio.open(dem, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32",
+                       crs=UTM, transform=from_origin(x0 - n / 2, y0 + n / 2, 1.0, 1.0),
+                       tiled=True, blockxsize=256, blockysize=256, compress="deflate") as dst:
+        dst.write(z.astype("float32"), 1)
+    frame = ExactENU(LAT0, LON0, 0.0)
+    ring = [frame.to_geodetic(e, n_, 0.0)[:2] for e, n_ in
+            [(-200.0, -200.0), (200.0, -200.0), (200.0, 200.0), (-200.0, 200.0)]]
+    area = tmp_path / "area.geojson"
+    area.write_text(json.dumps({"type": "Polygon", "coordinates": [
+        [[float(lo), float(la)] for la, lo in [*ring, ring[0]]]]}), encoding="utf-8")
+    out = tmp_path / f"{pattern}.plan"
+    extra = (["--spacing", "45"] if pattern == "lawnmower"
+             else ["--center", f"{LAT0},{LON0 + 0.0007}", "--radius", "60"])
+    rc = main(["plan", pattern, "--area", str(area), "--dem", str(dem), "--agl", str(AGL),
+               *extra, "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert ("held within 38 to 65 m above the DEM" in err) == (pattern == "helix")
+    m = read_mission(out)
+    pts = _legs(m, m.home[2], step_m=0.05)
+    agl = pts[:, 2] - _ground_of(dem)(pts[:, 0], pts[:, 1])
+    assert agl.min() >= AGL - 2.0 and agl.max() <= AGL + 25.0
+
+
+def test_legs_outside_the_band_are_refused_not_written(site, monkeypatch, capsys):
+    """The last check: legs that leave [M - 2, M + 25] above the DEM (here a follower
+    that flies the pattern flat at M above home) are refused, status 1, no file."""
+    import planner.terrain_follow
+
+    def flat(path, targets, terrain, **kw):
+        return np.column_stack([path, targets])
+
+    monkeypatch.setattr(planner.terrain_follow, "follow_terrain", flat)
+    out = site["dir"] / "flat.plan"
+    rc = main(["plan", "lawnmower", "--area", site["area"], "--dem", site["dem"],
+               "--agl", str(AGL), "--spacing", "80", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1, err
+    assert "m above the DEM, outside 38 to 65: not flyable as planned" in err
+    assert not out.exists()
+
+
+def test_an_area_across_the_antimeridian(tmp_path, capsys):
+    """A 440 x 330 m area in Fiji across 180 degrees of longitude (vertices at 179.998 E
+    and 179.998 W): planned there, not about the mean of its longitudes (0, on the far
+    side of the Earth, where the mission was written)."""
+    lat0 = -16.5
+    ring = [[179.998, lat0 - 0.0015], [-179.998, lat0 - 0.0015], [-179.998, lat0 + 0.0015],
+            [179.998, lat0 + 0.0015], [179.998, lat0 - 0.0015]]
+    area = tmp_path / "fiji.geojson"
+    area.write_text(json.dumps({"type": "Polygon", "coordinates": [ring]}), encoding="utf-8")
+    out = tmp_path / "fiji.plan"
+    rc = main(["plan", "lawnmower", "--area", str(area), "--spacing", "60", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    m = read_mission(out)
+    wps = [it for it in m.items if it.command == MAV_CMD_NAV_WAYPOINT]
+    lat = np.array([m.home[0], *(w.lat_deg for w in wps)])
+    lon = np.array([m.home[1], *(w.lon_deg for w in wps)])
+    assert np.all(np.abs(lat - lat0) < 0.0015) and np.all(np.abs(lon) > 179.998)
+    assert (lon > 0).any() and (lon < 0).any()  # both sides of the line are swept
+
+
 @pytest.mark.parametrize("frame", ["amsl", "terrain"])
 def test_altitude_frames(site, frame, capsys):
     out = site["dir"] / f"x-{frame}.plan"
@@ -178,10 +259,14 @@ def test_altitude_frames(site, frame, capsys):
     assert agl[0] == pytest.approx(AGL, abs=0.01)
 
 
-def test_kml_output_for_google_earth(site, capsys):
-    out = site["dir"] / "mission.kml"
+@pytest.mark.parametrize("frame", ["relative", "terrain", "amsl"])
+def test_kml_output_for_google_earth(site, frame, capsys):
+    """Absolute altitudes whatever the mission's frame when the DEM is known (frame 11
+    items were drawn relativeToGround: each vertex at M over the ground)."""
+    out = site["dir"] / f"mission-{frame}.kml"
     rc = main(["plan", "lawnmower", "--area", site["area"], "--keepout", site["keep"],
-               "--dem", site["dem"], "--agl", str(AGL), "--spacing", "80", "-o", str(out)])
+               "--dem", site["dem"], "--agl", str(AGL), "--spacing", "80",
+               "--alt-frame", frame, "-o", str(out)])
     assert rc == 0, capsys.readouterr().err
     root = ET.parse(out).getroot()
     ns = {"k": "http://www.opengis.net/kml/2.2"}
@@ -220,4 +305,65 @@ def test_site_refusals_are_one_line_and_status_2(site, extra, needle, capsys, tm
     rc = main(argv)
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and needle in err, err
+    assert not (tmp_path / "x.plan").exists()
+
+
+@pytest.mark.parametrize("pattern", ["optimal", "helix"])
+def test_home_beyond_the_dem_is_refused_for_every_pattern(site, pattern, capsys, tmp_path):
+    """--home 1.3 km east of the origin, beyond the 2 km DEM: exit 2 naming the file (the
+    optimal pattern planned from the DEM's edge height held there instead: "no feasible
+    plan: ... height above terrain -510.27..54.71 m", exit 1)."""
+    rc = main(["plan", pattern, "--dem", site["dem"], "--agl", str(AGL),
+               "--center", f"{LAT0},{LON0 + 0.008}", "--radius", "700",
+               "--home", f"{LAT0},{LON0 + 0.0145}", "-o", str(tmp_path / "x.plan")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "rough.tif: --home leaves the DEM's extent at (0.0, 0.0) m" in err
+
+
+@pytest.mark.parametrize("home", [None, f"{LAT0},{LON0},612.5"])
+def test_kml_without_a_dem(site, home, capsys, tmp_path):
+    """No DEM: with --home's ALT the path is absolute (ALT + the relative altitude);
+    without it, home's height is unknown and the path is drawn relativeToGround at the
+    items' heights above home (it was "absolute" over a home at 0 m: underground
+    wherever the ground is above 45 m)."""
+    out = tmp_path / "m.kml"
+    rc = main(["plan", "lawnmower", "--area", site["area"], "--spacing", "80",
+               *(["--home", home] if home else []), "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    line = ET.parse(out).getroot().find(".//k:LineString", ns)
+    alt = np.array([float(c.split(",")[2]) for c in line.find("k:coordinates", ns).text.split()])
+    mode = line.find("k:altitudeMode", ns).text
+    if home is None:
+        assert mode == "relativeToGround" and alt[0] == 0.0
+        assert np.allclose(alt[1:], 45.0, atol=0.01)
+    else:
+        assert mode == "absolute" and alt[0] == 612.5
+        assert np.allclose(alt[1:], 612.5 + 45.0, atol=0.01)
+
+
+@pytest.mark.parametrize("case", ["edge", "void"])
+def test_a_path_beyond_the_dem_or_over_a_void_is_refused(site, case, capsys, tmp_path):
+    """A helix of 50 m about a --center 25 m inside the DEM's east edge, or about the
+    origin over a void (nodata 40-60 m east): exit 2 naming the file (it was planned
+    over the edge's heights held beyond it, or over the void filled from around it)."""
+    dem = site["dem"]
+    lon = LON0 + 975.0 / 89_230.0
+    if case == "void":
+        with rasterio.open(dem) as src:
+            profile, z = src.profile, src.read(1)
+        z[98:102, 104:106] = -9999.0  # rows about the origin, columns 40-60 m east
+        profile.update(nodata=-9999.0)
+        dem = tmp_path / "void.tif"
+        with rasterio.open(dem, "w", **profile) as dst:
+            dst.write(z, 1)
+        lon = LON0
+    rc = main(["plan", "helix", "--dem", str(dem), "--agl", str(AGL), "--center",
+               f"{LAT0},{lon}", "--radius", "50", "-o", str(tmp_path / "x.plan")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    want = ("rough.tif: the path leaves the DEM's extent at" if case == "edge"
+            else "void.tif: the path touches nodata cells at")
+    assert want in err, err
     assert not (tmp_path / "x.plan").exists()

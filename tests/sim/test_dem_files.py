@@ -5,6 +5,9 @@ against the plane the file was made from, or refused in one line naming the file
 
 from __future__ import annotations
 
+import re
+import warnings
+
 import numpy as np
 import pytest
 import rasterio
@@ -205,3 +208,36 @@ def test_site_valley_from_an_int16_decimetre_dem_and_a_kmz_area(tmp_path):
     diff = np.asarray(got.world.terrain.height_m(e, n)) - np.asarray(
         ref.world.terrain.height_m(e, n))
     assert np.max(np.abs(diff)) <= 0.05 + 1e-6
+
+
+def test_a_picture_a_damaged_file_and_a_short_tile_are_refused_in_one_line(tmp_path, capsys):
+    """What a user passes as --dem by mistake, each one line naming the file and what is
+    wrong: a PNG screenshot (rasterio's NotGeoreferencedWarning went to stderr too), a
+    tiled GeoTIFF cut short by a download (was "Read failed. See previous exception"),
+    an SRTM tile rightly named but short (was told to keep its tile's name)."""
+    from tests.cli import one_line, status_of
+
+    png = tmp_path / "shot.png"
+    with rasterio.open(png, "w", driver="PNG", width=8, height=8, count=1,
+                       dtype="uint8") as dst:
+        dst.write(np.zeros((8, 8), dtype="uint8"), 1)
+    X, Y = _cells()
+    full = _write(tmp_path / "full.tif", _plane(X, Y).astype("float32"), tiled=True,
+                  blockxsize=16, blockysize=16, compress="deflate")
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(full.read_bytes()[:6000])
+    tile = tmp_path / "N36W005.hgt"
+    tile.write_bytes(b"\0" * 1_000_000)
+    cases = [(png, "shot.png: the file declares no coordinate reference system"),
+             (cut, r"cut.tif: cannot read the DEM: .*cut.tif, band 1: IReadBlock failed"),
+             (tile, r"N36W005.hgt: cannot read the DEM: 1,000,000 bytes: an SRTM tile holds "
+                    r"1201 x 1201 or 3601 x 3601 two-byte posts \(2,884,802 or 25,934,402 "
+                    r"bytes\): a truncated download\?")]
+    for path, message in cases:
+        with warnings.catch_warnings(record=True) as caught:  # pytest's capture aside
+            warnings.simplefilter("always")
+            rc = status_of(["plan", "lawnmower", "--center", f"{LAT0},{LON0}", "--dem",
+                            str(path), "-o", str(tmp_path / "m.plan")])
+        assert [str(w.message) for w in caught] == []
+        line = one_line(capsys)
+        assert rc == 2 and re.search(f"^osa plan: \\S*{message}", line), line
