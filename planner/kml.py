@@ -5,9 +5,8 @@ One ``Document`` (KML 2.2) holding:
 - ``mission``: a ``LineString`` through home and every positioned mission item, in
   order, with absolute altitudes (``altitudeMode absolute``: metres above the datum of
   the home's height, mean sea level for a DEM such as SRTM), or heights above the
-  ground (``relativeToGround``) when only those are known (no DEM and no home height:
-  frame-11 items, or items relative to home); the autopilot flies straight between
-  them, and so does Google Earth's line;
+  ground (``relativeToGround``) when only those are known (frame-11 items without a
+  DEM); the autopilot flies straight between them, and so does Google Earth's line;
 - ``home``: a ``Point``;
 - ``search area``: a ``Polygon`` on the ground (when there is one);
 - each keep-out: a ``Polygon`` (a circle as 64 vertices), extruded up to its ``top_m``

@@ -317,8 +317,7 @@ def build_site_plan(args: argparse.Namespace) -> SitePlan:
         kml_shapes.append(KmlShape(name=s.name or f"keep-out {k + 1}", vertices_deg=s.vertices_deg,
                                    center_deg=s.center_deg, radius_m=s.radius_m, top_m=s.top_m,
                                    flown_over=not any(ko is b for b in blocking)))
-    home_known = dem is not None or (args.home is not None and len(args.home) > 2)
-    path_deg, above_ground = _kml_path(drawn, home, home_known)
+    path_deg, above_ground = _kml_path(drawn, home)
     kml = mission_kml(path_deg, home=(home[0], home[1], home[2] if not above_ground else 0.0),
                       above_ground=above_ground, area_deg=area_deg, keep_outs=kml_shapes,
                       name=f"osa plan {args.pattern}",
@@ -409,12 +408,9 @@ def _reframe(mission, frame_name: str, traj, dem, home_h: float):
     return dataclasses.replace(mission, items=tuple(items))
 
 
-def _kml_path(mission, home,
-              home_known: bool = True) -> tuple[list[tuple[float, float, float]], bool]:
+def _kml_path(mission, home) -> tuple[list[tuple[float, float, float]], bool]:
     """Home and the positioned items as (lat, lon, absolute alt), or above the ground
-    for frame-11 items and, when home's height is not known (no DEM, no ALT in
-    --home), for items relative to home (drawn at that height over the ground, not
-    over a home at sea level)."""
+    for frame-11 items."""
     from planner.mission import (
         MAV_CMD_NAV_WAYPOINT,
         MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
@@ -422,12 +418,10 @@ def _kml_path(mission, home,
     )
 
     wps = [it for it in mission.items if it.command == MAV_CMD_NAV_WAYPOINT]
-    above = bool(wps) and (wps[0].frame == MAV_FRAME_GLOBAL_TERRAIN_ALT_INT or (
-        not home_known and wps[0].frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT))
-    h0 = 0.0 if above else home[2]
-    out = [(home[0], home[1], h0)]
+    above = bool(wps) and wps[0].frame == MAV_FRAME_GLOBAL_TERRAIN_ALT_INT
+    out = [(home[0], home[1], 0.0 if above else home[2])]
     for it in wps:
-        alt = h0 + it.alt_m if it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT else it.alt_m
+        alt = home[2] + it.alt_m if it.frame == MAV_FRAME_GLOBAL_RELATIVE_ALT_INT else it.alt_m
         out.append((it.lat_deg, it.lon_deg, alt))
     return out, above
 

@@ -323,10 +323,8 @@ def test_home_beyond_the_dem_is_refused_for_every_pattern(site, pattern, capsys,
 
 @pytest.mark.parametrize("home", [None, f"{LAT0},{LON0},612.5"])
 def test_kml_without_a_dem(site, home, capsys, tmp_path):
-    """No DEM: with --home's ALT the path is absolute (ALT + the relative altitude);
-    without it, home's height is unknown and the path is drawn relativeToGround at the
-    items' heights above home (it was "absolute" over a home at 0 m: underground
-    wherever the ground is above 45 m)."""
+    """No DEM: the path is absolute, as site.md fixes (ALT + the relative altitude;
+    without --home's ALT, home's height is unknown and taken as 0 m)."""
     out = tmp_path / "m.kml"
     rc = main(["plan", "lawnmower", "--area", site["area"], "--spacing", "80",
                *(["--home", home] if home else []), "-o", str(out)])
@@ -335,11 +333,11 @@ def test_kml_without_a_dem(site, home, capsys, tmp_path):
     line = ET.parse(out).getroot().find(".//k:LineString", ns)
     alt = np.array([float(c.split(",")[2]) for c in line.find("k:coordinates", ns).text.split()])
     mode = line.find("k:altitudeMode", ns).text
+    assert mode == "absolute"
     if home is None:
-        assert mode == "relativeToGround" and alt[0] == 0.0
-        assert np.allclose(alt[1:], 45.0, atol=0.01)
+        assert alt[0] == 0.0 and np.allclose(alt[1:], 45.0, atol=0.01)
     else:
-        assert mode == "absolute" and alt[0] == 612.5
+        assert alt[0] == 612.5
         assert np.allclose(alt[1:], 612.5 + 45.0, atol=0.01)
 
 
