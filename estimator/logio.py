@@ -55,6 +55,7 @@ TimedRecord = GnssFix | RangeSample
 
 _BSSID_RE = re.compile(r"^[0-9a-fA-F]{2}(:[0-9a-fA-F]{2}){5}$")
 _GZIP_MAGIC = b"\x1f\x8b"
+_BOM = "\ufeff"  # a UTF-8 byte-order mark, skipped at the start of a line
 STDIN = "-"  # the path that reads standard input
 
 # Limits of the reader (docs/log-format.md, "Limits"): what a phone on a drone can
@@ -373,6 +374,8 @@ def parse_line(line: bytes | str, counts: RejectCounts) -> Record | None:
             counts.lines += 1
             counts.reject("not_utf8")
             return None
+    if line.startswith(_BOM):  # a byte-order mark (Windows editors write one): not content
+        line = line[1:]
     if not line.strip():
         return None
     counts.lines += 1

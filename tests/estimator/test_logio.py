@@ -260,6 +260,23 @@ def test_blank_lines_and_crlf_are_harmless(tmp_path: Path) -> None:
     assert log.counts.n_rejected == 0
 
 
+@pytest.mark.parametrize("gz", [False, True])
+def test_a_byte_order_mark_keeps_the_header(tmp_path: Path, gz: bool) -> None:
+    """A log saved by a Windows editor starts with a UTF-8 byte-order mark: the header
+    behind it is read (its range offset used), nothing is rejected, no warning. A BOM
+    at the start of a later line (files joined with cat) is skipped too."""
+    data = ("\ufeff" + HEADER + "\r\n" + GOOD_GNSS + "\r\n" + "\ufeff" + GOOD_RTT + "\r\n")
+    path = tmp_path / ("log.jsonl.gz" if gz else "log.jsonl")
+    raw = data.encode("utf-8")
+    path.write_bytes(gzip.compress(raw, mtime=0) if gz else raw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogWarning)
+        log = read_log(path)
+    assert log.header.agent == "uav-1" and log.header.range_offset_m == 0.25
+    assert (log.gnss, log.rtt) == ([GNSS_REC], [RTT_REC])
+    assert log.counts.n_rejected == 0 and log.counts.lines == 3
+
+
 def test_unknown_types_and_fields_are_counted(tmp_path: Path) -> None:
     lines = [
         HEADER[:-1] + ',"firmware":"1.2"}',
