@@ -265,7 +265,10 @@ def udp_listen_address(url: str) -> tuple[str, int]:
 
 class UdpRecords:
     """JSON-line datagrams from a phone app: one record per datagram (several lines in
-    one datagram are taken too); listens on ``udpin://HOST:PORT``."""
+    one datagram are taken too); listens on ``udpin://HOST:PORT``. The records are one
+    phone's: those of the first address (host) whose datagram held a valid record; the
+    datagrams of any other are counted (:attr:`other_sender`) and ignored (a second
+    phone's GNSS and clock fed as the drone's would corrupt every estimate)."""
 
     MAX_DATAGRAM = 65535
 
@@ -280,6 +283,8 @@ class UdpRecords:
             raise OSError(f"cannot listen on {url}: {exc.strerror or exc}") from None
         self.sock.setblocking(False)
         self.datagrams = 0
+        self.sender: str | None = None  # the phone's host, once it sent a valid record
+        self.other_sender = 0  # datagrams from another host: ignored
 
     @property
     def port(self) -> int:
@@ -289,16 +294,22 @@ class UdpRecords:
         out = []
         while True:
             try:
-                data = self.sock.recv(self.MAX_DATAGRAM)
+                data, addr = self.sock.recvfrom(self.MAX_DATAGRAM)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
                 break
             self.datagrams += 1
+            if self.sender is not None and addr[0] != self.sender:
+                self.other_sender += 1
+                continue
+            n = len(out)
             for line in data.split(b"\n"):
                 rec = parse_line(line, self.counts)
                 if rec is not None:
                     out.append(rec)
+            if self.sender is None and len(out) > n:
+                self.sender = addr[0]
         return out
 
     def mark(self) -> Mark | None:
@@ -458,11 +469,14 @@ class FeedStats:
     late: int = 0  # arrived after later records had been released: dropped
     lost: int = 0
     rejected: dict = field(default_factory=dict)
+    other_sender: int = 0  # datagrams of another phone than the one heard first: ignored
 
     def to_json(self) -> dict:
         d: dict = {"released": self.released, "lost": self.lost, "late": self.late}
         if self.rejected:
             d["rejected_lines"] = dict(self.rejected)
+        if self.other_sender:
+            d["other_sender"] = self.other_sender
         return d
 
 
@@ -574,6 +588,7 @@ class PhoneFeed:
             self.stats.released += len(out)
         self.stats.lost = self.source.lost
         self.stats.rejected = dict(self.source.counts.rejected)
+        self.stats.other_sender = getattr(self.source, "other_sender", 0)
         through = None
         if limit is not None and math.isfinite(limit) and (
                 self._start_ns is None or limit >= self._start_ns):

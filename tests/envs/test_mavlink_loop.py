@@ -39,6 +39,7 @@ from envs.phone import (
 from envs.vehicle.relay import RecordRelay
 from envs.vehicles import SimVehicle, VehicleState
 from estimator.logio import dumps_record, read_log
+from estimator.records import GnssFix
 from estimator.replay import ReplayOptions, replay_logs
 from planner.coverage import polyline_trajectory
 from planner.mavlink import mavutil
@@ -526,6 +527,91 @@ def test_records_from_a_phone_app_in_datagrams(tmp_path: Path) -> None:
     for r in res.responders:
         if "lat" in r:
             assert round(got[r["bssid"]].lat_deg, 8) == r["lat"]
+
+
+def _gnss_line(t_ns: int, lat: float) -> bytes:
+    return dumps_record(GnssFix(t_ns=t_ns, lat_deg=lat, lon_deg=-4.4783, alt_m=145.0,
+                                acc_m=1.0)).encode()
+
+
+def _take_until(phone: UdpRecords, feed: PhoneFeed, n: int, flight_s: float | None) -> list:
+    """The records ``feed.take(flight_s)`` releases until ``n`` datagrams arrived in all
+    (loopback delivers them all, in order)."""
+    out: list = []
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        out += feed.take(flight_s, 0.0).records
+        if phone.datagrams >= n:
+            break
+        time.sleep(0.005)
+    assert phone.datagrams == n
+    return out
+
+
+def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
+    """--phone takes what a real app sends: several CRLF lines in one datagram, a
+    byte-order mark, records out of order within the release lag; bad datagrams
+    (garbage, an oversized one, a cut line, a record of unknown type) are counted and
+    the good records all fed, in t_ns order."""
+    phone = UdpRecords(f"udpin://{LOOPBACK}:0")
+    feed = PhoneFeed(phone)
+    t0 = 5_000_000_000_000
+    sent = [_gnss_line(t0 + 300_000_000, 36.7)
+            + b"\r\n" + _gnss_line(t0 + 100_000_000, 36.7) + b"\r\n"
+            + _gnss_line(t0 + 200_000_000, 36.7) + b"\r\n",
+            b"\xef\xbb\xbf" + _gnss_line(t0, 36.7), b"\x00\xff garbage", b"x" * 65_000,
+            _gnss_line(t0 + 400_000_000, 36.7)[:-9], b'{"type":"battery","pct":80}',
+            _gnss_line(t0 + 500_000_000, 36.7)]
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for d in sent:
+                s.sendto(d, (LOOPBACK, phone.port))
+        released = _take_until(phone, feed, len(sent), None)
+        released += feed.final(t0 + 10**9, 0.0).records
+    finally:
+        feed.close()
+    assert [r.t_ns - t0 for r in released] == [0, 10**8, 2 * 10**8, 3 * 10**8, 5 * 10**8]
+    assert feed.stats.to_json() == {"released": 5, "lost": 0, "late": 0, "rejected_lines":
+                                    {"not_utf8": 1, "not_json": 2}}
+    assert dict(phone.counts.unknown_types) == {"battery": 1}
+
+
+def test_datagrams_of_a_second_phone_are_counted_and_ignored() -> None:
+    """Two phones send to the loop's port (a spare one left running): the records are
+    those of the first address heard; the other's datagrams are counted, never fed. Fed
+    as one stream, the second phone's GNSS 3000 km away was taken as the drone's, its
+    clock (4000 s ahead) became the phone's, and the first phone's records were then
+    dropped as late."""
+    phone = UdpRecords(f"udpin://{LOOPBACK}:0")
+    feed = PhoneFeed(phone)
+    a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    b.bind(("127.0.0.2", 0))  # another host on the loopback network
+    out = []
+    try:
+        a.sendto(_gnss_line(5_000_000_000_000, 36.7), (LOOPBACK, phone.port))
+        out += _take_until(phone, feed, 1, 0.0)
+        n = 1
+        for k in range(1, 100):  # 10 s at 10 Hz; the second phone from 3 s
+            a.sendto(_gnss_line(5_000_000_000_000 + k * 100_000_000, 36.7),
+                     (LOOPBACK, phone.port))
+            n += 1
+            if k >= 30:
+                b.sendto(_gnss_line(9_000_000_000_000 + k * 100_000_000, 10.0),
+                         (LOOPBACK, phone.port))
+                n += 1
+            if k % 10 == 9:
+                out += _take_until(phone, feed, n, k / 10)
+                assert feed.clock_offset_s(0.0) == pytest.approx(5000.0)
+        out += feed.final(5_000_000_000_000 + 10**10, 0.0).records
+    finally:
+        a.close()
+        b.close()
+        feed.close()
+    assert [r.t_ns for r in out] == [5_000_000_000_000 + k * 100_000_000 for k in range(100)]
+    assert {r.lat_deg for r in out} == {36.7}
+    assert feed.stats.to_json() == {"released": 100, "lost": 0, "late": 0,
+                                    "other_sender": 70}
 
 
 def test_osa_search_over_mavlink(tmp_path: Path, capsys) -> None:
