@@ -28,7 +28,7 @@ import math
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Protocol
 
 from estimator.association import AssociationConfig, AssociationStats, Associator, GeoRange
@@ -65,13 +65,17 @@ class RangeObserver(Protocol):
 
 
 def utc_epoch_s(text: str | None) -> float | None:
-    """Seconds since the epoch of an ISO 8601 time (``Z`` allowed); None if unreadable."""
+    """Seconds since the epoch of an ISO 8601 time (``Z`` allowed; without a zone it is
+    UTC, as ``start_utc`` says, never the machine's zone); None if unreadable."""
     if not text:
         return None
     try:
-        return datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+        dt = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
     except ValueError:
         return None
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=UTC)
+    return dt.timestamp()
 
 
 @dataclass
@@ -84,6 +88,7 @@ class Agent:
     associator: Associator
     start_epoch_s: float | None
     first_t_ns: int | None = None
+    start_utc: str | None = None  # as given (to name it when it is unreadable)
     offset_s: float | None = None
     last_t_s: float = -math.inf  # common time of the latest record or mark
     finished: bool = False
@@ -189,6 +194,7 @@ class OnlineEstimator:
             associator=Associator(acfg),
             start_epoch_s=utc_epoch_s(start),
             first_t_ns=first_t_ns,
+            start_utc=start,
         )
         self.agents.append(agent)
         self._by_name[name] = agent
@@ -217,9 +223,10 @@ class OnlineEstimator:
         if len(self.agents) > 1:
             for a in self.agents:
                 if a.start_epoch_s is None:
+                    why = (f"start_utc {a.start_utc!r} is not an ISO 8601 time" if a.start_utc
+                           else "no start_utc")
                     warnings.warn(
-                        f"agent {a.name}: no start_utc; assumed to start with the earliest "
-                        "agent",
+                        f"agent {a.name}: {why}; assumed to start with the earliest agent",
                         LogWarning,
                         stacklevel=3,
                     )

@@ -94,3 +94,44 @@ def test_console_script_runs(log):
                        capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == 0
     assert json.loads(r.stdout)["estimates"][0]["status"] == "converged"
+
+
+def test_a_start_utc_without_a_zone_is_utc_whatever_the_machine(capsys, tmp_path) -> None:
+    """Two drones flying together: a header's start_utc without a zone ("...T10:12:00",
+    as some apps write it) is UTC, as its name says; it was read in the machine's
+    local zone, so on a machine at UTC+9 the second drone's ranges were placed 9 h
+    before the first's and the fused estimates differed from the same logs with "Z"."""
+    import os
+    import time
+
+    a = write_flight(tmp_path / "a.jsonl", seed=3, agent="uav-1")
+    z = write_flight(tmp_path / "z.jsonl", seed=4, agent="uav-2",
+                     start_utc="2026-05-08T10:12:30Z")
+    naive = tmp_path / "naive.jsonl"
+    naive.write_text(z.read_text().replace('"2026-05-08T10:12:30Z"', '"2026-05-08T10:12:30"'))
+    old = os.environ.get("TZ")
+    os.environ["TZ"] = "JST-9"  # a POSIX zone string: no tz database needed
+    time.tzset()
+    try:
+        _, want = run_json(capsys, a, z)
+        _, got = run_json(capsys, a, naive)
+    finally:
+        if old is None:
+            del os.environ["TZ"]
+        else:
+            os.environ["TZ"] = old
+        time.tzset()
+    assert got["estimates"] == want["estimates"]
+    assert [e["status"] for e in got["estimates"]] == ["converged"]
+
+
+def test_an_unreadable_start_utc_is_named_in_the_warning(capsys, log, tmp_path) -> None:
+    """A start_utc that is not a time is not 'no start_utc': the warning quotes it."""
+    other = tmp_path / "other.jsonl"
+    other.write_text(log.read_text().replace('"agent":"uav-1"', '"agent":"uav-2"')
+                     .replace('"2026-05-08T10:12:00Z"', '"yesterday"'))
+    assert main(["replay", str(log), str(other), "--json"]) == 0
+    err = capsys.readouterr().err
+    assert "agent uav-2#1: start_utc 'yesterday' is not an ISO 8601 time; assumed to " \
+           "start with the earliest agent" in err
+    assert "no start_utc" not in err
