@@ -16,7 +16,9 @@ the order they arrived; bad lines counted with the estimator's own reader,
 :class:`PhoneFeed` puts a source's records in the order a replay of the log reads them
 (by ``t_ns``, ties in arrival order) and releases those the phone can no longer
 precede: up to the relay's mark when the source has marks (exact), else up to
-``lag_s`` behind the newest record. It also maps the phone's clock to flight time.
+``lag_s`` behind the newest record. It also maps the phone's clock to flight time,
+and, for a source without marks, goes on through a reboot of the phone (its clock
+jumping back: :meth:`PhoneFeed._retimed`).
 
 Relay layout (one record's JSON line, UTF-8, no newline, in one or more TUNNEL
 messages; every payload is at most :data:`TUNNEL_PAYLOAD_BYTES` bytes; integers
@@ -62,18 +64,26 @@ records in time order).
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import math
 import os
 import socket
 import struct
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-from estimator.logio import RejectCounts, dumps_record, parse_line
+from estimator.logio import (
+    CLOCK_JUMP_BACK_S,
+    CLOCK_JUMP_GAP_S,
+    RejectCounts,
+    dumps_record,
+    parse_line,
+)
 from estimator.records import GnssFix, LogHeader, RangeSample, TruthRecord
 
 PAYLOAD_RECORDS = 32768  # MAVLink TUNNEL payload types >= 32768: "local experiments"
@@ -92,6 +102,7 @@ _PACE = struct.Struct("<BI")  # version, time_boot_ms
 CHUNK_DATA_BYTES = TUNNEL_PAYLOAD_BYTES - _CHUNK.size  # 120
 MAX_CHUNKS = 255
 PENDING_RECORDS = 4096  # records waiting for a missing one, at most (then it is given up)
+_RECENT_RECORDS = 4096  # a record that repeats one of these is a copy, not a clock jump
 
 Record = GnssFix | RangeSample
 
@@ -470,6 +481,7 @@ class FeedStats:
     lost: int = 0
     rejected: dict = field(default_factory=dict)
     other_sender: int = 0  # datagrams of another phone than the one heard first: ignored
+    clock_jumps: int = 0  # the phone clock jumped back (a reboot): the records re-timed
 
     def to_json(self) -> dict:
         d: dict = {"released": self.released, "lost": self.lost, "late": self.late}
@@ -477,6 +489,8 @@ class FeedStats:
             d["rejected_lines"] = dict(self.rejected)
         if self.other_sender:
             d["other_sender"] = self.other_sender
+        if self.clock_jumps:
+            d["clock_jumps"] = self.clock_jumps
         return d
 
 
@@ -502,6 +516,8 @@ class PhoneFeed:
         self._released: int | None = None  # t_ns of the last record released
         self._start_ns: int | None = None
         self._offset_s: float | None = None
+        self._shift_ns = 0  # added to the phone's t_ns since its clock jumped back
+        self._recent: deque[Record] = deque(maxlen=_RECENT_RECORDS)  # as the phone sent them
         self.stats = FeedStats()
 
     def _pull(self, flight_s: float | None) -> None:
@@ -516,6 +532,12 @@ class PhoneFeed:
             if not isinstance(rec, GnssFix | RangeSample):
                 continue
             self.stats.received += 1
+            if self.source.mark() is None:
+                retimed = self._retimed(rec, flight_s)
+                if retimed is None:
+                    self.stats.late += 1
+                    continue
+                rec = retimed
             if flight_s is not None and self.source.mark() is None:
                 off = rec.t_ns * 1e-9 - flight_s
                 self._offset_s = off if self._offset_s is None else max(self._offset_s, off)
@@ -527,6 +549,26 @@ class PhoneFeed:
             heapq.heappush(self._heap, (rec.t_ns, self._n, rec))
             self._n += 1
             self._newest = rec.t_ns if self._newest is None else max(self._newest, rec.t_ns)
+
+    def _retimed(self, rec: Record, flight_s: float | None) -> Record | None:
+        """``rec`` on the feed's clock; None for a copy of a recent record (an app that
+        sends its last records again). A record older than the newest by more than
+        CLOCK_JUMP_BACK_S means the phone clock jumped back (a reboot resets it): from
+        there on the records are shifted, the first of them to its arrival (the flight
+        time it was taken at on the clock before the jump), at least CLOCK_JUMP_GAP_S
+        after the newest, as a replay of the log re-times them (docs/log-format.md)."""
+        t = rec.t_ns + self._shift_ns
+        if self._newest is not None and t < self._newest - int(CLOCK_JUMP_BACK_S * 1e9):
+            if rec in self._recent:
+                return None
+            self.stats.clock_jumps += 1
+            at = self._newest + int(CLOCK_JUMP_GAP_S * 1e9)
+            if flight_s is not None and self._offset_s is not None:
+                at = max(at, round((flight_s + self._offset_s) * 1e9))
+            self._shift_ns = at - rec.t_ns
+            t = at
+        self._recent.append(rec)
+        return rec if t == rec.t_ns else dataclasses.replace(rec, t_ns=t)
 
     def pull(self) -> None:
         """Take what the source has now (without releasing anything)."""

@@ -614,6 +614,44 @@ def test_datagrams_of_a_second_phone_are_counted_and_ignored() -> None:
                                     "other_sender": 70}
 
 
+def test_a_phone_that_reboots_mid_search_goes_on_being_fed() -> None:
+    """The phone's app sends its first 20 records again 21 s into the search, then the
+    phone reboots (its clock restarts near 40 s) and is heard again at 50 s. The
+    records after the reboot were dropped without a count (as older than the search's
+    start); now they are fed, shifted to their arrival on the clock before the jump
+    (the first is taken at the flight time 50.9 s: 5050.9 s with the 5000 s offset),
+    the jump counted; the copies are no jump: late, as copies of fed records are."""
+    phone = UdpRecords(f"udpin://{LOOPBACK}:0")
+    feed = PhoneFeed(phone)
+    t0, t1 = 5_000_000_000_000, 40_000_000_000
+    out: list = []
+    n = 0
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            def send(t_ns: int) -> None:
+                nonlocal n
+                s.sendto(_gnss_line(t_ns, 36.7), (LOOPBACK, phone.port))
+                n += 1
+
+            for k in range(200):  # flight time k / 10 s
+                send(t0 + k * 100_000_000)
+                if k % 10 == 9:
+                    out += _take_until(phone, feed, n, k / 10)
+            for k in range(20):  # the app sends its first records again
+                send(t0 + k * 100_000_000)
+            out += _take_until(phone, feed, n, 21.0)
+            for j in range(100):  # after the reboot: flight time 50 + j / 10 s
+                send(t1 + j * 100_000_000)
+                if j % 10 == 9:
+                    out += _take_until(phone, feed, n, 50.0 + j / 10)
+        out += feed.final(t0 + 70 * 10**9, 0.0).records
+    finally:
+        feed.close()
+    assert [r.t_ns for r in out] == ([t0 + k * 100_000_000 for k in range(200)]
+                                     + [t0 + 50_900_000_000 + j * 100_000_000 for j in range(100)])
+    assert feed.stats.to_json() == {"released": 300, "lost": 0, "late": 20, "clock_jumps": 1}
+
+
 def test_osa_search_over_mavlink(tmp_path: Path, capsys) -> None:
     """`osa search SCENARIO --connection URL` needs nothing else: the records come on
     the link; the report and its log's replay agree; --vehicle-log (the same records
