@@ -480,6 +480,7 @@ class FeedStats:
     late: int = 0  # arrived after later records had been released: dropped
     lost: int = 0
     rejected: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)  # unknown types and fields, counted
     other_sender: int = 0  # datagrams of another phone than the one heard first: ignored
     clock_jumps: int = 0  # the phone clock jumped back (a reboot): the records re-timed
 
@@ -487,6 +488,8 @@ class FeedStats:
         d: dict = {"released": self.released, "lost": self.lost, "late": self.late}
         if self.rejected:
             d["rejected_lines"] = dict(self.rejected)
+        if any(self.skipped.values()):
+            d["skipped"] = dict(self.skipped)
         if self.other_sender:
             d["other_sender"] = self.other_sender
         if self.clock_jumps:
@@ -630,6 +633,7 @@ class PhoneFeed:
             self.stats.released += len(out)
         self.stats.lost = self.source.lost
         self.stats.rejected = dict(self.source.counts.rejected)
+        self.stats.skipped = self.source.counts.skipped()
         self.stats.other_sender = getattr(self.source, "other_sender", 0)
         through = None
         if limit is not None and math.isfinite(limit) and (

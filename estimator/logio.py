@@ -137,6 +137,11 @@ class RejectCounts:
     def n_rejected(self) -> int:
         return sum(self.rejected.values())
 
+    def skipped(self) -> dict[str, int]:
+        """The forward-compatible content counted (a report's ``skipped`` entry)."""
+        return {"unknown_types": sum(self.unknown_types.values()),
+                "lines_with_unknown_fields": self.unknown_fields}
+
 
 class _Reject(Exception):  # noqa: N818 - internal control flow, not an error type
     def __init__(self, reason: str) -> None:

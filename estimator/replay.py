@@ -174,10 +174,7 @@ class ReplayReport:
             "estimates": [t.to_json() for t in self.tracks],
             "rejected_lines": dict(sorted(self.rejected.rejected.items())),
             "logs": self.n_logs,
-            "skipped": {
-                "unknown_types": sum(self.rejected.unknown_types.values()),
-                "lines_with_unknown_fields": self.rejected.unknown_fields,
-            },
+            "skipped": self.rejected.skipped(),
             "association": {
                 "rtt": sum(a.rtt.values()),
                 "ok": sum(a.ok.values()),

@@ -551,8 +551,9 @@ def _take_until(phone: UdpRecords, feed: PhoneFeed, n: int, flight_s: float | No
 def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
     """--phone takes what a real app sends: several CRLF lines in one datagram, a
     byte-order mark, records out of order within the release lag; bad datagrams
-    (garbage, an oversized one, a cut line, a record of unknown type) are counted and
-    the good records all fed, in t_ns order."""
+    (garbage, an oversized one, a cut line) are counted, as are a record of unknown
+    type (skipped) and a field unknown (ignored), which the report did not show; the
+    good records are all fed, in t_ns order."""
     phone = UdpRecords(f"udpin://{LOOPBACK}:0")
     feed = PhoneFeed(phone)
     t0 = 5_000_000_000_000
@@ -561,7 +562,7 @@ def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
             + _gnss_line(t0 + 200_000_000, 36.7) + b"\r\n",
             b"\xef\xbb\xbf" + _gnss_line(t0, 36.7), b"\x00\xff garbage", b"x" * 65_000,
             _gnss_line(t0 + 400_000_000, 36.7)[:-9], b'{"type":"battery","pct":80}',
-            _gnss_line(t0 + 500_000_000, 36.7)]
+            _gnss_line(t0 + 500_000_000, 36.7)[:-1] + b',"speed_mps":3.5}']
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             for d in sent:
@@ -571,8 +572,9 @@ def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
     finally:
         feed.close()
     assert [r.t_ns - t0 for r in released] == [0, 10**8, 2 * 10**8, 3 * 10**8, 5 * 10**8]
-    assert feed.stats.to_json() == {"released": 5, "lost": 0, "late": 0, "rejected_lines":
-                                    {"not_utf8": 1, "not_json": 2}}
+    assert feed.stats.to_json() == {
+        "released": 5, "lost": 0, "late": 0, "rejected_lines": {"not_utf8": 1, "not_json": 2},
+        "skipped": {"unknown_types": 1, "lines_with_unknown_fields": 1}}
     assert dict(phone.counts.unknown_types) == {"battery": 1}
 
 
