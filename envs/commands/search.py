@@ -263,9 +263,25 @@ def summary(result) -> str:
     rows = [(r["bssid"], r.get("concealment", "-"), t(r.get("detected_at_s")),
              t(r.get("localised_at_s")), r["status"], m(r.get("sigma_h_m")),
              m(r.get("err_h_m"))) for r in result.responders]
+    phone = getattr(result, "phone", None)
     return "\n".join([
         f"{result.scenario}, seed {result.seed}: {result.policy} ({result.mode}) ended "
         f"{result.ended} after {result.flight_time_s / 60:.1f} min, "
         f"{result.path_length_m / 1000:.2f} km, {result.replans} re-plans",
+        *([phone_line(phone)] if phone is not None else []),
         *text_table(SUMMARY_COLUMNS, rows, indent="  "),
     ])
+
+
+def phone_line(phone: dict) -> str:
+    """The record path's counts (the report's ``phone`` entry) in one line: what a
+    network lost or a phone app sent wrong is seen without --json."""
+    what = [f"{phone.get('released', 0)} records fed", f"{phone.get('late', 0)} late",
+            f"{phone.get('lost', 0)} lost"]
+    if rejected := phone.get("rejected_lines"):
+        what.append("rejected lines " + ", ".join(f"{k}={v}" for k, v in rejected.items()))
+    if n := phone.get("other_sender"):
+        what.append(f"{n} datagram{'s' * (n != 1)} of another phone ignored")
+    if n := phone.get("clock_jumps"):
+        what.append(f"{n} clock jump{'s' * (n != 1)} (a reboot)")
+    return f"  phone ({phone.get('source', '?')}): " + ", ".join(what)

@@ -502,6 +502,7 @@ def test_records_from_a_phone_app_in_datagrams(tmp_path: Path) -> None:
     same estimates as a replay of the loop's log; bad datagrams counted. The phone's
     clock is bounded from the arrivals, so a detection is never placed before the
     flight nor after the time it was taken (only late by the app's latency)."""
+    from envs.commands.search import summary
     from envs.policies import load_policy
 
     phone = UdpRecords(f"udpin://{LOOPBACK}:0")
@@ -520,6 +521,10 @@ def test_records_from_a_phone_app_in_datagrams(tmp_path: Path) -> None:
     assert res.ended == "budget" and res.flight_time_s == pytest.approx(120.0)
     assert res.phone["source"] == "phone" and res.phone["released"] > 500
     assert res.phone["rejected_lines"] == {"not_json": 1}
+    ph = res.phone
+    assert summary(res).splitlines()[1] == (
+        f"  phone (phone): {ph['released']} records fed, {ph['late']} late, {ph['lost']} lost, "
+        "rejected lines not_json=1")
     heard = [r for r in res.responders if "detected_at_s" in r]
     assert heard and all(0.0 <= r["detected_at_s"] <= 120.0 for r in heard)
     rep = replay_logs([str(tmp_path / "flight.jsonl")], ReplayOptions(modes=(res.mode,)))
@@ -614,6 +619,25 @@ def test_datagrams_of_a_second_phone_are_counted_and_ignored() -> None:
     assert {r.lat_deg for r in out} == {36.7}
     assert feed.stats.to_json() == {"released": 100, "lost": 0, "late": 0,
                                     "other_sender": 70}
+
+
+def test_the_search_summary_tells_the_phone_counts() -> None:
+    """Without --json the summary said nothing of the record path: a phone app's
+    rejected lines, a second phone ignored or records lost were seen only in the JSON."""
+    from types import SimpleNamespace
+
+    from envs.commands.search import summary
+
+    res = SimpleNamespace(
+        scenario="s", seed=0, policy="lawnmower", mode="refined", ended="budget",
+        flight_time_s=120.0, path_length_m=900.0, replans=0, responders=[],
+        phone={"released": 812, "lost": 2, "late": 3, "rejected_lines": {"not_json": 1},
+               "other_sender": 70, "clock_jumps": 1, "source": "phone"})
+    assert summary(res).splitlines()[1] == (
+        "  phone (phone): 812 records fed, 3 late, 2 lost, rejected lines not_json=1, "
+        "70 datagrams of another phone ignored, 1 clock jump (a reboot)")
+    res.phone = None  # in process: no record path
+    assert "phone" not in summary(res)
 
 
 def test_a_phone_that_reboots_mid_search_goes_on_being_fed() -> None:
