@@ -319,6 +319,11 @@ class Solution:
         return (1.0 - f) * B[r0 + j] + f * B[r0 + j + 1]
 
 
+# the normal equations' Jacobian is built in row blocks of at most this many bytes: a
+# log of hours holds ~1e6 ranges and ~100 GNSS-bias knots (dense: 3 GB)
+NORMAL_BLOCK_BYTES = 32 << 20
+
+
 class _Problem:
     """Residuals and Jacobians of one data set under fixed per-agent scales."""
 
@@ -340,18 +345,22 @@ class _Problem:
         e = (r + theta[self.bcol] - d.d) * self.inv_sig
         return e, diff, r
 
-    def jacobian(self, diff: np.ndarray, r: np.ndarray) -> np.ndarray:
+    def jacobian(self, diff: np.ndarray, r: np.ndarray, rows: slice = slice(None)
+                 ) -> np.ndarray:
+        """The whitened Jacobian's ``rows`` (default: all), dense."""
         lay = self.lay
-        Hs = jacobian_rows(diff, r, scale=self.inv_sig)  # eq. (14)'s rows, whitened
-        J = np.zeros((self.data.n, lay.dim))
+        inv = self.inv_sig[rows]
+        Hs = jacobian_rows(diff[rows], r[rows], scale=inv)  # eq. (14)'s rows, whitened
+        idx = self.rows[: Hs.shape[0]]
+        J = np.zeros((Hs.shape[0], lay.dim))
         J[:, :3] = Hs
-        J[self.rows, self.bcol] = self.inv_sig
-        rows = self.rows[:, None]
+        J[idx, self.bcol[rows]] = inv
+        ii = idx[:, None]
         if lay.single_knot:
-            J[rows, lay.cols0] = Hs
+            J[ii, lay.cols0[rows]] = Hs
         else:
-            J[rows, lay.cols0] = Hs * lay.w0[:, None]
-            J[rows, lay.cols1] += Hs * lay.w1[:, None]
+            J[ii, lay.cols0[rows]] = Hs * lay.w0[rows, None]
+            J[ii, lay.cols1[rows]] += Hs * lay.w1[rows, None]
         return J
 
     def objective(self, theta: np.ndarray, e: np.ndarray) -> float:
@@ -360,12 +369,24 @@ class _Problem:
         return 0.5 * c * c * float(np.log1p((e / c) ** 2).sum()) + 0.5 * float(rp @ rp)
 
     def normal(self, theta, e, diff, r):
-        J = self.jacobian(diff, r)
+        """The IRLS normal equations (N, g), the Jacobian built in row blocks of at most
+        NORMAL_BLOCK_BYTES (a log of ordinary length is one block)."""
         w = 1.0 / (1.0 + (e / self.c) ** 2)
         Jp = self.lay.prior_jac
         rp = Jp @ theta - self.lay.prior_y
-        Jw = J * w[:, None]
-        return Jw.T @ J + Jp.T @ Jp, Jw.T @ e + Jp.T @ rp
+        n, dim = self.data.n, self.lay.dim
+        step = max(1, NORMAL_BLOCK_BYTES // (16 * dim))  # J and J * w
+        N, g = np.zeros((dim, dim)), np.zeros(dim)
+        for i in range(0, max(n, 1), step):
+            rows = slice(i, i + step)
+            J = self.jacobian(diff, r, rows)
+            Jw = J * w[rows, None]
+            if i == 0:
+                N, g = Jw.T @ J, Jw.T @ e[rows]
+            else:
+                N += Jw.T @ J
+                g += Jw.T @ e[rows]
+        return N + Jp.T @ Jp, g + Jp.T @ rp
 
     def minimise(self, theta: np.ndarray, max_iter: int, *,
                  stop_near: tuple[np.ndarray, float] | None = None,

@@ -197,3 +197,39 @@ def test_straight_pass_has_two_equal_minima():
     ys = sorted(m.solution.theta[1] for m in minima)
     assert ys[0] + ys[1] == pytest.approx(60.0, abs=1e-3)  # mirror images about y = 30
     assert ys[0] == pytest.approx(12.0, abs=1.5)  # the truth, up to the z / b trade-off
+
+
+def test_normal_equations_of_a_long_log_are_built_in_bounded_memory(monkeypatch):
+    """A long log (20k ranges over 8 h: 97 GNSS-bias knots, 295 parameters): the
+    normal equations were built from the whole dense Jacobian (20k x 295, twice:
+    94 MB; over 3 GB for a 1e6-record replay in mode refined); now in row blocks of at most
+    NORMAL_BLOCK_BYTES, equal to the one-block sum to rounding."""
+    import tracemalloc
+
+    import estimator.batch as batch
+
+    rng = np.random.default_rng(7)
+    n = 20_000
+    t = np.sort(rng.uniform(0.0, 8 * 3600.0, n))
+    a = 2 * np.pi * t / 60.0
+    u = np.column_stack((50 * np.cos(a), 50 * np.sin(a), 1.0 + 0 * a))
+    d = np.linalg.norm(u - AP, axis=1) + rng.normal(0, 0.5, n)
+    data = buffer_of(u, d, t=t).view()
+    lay = make_layout(data)
+    assert lay.dim == 295
+    prob = _Problem(data, lay, np.array([1.0]), BatchConfig())
+    theta = np.zeros(lay.dim)
+    theta[:3] = AP + 1.0
+    e, diff, r = prob.residuals(theta)
+    monkeypatch.setattr(batch, "NORMAL_BLOCK_BYTES", 1 << 40)  # one block: the reference
+    N1, g1 = prob.normal(theta, e, diff, r)
+    monkeypatch.setattr(batch, "NORMAL_BLOCK_BYTES", 4 << 20)
+    tracemalloc.start()
+    try:
+        N, g = prob.normal(theta, e, diff, r)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_allclose(N, N1, rtol=1e-10, atol=1e-9 * np.abs(N1).max())
+    np.testing.assert_allclose(g, g1, rtol=1e-10, atol=1e-9 * np.abs(g1).max())
+    assert peak < 20e6, f"peak {peak / 1e6:.0f} MB"
