@@ -80,6 +80,7 @@ from typing import Protocol
 from estimator.logio import (
     CLOCK_JUMP_BACK_S,
     CLOCK_JUMP_GAP_S,
+    LogError,
     RejectCounts,
     dumps_record,
     parse_line,
@@ -192,6 +193,17 @@ class Mark:
 # ----------------------------------------------------------------------------- sources
 
 
+def parse_record(line: bytes, counts: RejectCounts) -> LogHeader | Record | TruthRecord | None:
+    """:func:`estimator.logio.parse_line` for a live stream: a header the log reader would
+    refuse (another format, a newer major version) is counted (``refused_header``) and
+    skipped; one bad datagram never stops the search."""
+    try:
+        return parse_line(line, counts)
+    except LogError:
+        counts.reject("refused_header")
+        return None
+
+
 class RecordSource(Protocol):
     """The phone's records, whatever carries them (see the module docstring)."""
 
@@ -238,7 +250,7 @@ class FileRecords:
         self._buf = lines.pop()
         out = []
         for line in lines:
-            rec = parse_line(line, self.counts)
+            rec = parse_record(line, self.counts)
             if rec is not None:
                 out.append(rec)
         return out
@@ -316,7 +328,7 @@ class UdpRecords:
                 continue
             n = len(out)
             for line in data.split(b"\n"):
-                rec = parse_line(line, self.counts)
+                rec = parse_record(line, self.counts)
                 if rec is not None:
                     out.append(rec)
             if self.sender is None and len(out) > n:
@@ -440,7 +452,7 @@ class TunnelRecords:
                     continue
                 break
             self._next += 1
-            rec = parse_line(line, self.counts)
+            rec = parse_record(line, self.counts)
             if rec is not None:
                 out.append(rec)
         return out

@@ -556,9 +556,10 @@ def _take_until(phone: UdpRecords, feed: PhoneFeed, n: int, flight_s: float | No
 def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
     """--phone takes what a real app sends: several CRLF lines in one datagram, a
     byte-order mark, records out of order within the release lag; bad datagrams
-    (garbage, an oversized one, a cut line) are counted, as are a record of unknown
-    type (skipped) and a field unknown (ignored), which the report did not show; the
-    good records are all fed, in t_ns order."""
+    (garbage, an oversized one, a cut line, a header of a newer version or of another
+    format, which stopped the search with a LogError) are counted, as are a record of
+    unknown type (skipped) and a field unknown (ignored), which the report did not
+    show; the good records are all fed, in t_ns order."""
     phone = UdpRecords(f"udpin://{LOOPBACK}:0")
     feed = PhoneFeed(phone)
     t0 = 5_000_000_000_000
@@ -567,6 +568,7 @@ def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
             + _gnss_line(t0 + 200_000_000, 36.7) + b"\r\n",
             b"\xef\xbb\xbf" + _gnss_line(t0, 36.7), b"\x00\xff garbage", b"x" * 65_000,
             _gnss_line(t0 + 400_000_000, 36.7)[:-9], b'{"type":"battery","pct":80}',
+            b'{"type":"header","format":"osa-log","version":2}', b'{"type":"header","format":"x"}',
             _gnss_line(t0 + 500_000_000, 36.7)[:-1] + b',"speed_mps":3.5}']
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -578,7 +580,8 @@ def test_datagrams_of_a_phone_app_malformed_batched_and_out_of_order() -> None:
         feed.close()
     assert [r.t_ns - t0 for r in released] == [0, 10**8, 2 * 10**8, 3 * 10**8, 5 * 10**8]
     assert feed.stats.to_json() == {
-        "released": 5, "lost": 0, "late": 0, "rejected_lines": {"not_utf8": 1, "not_json": 2},
+        "released": 5, "lost": 0, "late": 0,
+        "rejected_lines": {"not_utf8": 1, "not_json": 2, "refused_header": 2},
         "skipped": {"unknown_types": 1, "lines_with_unknown_fields": 1}}
     assert dict(phone.counts.unknown_types) == {"battery": 1}
 
