@@ -38,6 +38,7 @@ probability circle of a 2 x 2 covariance (``r95_h_m``).
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -104,18 +105,19 @@ class BatchConfig:
 
 
 class RangeBuffer:
-    """Every gated range of one responder (columns grow as lists; arrays on demand)."""
+    """Every gated range of one responder (columns grow as packed C arrays, 88 bytes a
+    range: a log of hours holds ~1e6; numpy arrays on demand)."""
 
     def __init__(self) -> None:
         self.n = 0
-        self._t: list[float] = []
-        self._u: list[Sequence[float]] = []
-        self._d: list[float] = []
-        self._var_e: list[float] = []  # sigma_E^2 (eq. 23)
-        self._ground: list[float] = []  # z_d - H_AGL
-        self._agent: list[int] = []
-        self._acc: list[float] = []
-        self._vacc: list[float] = []  # nan if not logged
+        self._t = array("d")
+        self._u = array("d")  # x, y, z of each anchor
+        self._d = array("d")
+        self._var_e = array("d")  # sigma_E^2 (eq. 23)
+        self._ground = array("d")  # z_d - H_AGL
+        self._agent = array("q")
+        self._acc = array("d")
+        self._vacc = array("d")  # nan if not logged
         self.agents: list[str] = []
         self._index: dict[str, int] = {}
         self._fixes: list[dict] = []  # per agent: fix type -> count
@@ -130,7 +132,7 @@ class RangeBuffer:
             self.agents.append(agent)
             self._fixes.append({})
         self._t.append(t_s)
-        self._u.append(anchor)
+        self._u.extend(anchor[:3])
         self._d.append(range_m)
         self._var_e.append(var_e_m2)
         self._ground.append(anchor[2] - agl_m)
