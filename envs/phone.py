@@ -71,7 +71,7 @@ import os
 import socket
 import struct
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -104,6 +104,7 @@ CHUNK_DATA_BYTES = TUNNEL_PAYLOAD_BYTES - _CHUNK.size  # 120
 MAX_CHUNKS = 255
 PENDING_RECORDS = 4096  # records waiting for a missing one, at most (then it is given up)
 _RECENT_RECORDS = 4096  # a record that repeats one of these is a copy, not a clock jump
+_EARLIEST_RECORDS = 256  # nor one that repeats one of the first records
 
 Record = GnssFix | RangeSample
 
@@ -533,6 +534,9 @@ class PhoneFeed:
         self._offset_s: float | None = None
         self._shift_ns = 0  # added to the phone's t_ns since its clock jumped back
         self._recent: deque[Record] = deque(maxlen=_RECENT_RECORDS)  # as the phone sent them
+        self._recent_n: Counter[Record] = Counter()  # the same, to look a record up at once
+        self._earliest: set[Record] = set()  # the first records (a log sent again from its start)
+        self._copy_at: int | None = None  # reading copies of earlier records: the latest
         self.stats = FeedStats()
 
     def _pull(self, flight_s: float | None) -> None:
@@ -566,15 +570,23 @@ class PhoneFeed:
             self._newest = rec.t_ns if self._newest is None else max(self._newest, rec.t_ns)
 
     def _retimed(self, rec: Record, flight_s: float | None) -> Record | None:
-        """``rec`` on the feed's clock; None for a copy of a recent record (an app that
-        sends its last records again). A record older than the newest by more than
+        """``rec`` on the feed's clock; None for a copy of earlier records (an app that
+        sends its records again). A record older than the newest by more than
         CLOCK_JUMP_BACK_S means the phone clock jumped back (a reboot resets it): from
         there on the records are shifted, the first of them to its arrival (the flight
         time it was taken at on the clock before the jump), at least CLOCK_JUMP_GAP_S
-        after the newest, as a replay of the log re-times them (docs/log-format.md)."""
+        after the newest; unless it repeats one of the recent or the first records: a
+        copy, and so are the records after it up to the newest while they go on in time
+        (as a replay of the log tells copies from jumps, docs/log-format.md)."""
+        back_ns = int(CLOCK_JUMP_BACK_S * 1e9)
         t = rec.t_ns + self._shift_ns
-        if self._newest is not None and t < self._newest - int(CLOCK_JUMP_BACK_S * 1e9):
-            if rec in self._recent:
+        if self._newest is not None and t < self._newest - back_ns:
+            if self._copy_at is not None and t < self._copy_at - back_ns:
+                self._copy_at = None  # far before the copy going on: not part of it
+            if self._copy_at is None and (rec in self._recent_n or rec in self._earliest):
+                self._copy_at = t
+            if self._copy_at is not None:
+                self._copy_at = max(self._copy_at, t)
                 return None
             self.stats.clock_jumps += 1
             at = self._newest + int(CLOCK_JUMP_GAP_S * 1e9)
@@ -582,7 +594,16 @@ class PhoneFeed:
                 at = max(at, round((flight_s + self._offset_s) * 1e9))
             self._shift_ns = at - rec.t_ns
             t = at
+        self._copy_at = None
+        if len(self._earliest) < _EARLIEST_RECORDS:
+            self._earliest.add(rec)
+        if len(self._recent) == self._recent.maxlen:
+            old = self._recent[0]
+            self._recent_n[old] -= 1
+            if not self._recent_n[old]:
+                del self._recent_n[old]
         self._recent.append(rec)
+        self._recent_n[rec] += 1
         return rec if t == rec.t_ns else dataclasses.replace(rec, t_ns=t)
 
     def pull(self) -> None:
