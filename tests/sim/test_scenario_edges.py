@@ -52,12 +52,68 @@ def write(tmp_path, text: str, name: str = "edge.toml"):
             'start_n_m = -240.0\n',
      "agents[1]: b's start (60, -240) is inside keep-out keepout[0]"),
 ])
+
 def test_a_bad_value_is_one_line_naming_the_file_and_the_key(tmp_path, text, message):
     p = write(tmp_path, text)
     with pytest.raises(ScenarioError) as exc:
         load_scenario(p)
     msg = str(exc.value)
     assert msg.startswith(f"{p}: ") and message in msg and "\n" not in msg, msg
+
+
+GRID = '\n[world.terrain]\nkind = "grid"\ne0_m = -300\nn0_m = -300\nspacing_m = 300\n'
+RESPONDER = '\n[[world.responders]]\nname = "x"\nbssid = "a4:77:33:0f:aa:01"\ne_m = 0\nn_m = 0\n'
+
+
+# each was a traceback (TypeError, ValueError: "internal error" at the command line) or,
+# for the huge values, a crash mid-search (a height or range of 1e300 overflowing)
+@pytest.mark.parametrize("text, message", [
+    ('gnss = "rtk"\n' + BASE, "gnss: expected a table, got str"),
+    (BASE + '\n[gnss]\npreset = ["rtk"]\n', "gnss.preset: ['rtk'] is not one of standalone, rtk"),
+    (BASE + '\n[[agents]]\nname = "a"\ngnss = 5\n', "agents[0].gnss: expected a table, got int"),
+    (BASE + '\n[[agents]]\nname = "a"\ngnss = {preset = ["rtk"]}\n',
+     "agents[0].gnss.preset: ['rtk'] is not one of standalone, rtk"),
+    (BASE + '\n[world]\nterrain = "hills"\n', "world.terrain: expected a table, got str"),
+    (BASE + '\n[flight]\nkind = ["pass"]\n',
+     "flight.kind: ['pass'] is not one of sweeps, pass, waypoints"),
+    (BASE + GRID + 'file = 5\n', "world.terrain.file: expected a file name"),
+    (BASE + GRID + 'heights_m = [[1.0, 2.0], [true, 0.0]]\n',
+     "world.terrain.heights_m: expected rows of numbers"),
+    (BASE + GRID + 'heights_m = [[1.0, 2.0], [1e300, 0.0]]\n',
+     "world.terrain.heights_m: terrain grid holds a height beyond 20000 m"),
+    (BASE + GRID.replace("spacing_m = 300", "spacing_m = 1e300") + 'heights_m = [[1, 2], [3, 4]]\n',
+     "spacing_m 1e+300 m is beyond 20000 m"),
+    (BASE + GRID.replace("e0_m = -300", "e0_m = -1e300") + 'heights_m = [[1, 2], [3, 4]]\n',
+     "e0_m -1e+300 m is beyond 20000 m"),
+    (BASE + '\n[world.terrain]\nhills = [{e_m = 0, n_m = 0, height_m = 1e300, sigma_m = 10}]\n',
+     "world.terrain.hills[0]: hill height_m 1e+300 m is beyond 20000 m"),
+    (BASE + '\n[world.terrain]\nbase_m = -25000.0\n', "base_m -25000 m is beyond 20000 m"),
+    (BASE + '\n[[search.keepout]]\npolygon_enu_m = [["a", "b"], [10, 0], [10, 10]]\n',
+     "search.keepout[0].polygon_enu_m: expected an array of [e, n] pairs of numbers"),
+    (BASE + '\n[[search.keepout]]\npolygon_enu_m = [[true, 0], [10, 0], [10, 10]]\n',
+     "search.keepout[0].polygon_enu_m: expected an array of [e, n] pairs of numbers"),
+    (BASE + RESPONDER + 'antenna_height_m = 1e300\n',
+     "responder x antenna_height_m 1e+300 m is beyond 1000 m"),
+    (BASE + RESPONDER + 'range_offset_m = 1e300\n',
+     "responder x range_offset_m 1e+300 m is beyond 20000 m"),
+    (BASE + '\n[ftm]\noffset_max_m = 1e300\n', "ftm: offset_max_m 1e+300 m is beyond 20000 m"),
+    (BASE + '\n[[agents]]\nname = "a"\n[[agents]]\nname = "g"\nkind = "ground"\n'
+            'vehicle = {ground_height_m = 1e300}\n',
+     "agents[1].vehicle: ground_height_m 1e+300 m is beyond 1000 m"),
+])
+def test_a_mistyped_or_impossible_value_is_one_line_too(tmp_path, text, message):
+    test_a_bad_value_is_one_line_naming_the_file_and_the_key(tmp_path, text, message)
+
+
+def test_the_bounds_themselves_are_accepted(tmp_path):
+    """The largest accepted values load (and keep their numbers)."""
+    text = (BASE + GRID + 'heights_m = [[1.0, 2.0], [20000.0, 0.0]]\n' + RESPONDER
+            + 'antenna_height_m = 1000.0\nrange_offset_m = -20000.0\n')
+    sc = load_scenario(write(tmp_path, text))
+    r = sc.world.responders[0]
+    assert (r.antenna_height_m, r.range_offset_m) == (1000.0, -20000.0)
+    # bilinear between (-300, -300) 1, (0, -300) 2, (-300, 0) 20000 and (0, 0) 0: the middle
+    assert sc.world.ground_m(-150.0, -150.0) == pytest.approx((1 + 2 + 20000 + 0) / 4)
 
 
 def test_an_unknown_search_key_lists_the_file_names_of_the_keys(tmp_path):
