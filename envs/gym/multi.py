@@ -22,6 +22,7 @@ from envs.gym.base import (
     env_settings,
     loop_eval,
     outside_area,
+    warn_unobserved,
 )
 from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop
@@ -109,6 +110,7 @@ class SearchParallelEnv(ParallelEnv):
             coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
             leave_penalty=leave_penalty)
         sc = search_scenario(scenario)
+        warn_unobserved(sc, max_responders)
         if len(sc.agents) == 1:
             sc = with_agents(sc, uavs, ground)
         self.scenario = sc

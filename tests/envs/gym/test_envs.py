@@ -132,6 +132,33 @@ def test_world_seed_option_and_seed_split():
         gymnasium.make("osa/Search-v0", seed_split="holdout")
 
 
+
+def test_a_world_seed_is_a_seed_as_every_command_takes_it():
+    """``options={"world_seed": N}``: 0 .. 2^63 - 1 (a NumPy integer too); before, 2.7
+    flew world 2, "3" world 3, True world 1, and 2^63 a world no command can fly."""
+    env = gymnasium.make("osa/Waypoint-v0", scenario=short())
+    _, a = env.reset(options={"world_seed": np.int64(7)})
+    _, b = env.reset(options={"world_seed": 7})
+    assert a["world_seed"] == b["world_seed"] == 7 and type(a["world_seed"]) is int
+    assert sorted(a["eval"]) == sorted(b["eval"])  # the same responders drawn
+    _, c = env.reset(options={"world_seed": 2**63 - 1})
+    assert c["world_seed"] == 2**63 - 1
+    for bad in (2.7, "3", True, -1, 2**63):
+        with pytest.raises(ValueError, match="a seed is an integer"):
+            env.reset(options={"world_seed": bad})
+
+
+def test_more_responders_than_observation_slots_is_said():
+    """Ten responders, three slots: a warning when the env is made (none for one
+    responder); the episode still ends on every responder, not the observed three."""
+    with pytest.warns(UserWarning, match="has 10 responders and the observation 3 responder "
+                                         "slots .* after the first 3 are not observed"):
+        gymnasium.make("osa/Waypoint-v0", scenario="suite/r10-c0-rtk-u1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gymnasium.make("osa/Waypoint-v0", scenario=short(), max_responders=1)
+        gymnasium.make("osa/Search-v3", scenario="suite/r5-c0-rtk-u1")  # 5 slots
+
 @pytest.mark.parametrize("mode", ["sync", "async"])
 def test_gymnasium_vector_envs(mode):
     sc = short()
