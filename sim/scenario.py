@@ -846,6 +846,7 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
         if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
             raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "
                               "true): with it off the terrain hides nothing")
+        _check_randomised_wind(scenario)
         if search is not None:
             _check_search_height(scenario)
             _check_agent_starts(scenario)
@@ -895,6 +896,22 @@ def _check_search_height(scenario: Scenario) -> None:
             f"{HEIGHT_SIGMAS:g} sigmas of the vertical GNSS error the autopilot flies on "
             "(gnss.bias_sigma_v_m, times the largest randomise.gnss_bias_scale): fly higher "
             "or use preset = \"rtk\"")
+
+
+def _check_randomised_wind(scenario: Scenario) -> None:
+    """Refuse a ``[randomise] wind_mps`` range reaching an agent's ``max_speed_mps``:
+    a world drawing such a wind would be one its vehicle cannot fly (ConfigError)."""
+    r = scenario.randomise
+    if r is None or r.wind_mps is None:
+        return
+    vehicles = [("vehicle", scenario.vehicle)] + [(f"agent {a.name}'s", a.vehicle)
+                                                  for a in scenario.agents]
+    for who, v in vehicles:
+        if r.wind_mps[1] >= v.max_speed_mps:
+            raise ConfigError(
+                f"randomise.wind_mps: up to {r.wind_mps[1]:g} m/s, at or above {who} "
+                f"max_speed_mps {v.max_speed_mps:g} m/s (no headway against it): lower the "
+                "range")
 
 
 def _check_agent_starts(scenario: Scenario) -> None:

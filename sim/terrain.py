@@ -33,6 +33,7 @@ MAX_EXTENT_M = 20_000.0  # a search area, not a country: farther points are inpu
 # the ground of the Earth spans some -11 km (ocean trenches) to 9 km: no height of a
 # terrain above or below the origin's is larger (a larger one is an input error)
 MAX_RELIEF_M = 20_000.0
+MIN_HILL_SIGMA_M = 0.1  # a narrower Gaussian hill is a typo, not terrain
 
 
 def check_relief(name: str, value: float) -> None:
@@ -99,6 +100,8 @@ class Hill:
         check_finite("hill n_m", self.n_m)
         check_relief("hill height_m", self.height_m)
         check_positive("hill sigma_m", self.sigma_m)
+        if self.sigma_m < MIN_HILL_SIGMA_M:  # sigma^2 underflowed to 0 (a division by it)
+            raise ValueError(f"hill sigma_m {self.sigma_m:g} m is below {MIN_HILL_SIGMA_M:g} m")
 
 
 # A hillside some 40 m of relief across ~600 m, like the UMA campus slopes

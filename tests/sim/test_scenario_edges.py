@@ -100,6 +100,15 @@ RESPONDER = '\n[[world.responders]]\nname = "x"\nbssid = "a4:77:33:0f:aa:01"\ne_
     (BASE + '\n[[agents]]\nname = "a"\n[[agents]]\nname = "g"\nkind = "ground"\n'
             'vehicle = {ground_height_m = 1e300}\n',
      "agents[1].vehicle: ground_height_m 1e+300 m is beyond 1000 m"),
+    # a sigma^2 that underflows to 0: a ZeroDivisionError placing the responders
+    (BASE + '\n[world.terrain]\nhills = [{e_m = 0, n_m = 0, height_m = 10, sigma_m = 1e-200}]\n',
+     "world.terrain.hills[0]: hill sigma_m 1e-200 m is below 0.1 m"),
+    # loaded, then world seed 3 drew 6.6 m/s and crashed (osa search, the envs' reset)
+    (BASE + '\n[vehicle]\nmax_speed_mps = 6.0\n[randomise]\nwind_mps = [0.0, 10.0]\n',
+     "randomise.wind_mps: up to 10 m/s, at or above vehicle max_speed_mps 6 m/s"),
+    (BASE + '\n[randomise]\nwind_mps = [0.0, 2.0]\n[[agents]]\nname = "a"\n[[agents]]\n'
+            'name = "g"\nkind = "ground"\n',
+     "randomise.wind_mps: up to 2 m/s, at or above agent g's max_speed_mps 1.4 m/s"),
 ])
 def test_a_mistyped_or_impossible_value_is_one_line_too(tmp_path, text, message):
     test_a_bad_value_is_one_line_naming_the_file_and_the_key(tmp_path, text, message)
