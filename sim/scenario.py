@@ -762,9 +762,13 @@ def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[Agen
         name = t.pop("name", None)
         if not isinstance(name, str) or not name:
             raise ConfigError(f"{where}.name: expected a non-empty string")
-        if name in names:
-            raise ConfigError(f"{where}.name: {name!r} is used twice")
-        names.add(name)
+        if name.casefold() in names:  # letter case aside: the logs' files would clash
+            raise ConfigError(f"{where}.name: {name!r} is used twice (letter case aside)")
+        if any(c in "/\\" or not c.isprintable() for c in name):
+            raise ConfigError(f"{where}.name: {name!r} cannot be part of a file name (osa "
+                              "search writes flight-NAME.jsonl): no '/', '\\' or control "
+                              "characters")
+        names.add(name.casefold())
         rest = from_table(_AgentStart, t, where)
         try:
             out.append(AgentSpec(name=name, kind=kind, vehicle=veh, gnss=gn,
