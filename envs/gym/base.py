@@ -159,7 +159,7 @@ class SearchEnvBase(gym.Env):
         changes["outside"] = self.pilot.area_penalty() + outside_area(loop, self._obs, 0)
         reward = self._compute_reward(changes)
         terminated = self.pilot.done(self._obs)
-        truncated = not terminated and loop.t_s >= loop.mission.budget_s - 1e-9
+        truncated = not terminated and loop.budget_spent
         if self.render_mode == "human":
             self.render()
         return enc, reward, terminated, truncated, self._info()

@@ -181,7 +181,7 @@ class SearchParallelEnv(ParallelEnv):
                 + (self.pilots[name].area_penalty() if name in actions else 0.0))
             rewards[name] = float(team + own)
         done = self.pilots[self.possible_agents[0]].done(self._obs)
-        out_of_time = not done and loop.t_s >= loop.mission.budget_s - 1e-9
+        out_of_time = not done and loop.budget_spent
         terms = {a: done for a in self.agents}
         truncs = {a: out_of_time for a in self.agents}
         infos = {a: self._info() for a in self.agents}

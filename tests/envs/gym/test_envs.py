@@ -148,6 +148,21 @@ def test_a_world_seed_is_a_seed_as_every_command_takes_it():
             env.reset(options={"world_seed": bad})
 
 
+@pytest.mark.parametrize("env_id", IDS)
+def test_an_episode_ends_at_a_budget_off_the_vehicles_time_grid(env_id):
+    """A 10.03 s budget: truncated after the third 5 s decision, at 10.0 s (the
+    vehicle's last 0.05 s tick within it); before, never truncated: every further step
+    flew nothing and said the episode went on. Nothing heard: the responder is far."""
+    env = gymnasium.make(env_id, scenario=short(budget_s=10.03))
+    env.reset(seed=0)
+    ends = []
+    for _ in range(5):
+        _, _, terminated, truncated, info = env.step(env.action_space.sample())
+        ends.append((terminated, truncated, info["flight_time_s"]))
+        if terminated or truncated:
+            break
+    assert ends == [(False, False, 5.0), (False, False, 10.0), (False, True, 10.0)]
+
 def test_more_responders_than_observation_slots_is_said():
     """Ten responders, three slots: a warning when the env is made (none for one
     responder); the episode still ends on every responder, not the observed three."""
