@@ -367,10 +367,16 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
     if as_path or p.is_file():
         if not p.is_file():
             raise ScenarioError(f"scenario file {p} does not exist")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
+        try:  # UTF-8, with or without the byte order mark Windows editors write
+            data = p.read_bytes()
+            text = data.decode("utf-8-sig")
+        except OSError as exc:
             raise ScenarioError(f"cannot read scenario file {p}: {exc}") from exc
+        except UnicodeDecodeError as exc:
+            utf16 = " (it is UTF-16: save it as UTF-8)" if data[:2] in (
+                b"\xff\xfe", b"\xfe\xff") else ""
+            raise ScenarioError(f"cannot read scenario file {p}: a TOML file is UTF-8 text, "
+                                f"{exc.reason} at byte {exc.start}{utf16}") from None
         source, base_dir, stem = str(p), p.resolve().parent, p.stem
     else:
         name = str(name_or_path)

@@ -162,3 +162,18 @@ def test_a_variant_of_a_site_preset_finds_the_presets_files(tmp_path):
     assert variant.keepouts == preset.keepouts and len(variant.keepouts) > 1
     e, n = 100.0, 50.0
     assert variant.world.ground_m(e, n) == preset.world.ground_m(e, n)
+
+
+def test_a_file_saved_with_a_byte_order_mark_or_as_utf16(tmp_path):
+    """Notepad's UTF-8 with a byte order mark loads as without (before: "invalid TOML:
+    Invalid statement (at line 1, column 1)", nothing to see there); PowerShell's
+    UTF-16 is one line saying so."""
+    bom = tmp_path / "bom.toml"
+    bom.write_bytes(b"\xef\xbb\xbf" + BASE.encode())
+    assert load_scenario(bom).search == load_scenario(write(tmp_path, BASE)).search
+    u16 = tmp_path / "u16.toml"
+    u16.write_bytes(BASE.encode("utf-16"))
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(u16)
+    assert str(exc.value) == (f"cannot read scenario file {u16}: a TOML file is UTF-8 text, "
+                              "invalid start byte at byte 0 (it is UTF-16: save it as UTF-8)")
