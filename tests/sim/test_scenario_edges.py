@@ -107,6 +107,9 @@ RESPONDER = '\n[[world.responders]]\nname = "x"\nbssid = "a4:77:33:0f:aa:01"\ne_
     (BASE + '\n[[agents]]\nname = "a\\u0007"\n', "agents[0].name: 'a\\x07' cannot be part of"),
     (BASE + '\n[[agents]]\nname = "uav"\n[[agents]]\nname = "UAV"\n',
      "agents[1].name: 'UAV' is used twice (letter case aside)"),
+    # every DEM height NaN: "cannot convert float NaN to integer" (an internal error)
+    ('extends = "site-valley"\n[world.terrain]\ndatum_offset_m = 1e300\n',
+     "valley-dem.tif: datum_offset_m 1e+300 m is beyond 20000 m"),
     # a sigma^2 that underflows to 0: a ZeroDivisionError placing the responders
     (BASE + '\n[world.terrain]\nhills = [{e_m = 0, n_m = 0, height_m = 10, sigma_m = 1e-200}]\n',
      "world.terrain.hills[0]: hill sigma_m 1e-200 m is below 0.1 m"),
