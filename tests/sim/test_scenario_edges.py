@@ -107,6 +107,10 @@ RESPONDER = '\n[[world.responders]]\nname = "x"\nbssid = "a4:77:33:0f:aa:01"\ne_
     (BASE + '\n[[agents]]\nname = "a\\u0007"\n', "agents[0].name: 'a\\x07' cannot be part of"),
     (BASE + '\n[[agents]]\nname = "uav"\n[[agents]]\nname = "UAV"\n',
      "agents[1].name: 'UAV' is used twice (letter case aside)"),
+    (BASE + '\n[gnss]\nwhite_sigma_h_m = 1e300\n',
+     "gnss: white_sigma_h_m 1e+300 m is beyond 20000 m"),
+    (BASE + '\n[gnss]\nbias_sigma_h_m = 1e300\n',
+     "gnss: bias_sigma_h_m 1e+300 m is beyond 20000 m"),
     # every DEM height NaN: "cannot convert float NaN to integer" (an internal error)
     ('extends = "site-valley"\n[world.terrain]\ndatum_offset_m = 1e300\n',
      "valley-dem.tif: datum_offset_m 1e+300 m is beyond 20000 m"),
