@@ -365,6 +365,8 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
     p = Path(name_or_path)
     as_path = isinstance(name_or_path, Path) or p.suffix == ".toml" or "/" in str(name_or_path)
     if as_path or p.is_file():
+        if p.is_dir():
+            raise ScenarioError(f"scenario {p} is a folder, not a scenario file")
         if not p.is_file():
             raise ScenarioError(f"scenario file {p} does not exist")
         try:  # UTF-8, with or without the byte order mark Windows editors write

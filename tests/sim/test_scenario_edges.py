@@ -184,3 +184,10 @@ def test_a_file_saved_with_a_byte_order_mark_or_as_utf16(tmp_path):
         load_scenario(u16)
     assert str(exc.value) == (f"cannot read scenario file {u16}: a TOML file is UTF-8 text, "
                               "invalid start byte at byte 0 (it is UTF-16: save it as UTF-8)")
+
+
+def test_a_folder_is_not_a_missing_file(tmp_path):
+    """``osa search some/folder``: said to be a folder (before: "does not exist")."""
+    with pytest.raises(ScenarioError, match=f"^scenario {tmp_path} is a folder, not a "
+                                            "scenario file$"):
+        load_scenario(tmp_path)
