@@ -401,7 +401,10 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
         target: str | Path = parent
         if parent.endswith(".toml") and not Path(parent).is_absolute():
             target = base_dir / parent
-        base, _, parent_dir = _read_toml(target, (*chain, source))
+        try:  # the file that names the parent, too (before: only the parent's problem)
+            base, _, parent_dir = _read_toml(target, (*chain, source))
+        except ScenarioError as exc:
+            raise ScenarioError(f"{source}: extends: {exc}") from None
         base = _anchor_files(base, parent_dir)  # the parent's files, not this file's
         base.pop("name", None)
         table = merge_tables(base, table)

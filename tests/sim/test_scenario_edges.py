@@ -191,3 +191,16 @@ def test_a_folder_is_not_a_missing_file(tmp_path):
     with pytest.raises(ScenarioError, match=f"^scenario {tmp_path} is a folder, not a "
                                             "scenario file$"):
         load_scenario(tmp_path)
+
+
+@pytest.mark.parametrize("parent, message", [
+    ("nope", "extends: unknown scenario 'nope' (presets: "),
+    ("suite/r5-c30-sa-u3", "extends: suite preset 'suite/r5-c30-sa-u3': UAVs u3 is not one "
+                           "of 1, 2, 4"),
+])
+def test_a_bad_parent_names_the_file_that_extends_it(tmp_path, parent, message):
+    """Before: only "unknown scenario 'nope' ...", not which file said so."""
+    p = write(tmp_path, f'extends = "{parent}"\n')
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(p)
+    assert str(exc.value).startswith(f"{p}: {message}") and "\n" not in str(exc.value)
