@@ -861,7 +861,7 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
         if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
             raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "
                               "true): with it off the terrain hides nothing")
-        _check_randomised_wind(scenario)
+        check_randomised_wind(scenario)
         if search is not None:
             _check_search_height(scenario)
             _check_agent_starts(scenario)
@@ -913,7 +913,7 @@ def _check_search_height(scenario: Scenario) -> None:
             "or use preset = \"rtk\"")
 
 
-def _check_randomised_wind(scenario: Scenario) -> None:
+def check_randomised_wind(scenario: Scenario) -> None:
     """Refuse a ``[randomise] wind_mps`` range reaching an agent's ``max_speed_mps``:
     a world drawing such a wind would be one its vehicle cannot fly (ConfigError)."""
     r = scenario.randomise

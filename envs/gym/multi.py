@@ -27,7 +27,7 @@ from envs.gym.base import (
 from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop
 from planner.observation import Decision
-from sim.scenario import AgentSpec, Scenario, search_scenario
+from sim.scenario import AgentSpec, Scenario, check_randomised_wind, search_scenario
 from sim.vehicle import WALKER
 
 
@@ -47,7 +47,9 @@ def with_agents(scenario: Scenario, uavs: int, ground: int = 0) -> Scenario:
         specs.append(AgentSpec(name=f"walker-{i + 1}", kind="ground", vehicle=WALKER,
                                gnss=scenario.gnss, start_e_m=s.start_e_m,
                                start_n_m=s.start_n_m))
-    return dataclasses.replace(scenario, agents_=tuple(specs))
+    out = dataclasses.replace(scenario, agents_=tuple(specs))
+    check_randomised_wind(out)  # a walker's 1.4 m/s under the scenario's [randomise] wind
+    return out
 
 
 def agent_roles(scenario: Scenario) -> list[dict]:

@@ -429,3 +429,21 @@ def test_config_and_scenario_errors():
 
         SearchEnv(scenario=sim.scenario_from_table(tomllib.loads(ts.SEARCH)))
     assert isinstance(ClosedLoop, type)
+
+
+def test_parallel_env_walkers_under_a_randomised_wind_are_refused_when_made(tmp_path):
+    """[randomise] wind_mps up to 6 m/s and a walker (1.4 m/s) added by ``ground=1``:
+    refused when the env is made, as in a scenario file (before: 8 of world seeds 0-9
+    crashed in reset, "wind at or above max_speed_mps"); UAVs alone fly it."""
+    from envs.gym.multi import SearchParallelEnv
+
+    p = tmp_path / "windy.toml"
+    p.write_text('extends = "search-random-los"\n[randomise]\nwind_mps = [0.0, 6.0]\n')
+    with pytest.raises(ValueError) as exc:
+        SearchParallelEnv(str(p), uavs=1, ground=1)
+    assert str(exc.value).startswith("randomise.wind_mps: up to 6 m/s, at or above agent "
+                                     "walker-1's max_speed_mps 1.4 m/s")
+    env = SearchParallelEnv(str(p), uavs=2)
+    for seed in range(10):
+        env.reset(options={"world_seed": seed})
+    assert env.loop.realisation.scenario.vehicle.wind_enu_mps != (0.0, 0.0)
