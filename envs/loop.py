@@ -262,6 +262,7 @@ class ClosedLoop:
         self.nav_track: list[list[tuple[float, float, float, float]]] = [[] for _ in range(n)]
         self.started = False
         self.finished = False
+        self._advanced_to_budget = False
         self._refused: set[int] = set()
         self._progress = [_Progress() for _ in range(n)]
         self._clock_offset_s: list[float | None] = [None] * n
@@ -287,6 +288,14 @@ class ClosedLoop:
     def t_s(self) -> float:
         """Flight time (the vehicle's clock, from the start of the search)."""
         return self.vehicle.t_s
+
+    @property
+    def budget_spent(self) -> bool:
+        """Is the budget flown? The clock reached it, or the loop advanced to it: a
+        vehicle on a time grid stops at its last tick within the budget (a budget of
+        10.03 s on the 0.05 s grid is 10.0 s of flight; before, the loop asked for the
+        remaining 0.03 s forever)."""
+        return self._advanced_to_budget or self.t_s >= self.mission.budget_s - 1e-9
 
     @property
     def stepper(self):
@@ -400,6 +409,8 @@ class ClosedLoop:
         self.start()
         t_next = min(self.t_s + dt_s, self.mission.budget_s)
         self._ingest(self.vehicle.advance_to(t_next))
+        if t_next >= self.mission.budget_s:
+            self._advanced_to_budget = True
         for i in range(self.vehicle.n_agents):
             p = self.vehicle.state(i).position_enu_m
             self.nav_track[i].append((self.t_s, *p))
@@ -599,8 +610,7 @@ def drive(loop: ClosedLoop, policy: Policy,
         np.random.SeedSequence(loop.realisation.seed.entropy, spawn_key=(9,))
     )
     policy.reset(loop.mission, rng)
-    budget = loop.mission.budget_s
-    while loop.t_s < budget - 1e-9:
+    while not loop.budget_spent:
         if should_stop is not None and should_stop():
             return "interrupted"
         d = policy.decide(loop.observe())

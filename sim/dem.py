@@ -64,7 +64,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estimator.geodesy import ExactENU
-from sim.terrain import bilinear, map_elementwise
+from sim.terrain import MAX_RELIEF_M, bilinear, map_elementwise
 
 MAX_WINDOW_CELLS = 16_000_000  # 128 MB of float64: far beyond a search area at 1 m
 CASADI_MAX_CELLS = 250_000  # the CasADi B-spline takes every k-th cell beyond this
@@ -112,6 +112,9 @@ class DemTerrain:
         self.name = name or str(path)
         if not math.isfinite(datum_offset_m):
             raise DemError(f"{self.name}: datum_offset_m must be finite")
+        if abs(datum_offset_m) > MAX_RELIEF_M:  # 1e300 made every height NaN downstream
+            raise DemError(f"{self.name}: datum_offset_m {datum_offset_m:g} m is beyond "
+                           f"{MAX_RELIEF_M:.0f} m")
         self.datum_offset_m = float(datum_offset_m)
         self.origin = tuple(float(v) for v in origin)
         self._frame = ExactENU(*self.origin)

@@ -41,7 +41,7 @@ from sim._random import RandomFourierField, as_seed_sequence, child_rng
 from sim.clock import ClockConfig, exponential_delays
 from sim.occlusion import J_GRAZING_DB, Obstruction, Occluder, link_obstruction
 from sim.vehicle import VehicleTrack
-from sim.world import World
+from sim.world import MAX_EXTENT_M, World
 
 STATUS_OK = 0
 STATUS_FAIL = 1
@@ -200,6 +200,9 @@ class FtmConfig:
             raise ValueError("attempted must be in [1, 31] frames per burst")
         if self.offset_max_m < self.offset_min_m:
             raise ValueError("offset_max_m must be >= offset_min_m")
+        if self.offset_max_m > MAX_EXTENT_M:
+            raise ValueError(f"offset_max_m {self.offset_max_m:g} m is beyond "
+                             f"{MAX_EXTENT_M:.0f} m")
 
     def concealment(self, name: str) -> ConcealmentModel:
         if name not in ("open", "vegetation", "vegetation_debris"):

@@ -23,6 +23,7 @@ from estimator.records import GNSS_FIX_TYPES
 from sim._config import check_finite, check_positive, check_probability
 from sim._random import BlockedGaussMarkov, as_seed_sequence, child_rng, child_seed
 from sim.clock import ClockConfig, exponential_delays
+from sim.terrain import MAX_EXTENT_M
 from sim.vehicle import VehicleTrack
 
 
@@ -83,6 +84,11 @@ class GnssConfig:
             check_positive(name, getattr(self, name), allow_zero=True)
         for name in ("bias_tau_s", "sats_tau_s", "acc_ref_m", "vacc_ratio"):
             check_positive(name, getattr(self, name))
+        for name in ("bias_sigma_h_m", "bias_sigma_v_m", "white_sigma_h_m", "white_sigma_v_m",
+                     "acc_ref_m"):  # 1e300 overflowed into infinite positions
+            if getattr(self, name) > MAX_EXTENT_M:
+                raise ValueError(f"{name} {getattr(self, name):g} m is beyond "
+                                 f"{MAX_EXTENT_M:.0f} m")
         if not 1 <= self.sats_min <= self.sats_ref <= self.sats_max <= 200:
             raise ValueError("need 1 <= sats_min <= sats_ref <= sats_max <= 200")
         if self.fix not in GNSS_FIX_TYPES:

@@ -69,7 +69,7 @@ from sim.sitefiles import GeoShape, SiteFileError, read_area, read_keepouts
 from sim.suite import is_suite_name, suite_table
 from sim.terrain import GridTerrain, HillsTerrain, Terrain
 from sim.vehicle import WALKER, VehicleConfig
-from sim.world import MAX_EXTENT_M, Origin, Responder, World
+from sim.world import MAX_EXTENT_M, MAX_STRUCTURE_M, Origin, Responder, World
 
 
 class ScenarioError(ValueError):
@@ -98,7 +98,7 @@ class LogSettings:
 
 
 CONCEALMENTS = ("open", "vegetation", "vegetation_debris")
-MAX_KEEPOUT_TOP_M = 1000.0
+MAX_KEEPOUT_TOP_M = MAX_STRUCTURE_M  # an obstacle's top
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -365,12 +365,20 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
     p = Path(name_or_path)
     as_path = isinstance(name_or_path, Path) or p.suffix == ".toml" or "/" in str(name_or_path)
     if as_path or p.is_file():
+        if p.is_dir():
+            raise ScenarioError(f"scenario {p} is a folder, not a scenario file")
         if not p.is_file():
             raise ScenarioError(f"scenario file {p} does not exist")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
+        try:  # UTF-8, with or without the byte order mark Windows editors write
+            data = p.read_bytes()
+            text = data.decode("utf-8-sig")
+        except OSError as exc:
             raise ScenarioError(f"cannot read scenario file {p}: {exc}") from exc
+        except UnicodeDecodeError as exc:
+            utf16 = " (it is UTF-16: save it as UTF-8)" if data[:2] in (
+                b"\xff\xfe", b"\xfe\xff") else ""
+            raise ScenarioError(f"cannot read scenario file {p}: a TOML file is UTF-8 text, "
+                                f"{exc.reason} at byte {exc.start}{utf16}") from None
         source, base_dir, stem = str(p), p.resolve().parent, p.stem
     else:
         name = str(name_or_path)
@@ -393,7 +401,10 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
         target: str | Path = parent
         if parent.endswith(".toml") and not Path(parent).is_absolute():
             target = base_dir / parent
-        base, _, parent_dir = _read_toml(target, (*chain, source))
+        try:  # the file that names the parent, too (before: only the parent's problem)
+            base, _, parent_dir = _read_toml(target, (*chain, source))
+        except ScenarioError as exc:
+            raise ScenarioError(f"{source}: extends: {exc}") from None
         base = _anchor_files(base, parent_dir)  # the parent's files, not this file's
         base.pop("name", None)
         table = merge_tables(base, table)
@@ -432,8 +443,15 @@ def _anchor_files(table: dict, base_dir: Path) -> dict:
     return out
 
 
-def _terrain(table: dict, base_dir: Path) -> Terrain:
-    t = dict(table)
+def _holds_bool(value: Any) -> bool:
+    """Does a TOML value (nested arrays) hold a boolean?"""
+    if isinstance(value, list):
+        return any(_holds_bool(v) for v in value)
+    return isinstance(value, bool)
+
+
+def _terrain(table: Any, base_dir: Path) -> Terrain:
+    t = _table(table, "world.terrain")
     kind = t.pop("kind", "hills")
     if kind == "hills":
         return from_table(HillsTerrain, t, "world.terrain")
@@ -446,8 +464,7 @@ def _terrain(table: dict, base_dir: Path) -> Terrain:
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise ConfigError(f"world.terrain.{k}: expected a finite number, got {v!r}")
         if "file" in t and "heights_m" not in t:
-            file = Path(t.pop("file"))
-            path = file if file.is_absolute() else base_dir / file
+            path = _site_file(t.pop("file"), base_dir, "world.terrain.file")
             grid_unknown = sorted(t)
             if grid_unknown:
                 raise ConfigError(f"world.terrain: unknown key {grid_unknown[0]!r}")
@@ -460,6 +477,8 @@ def _terrain(table: dict, base_dir: Path) -> Terrain:
             if t:
                 raise ConfigError(f"world.terrain: unknown key {sorted(t)[0]!r}")
             try:
+                if _holds_bool(heights):
+                    raise TypeError  # true/false are no heights (before: 1 and 0 m)
                 arr = np.array(heights, dtype=float)
             except (TypeError, ValueError):
                 raise ConfigError("world.terrain.heights_m: expected rows of numbers, all of "
@@ -560,6 +579,20 @@ def _geo_to_enu(origin: Origin, vertices: Any, where: str) -> tuple[tuple[float,
     return tuple(out)
 
 
+def _table(value: Any, where: str) -> dict:
+    """``value`` if it is a TOML table, else a ConfigError naming ``where``."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where}: expected a table, got {type(value).__name__}")
+    return dict(value)
+
+
+def _preset(value: Any, where: str) -> GnssConfig:
+    """The GNSS preset named ``value`` (a ConfigError naming ``where`` otherwise)."""
+    if not isinstance(value, str) or value not in GNSS_PRESETS:
+        raise ConfigError(f"{where}: {value!r} is not one of {', '.join(GNSS_PRESETS)}")
+    return GNSS_PRESETS[value]
+
+
 def _site_file(value: Any, base_dir: Path, where: str) -> Path:
     if not isinstance(value, str) or not value:
         raise ConfigError(f"{where}: expected a file name")
@@ -635,8 +668,11 @@ def _keepouts(raw: Any, origin: Origin, base_dir: Path) -> tuple[KeepOutZone, ..
             poly = _geo_to_enu(origin, value, f"{where}.polygon_geo")
         else:
             if not isinstance(value, list) or not all(
-                    isinstance(v, list) and len(v) == 2 for v in value):
-                raise ConfigError(f"{where}.polygon_enu_m: expected an array of [e, n] pairs")
+                    isinstance(v, list) and len(v) == 2 and all(
+                        isinstance(x, int | float) and not isinstance(x, bool) for x in v)
+                    for v in value):
+                raise ConfigError(f"{where}.polygon_enu_m: expected an array of [e, n] pairs "
+                                  "of numbers")
             poly = tuple((float(e), float(n)) for e, n in value)
         out.append(_zone(None, origin, where, name=name, polygon_enu_m=poly, top_m=top))
     names = [k.name for k in out]
@@ -687,17 +723,15 @@ def _search(table: Any, origin: Origin, base_dir: Path) -> SearchSpec:
 def _flight(table: dict) -> Flight:
     t = dict(table)
     kind = t.get("kind")
-    if kind not in FLIGHT_KINDS:
+    if not isinstance(kind, str) or kind not in FLIGHT_KINDS:
         raise ConfigError(f"flight.kind: {kind!r} is not one of {', '.join(FLIGHT_KINDS)}")
     return from_table(FLIGHT_KINDS[kind], t, "flight")
 
 
-def _gnss(table: dict) -> GnssConfig:
-    t = dict(table)
-    preset = t.pop("preset", "standalone")
-    if preset not in GNSS_PRESETS:
-        raise ConfigError(f"gnss.preset: {preset!r} is not one of {', '.join(GNSS_PRESETS)}")
-    return from_table(GnssConfig, t, "gnss", base=GNSS_PRESETS[preset])
+def _gnss(table: Any) -> GnssConfig:
+    t = _table(table, "gnss")
+    base = _preset(t.pop("preset", "standalone"), "gnss.preset")
+    return from_table(GnssConfig, t, "gnss", base=base)
 
 
 _TOP_KEYS = {
@@ -706,13 +740,10 @@ _TOP_KEYS = {
 }  # fmt: skip
 
 
-def _gnss_over(table: dict, base: GnssConfig, where: str) -> GnssConfig:
-    t = dict(table)
-    preset = t.pop("preset", None)
-    if preset is not None:
-        if preset not in GNSS_PRESETS:
-            raise ConfigError(f"{where}.preset: {preset!r} is not one of {', '.join(GNSS_PRESETS)}")
-        base = GNSS_PRESETS[preset]
+def _gnss_over(table: Any, base: GnssConfig, where: str) -> GnssConfig:
+    t = _table(table, where)
+    if "preset" in t:
+        base = _preset(t.pop("preset"), f"{where}.preset")
     return from_table(GnssConfig, t, where, base=base)
 
 
@@ -742,9 +773,13 @@ def _agents(raw: object, vehicle: VehicleConfig, gnss: GnssConfig) -> tuple[Agen
         name = t.pop("name", None)
         if not isinstance(name, str) or not name:
             raise ConfigError(f"{where}.name: expected a non-empty string")
-        if name in names:
-            raise ConfigError(f"{where}.name: {name!r} is used twice")
-        names.add(name)
+        if name.casefold() in names:  # letter case aside: the logs' files would clash
+            raise ConfigError(f"{where}.name: {name!r} is used twice (letter case aside)")
+        if any(c in "/\\" or not c.isprintable() for c in name):
+            raise ConfigError(f"{where}.name: {name!r} cannot be part of a file name (osa "
+                              "search writes flight-NAME.jsonl): no '/', '\\' or control "
+                              "characters")
+        names.add(name.casefold())
         rest = from_table(_AgentStart, t, where)
         try:
             out.append(AgentSpec(name=name, kind=kind, vehicle=veh, gnss=gn,
@@ -780,7 +815,7 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
         if bad:
             raise ConfigError(f"world: unknown key {bad[0]!r}")
         origin = from_table(Origin, world_t.get("origin", {}), "world.origin")
-        terrain_t = world_t.get("terrain", {})
+        terrain_t = _table(world_t.get("terrain", {}), "world.terrain")
         dem = None
         if isinstance(terrain_t, dict) and terrain_t.get("kind") == "dem":
             dem = _dem_keys(terrain_t, base_dir)
@@ -826,6 +861,7 @@ def scenario_from_table(table: dict, source: str = "<table>", base_dir: Path | N
         if search is not None and search.hidden_share is not None and not scenario.ftm.occlusion:
             raise ConfigError("search.hidden_share needs terrain occlusion ([ftm] occlusion = "
                               "true): with it off the terrain hides nothing")
+        check_randomised_wind(scenario)
         if search is not None:
             _check_search_height(scenario)
             _check_agent_starts(scenario)
@@ -875,6 +911,22 @@ def _check_search_height(scenario: Scenario) -> None:
             f"{HEIGHT_SIGMAS:g} sigmas of the vertical GNSS error the autopilot flies on "
             "(gnss.bias_sigma_v_m, times the largest randomise.gnss_bias_scale): fly higher "
             "or use preset = \"rtk\"")
+
+
+def check_randomised_wind(scenario: Scenario) -> None:
+    """Refuse a ``[randomise] wind_mps`` range reaching an agent's ``max_speed_mps``:
+    a world drawing such a wind would be one its vehicle cannot fly (ConfigError)."""
+    r = scenario.randomise
+    if r is None or r.wind_mps is None:
+        return
+    vehicles = [("vehicle", scenario.vehicle)] + [(f"agent {a.name}'s", a.vehicle)
+                                                  for a in scenario.agents]
+    for who, v in vehicles:
+        if r.wind_mps[1] >= v.max_speed_mps:
+            raise ConfigError(
+                f"randomise.wind_mps: up to {r.wind_mps[1]:g} m/s, at or above {who} "
+                f"max_speed_mps {v.max_speed_mps:g} m/s (no headway against it): lower the "
+                "range")
 
 
 def _check_agent_starts(scenario: Scenario) -> None:

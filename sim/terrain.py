@@ -29,6 +29,21 @@ from numpy.typing import ArrayLike
 
 from sim._config import check_finite, check_positive
 
+MAX_EXTENT_M = 20_000.0  # a search area, not a country: farther points are input errors
+# the ground of the Earth spans some -11 km (ocean trenches) to 9 km: no height of a
+# terrain above or below the origin's is larger (a larger one is an input error)
+MAX_RELIEF_M = 20_000.0
+MIN_HILL_SIGMA_M = 0.1  # a narrower Gaussian hill is a typo, not terrain
+
+
+def check_relief(name: str, value: float) -> None:
+    """Raise ``ValueError`` unless ``value`` is a finite height within
+    +-:data:`MAX_RELIEF_M` of the origin's."""
+    check_finite(name, value)
+    if abs(value) > MAX_RELIEF_M:
+        raise ValueError(f"{name} {value:g} m is beyond {MAX_RELIEF_M:.0f} m of the origin's "
+                         "height (no ground on Earth)")
+
 
 class Terrain(Protocol):
     def height_m(self, e_m: ArrayLike, n_m: ArrayLike) -> np.ndarray: ...
@@ -83,8 +98,10 @@ class Hill:
     def __post_init__(self) -> None:
         check_finite("hill e_m", self.e_m)
         check_finite("hill n_m", self.n_m)
-        check_finite("hill height_m", self.height_m)
+        check_relief("hill height_m", self.height_m)
         check_positive("hill sigma_m", self.sigma_m)
+        if self.sigma_m < MIN_HILL_SIGMA_M:  # sigma^2 underflowed to 0 (a division by it)
+            raise ValueError(f"hill sigma_m {self.sigma_m:g} m is below {MIN_HILL_SIGMA_M:g} m")
 
 
 # A hillside some 40 m of relief across ~600 m, like the UMA campus slopes
@@ -112,7 +129,9 @@ class HillsTerrain:
     def __post_init__(self) -> None:
         for name in ("base_m", "slope_e", "slope_n", "ripple_direction_deg"):
             check_finite(name, getattr(self, name))
+        check_relief("base_m", self.base_m)
         check_positive("ripple_amplitude_m", self.ripple_amplitude_m, allow_zero=True)
+        check_relief("ripple_amplitude_m", self.ripple_amplitude_m)
         check_positive("ripple_wavelength_m", self.ripple_wavelength_m)
         if abs(self.slope_e) > 1.0 or abs(self.slope_n) > 1.0:
             raise ValueError("terrain slopes steeper than 45 degrees are not flyable terrain")
@@ -245,9 +264,17 @@ class GridTerrain:
             raise ValueError(f"terrain grid must be 2-D with at least 2x2 cells, got {h.shape}")
         if not np.all(np.isfinite(h)):
             raise ValueError("terrain grid holds non-finite heights")
-        check_finite("e0_m", self.e0_m)
-        check_finite("n0_m", self.n0_m)
+        if np.max(np.abs(h)) > MAX_RELIEF_M:
+            raise ValueError(f"terrain grid holds a height beyond {MAX_RELIEF_M:.0f} m of the "
+                             f"origin's ({np.max(np.abs(h)):g} m: no ground on Earth)")
+        for name in ("e0_m", "n0_m"):
+            check_finite(name, getattr(self, name))
+            if abs(getattr(self, name)) > MAX_EXTENT_M:
+                raise ValueError(f"{name} {getattr(self, name):g} m is beyond "
+                                 f"{MAX_EXTENT_M:.0f} m of the origin")
         check_positive("spacing_m", self.spacing_m)
+        if self.spacing_m > MAX_EXTENT_M:
+            raise ValueError(f"spacing_m {self.spacing_m:g} m is beyond {MAX_EXTENT_M:.0f} m")
         h.setflags(write=False)
         object.__setattr__(self, "heights_m", h)
 

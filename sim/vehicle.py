@@ -41,7 +41,7 @@ from estimator.geodesy import ExactENU
 from estimator.records import Trajectory
 from sim._config import check_finite, check_positive
 from sim._random import BlockedGaussMarkov
-from sim.world import World
+from sim.world import MAX_STRUCTURE_M, World
 
 MIN_POSITIVE = 1e-3  # the smallest speed, step, time... a vehicle setting may take
 
@@ -100,6 +100,9 @@ class VehicleConfig:
             check_finite(f"lever_arm_m[{i}]", a)
         if self.ground_height_m is not None:
             check_positive("ground_height_m", self.ground_height_m, allow_zero=True)
+            if self.ground_height_m > MAX_STRUCTURE_M:
+                raise ValueError(f"ground_height_m {self.ground_height_m:g} m is beyond "
+                                 f"{MAX_STRUCTURE_M:g} m")
         if self.sample_dt_s > 0.5:
             raise ValueError("sample_dt_s above 0.5 s cannot resolve 10 Hz GNSS")
         if self.crawl_speed_mps >= self.max_speed_mps:

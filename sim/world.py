@@ -11,10 +11,12 @@ import numpy as np
 from estimator.geodesy import ExactENU
 from estimator.records import CONCEALMENT_CLASSES, TruthRecord
 from sim._config import check_finite, check_positive
-from sim.terrain import HillsTerrain, Terrain
+from sim.terrain import MAX_EXTENT_M, HillsTerrain, Terrain
 
 _BSSID_RE = re.compile(r"^[0-9a-f]{2}(:[0-9a-f]{2}){5}$")
-MAX_EXTENT_M = 20_000.0  # a search area, not a country: farther points are input errors
+# the tallest structures stand some 830 m: an antenna (or an obstacle's top) higher above
+# the ground is an input error
+MAX_STRUCTURE_M = 1000.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -78,8 +80,14 @@ class Responder:
         check_positive(
             f"responder {self.name} antenna_height_m", self.antenna_height_m, allow_zero=True
         )
+        if self.antenna_height_m > MAX_STRUCTURE_M:
+            raise ValueError(f"responder {self.name} antenna_height_m "
+                             f"{self.antenna_height_m:g} m is beyond {MAX_STRUCTURE_M:g} m")
         if self.range_offset_m is not None:
             check_finite(f"responder {self.name} range_offset_m", self.range_offset_m)
+            if abs(self.range_offset_m) > MAX_EXTENT_M:
+                raise ValueError(f"responder {self.name} range_offset_m "
+                                 f"{self.range_offset_m:g} m is beyond {MAX_EXTENT_M:.0f} m")
 
 
 @dataclass(frozen=True, eq=False)

@@ -54,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     if scenario.flight is None:
         return _fail(f"{args.scenario} is a search (no [flight]): fly it with osa search")
+    if len(scenario.agents) > 1:  # one log: said, not silently one agent of several
+        print(f"osa simulate: {scenario.name} has {len(scenario.agents)} agents; the first, "
+              f"{scenario.agents[0].name}, flies the flight (one log)", file=sys.stderr)
     inputs = [args.scenario] if Path(args.scenario).exists() else []
     try:  # before the simulation: a refused output costs nothing
         out = claim_output_file(args.output, force=args.force, inputs=inputs)

@@ -20,7 +20,7 @@ import numpy as np
 
 from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig
-from envs.seeds import SPLITS
+from envs.seeds import SPLITS, check_seed
 from sim.scenario import Scenario, search_scenario
 
 DEFAULT_SCENARIO = "search-random-los"  # one open responder at a random place
@@ -38,6 +38,21 @@ def env_settings(render_mode: str | None, render_modes: list[str], seed_split: s
     return config, LoopConfig(mode=mode, decision_period_s=config.decision_period_s)
 
 
+def warn_unobserved(scenario: Scenario, max_responders: int) -> None:
+    """Gymnasium's warning when the scenario may hold more responders than the
+    observation has slots: the first ``max_responders`` detected fill the slots, the
+    others are flown and judged (episode end, ``info["eval"]``) but not observed."""
+    s = scenario.search
+    assert s is not None
+    n = max(s.random_responders or len(scenario.world.responders),
+            s.expected_responders or 0)
+    if n > max_responders:
+        gym.logger.warn(
+            f"{scenario.name} has {n} responders and the observation {max_responders} "
+            f"responder slots (max_responders): responders detected after the first "
+            f"{max_responders} are not observed")
+
+
 def draw_world_seed(options: dict | None, rng: np.random.Generator, seed_split: str) -> int:
     """The world of an episode: ``options["world_seed"]``, else one of ``seed_split``'s
     seeds drawn from the env's generator."""
@@ -45,7 +60,10 @@ def draw_world_seed(options: dict | None, rng: np.random.Generator, seed_split: 
     if world_seed is None:
         lo, hi = SPLITS[seed_split]
         world_seed = rng.integers(lo, hi)
-    return int(world_seed)
+    if isinstance(world_seed, np.integer):
+        world_seed = int(world_seed)
+    # a world seed as every command takes it (not 2.7 flown as world 2)
+    return check_seed(world_seed)
 
 
 def outside_area(loop: ClosedLoop, obs, agent: int) -> float:
@@ -101,6 +119,7 @@ class SearchEnvBase(gym.Env):
         if len(self.scenario.agents) != 1:
             raise ValueError(f"{self.scenario.name} has {len(self.scenario.agents)} agents: "
                              "use envs.gym.multi.SearchParallelEnv")
+        warn_unobserved(self.scenario, max_responders)
         self.render_mode = render_mode
         self.seed_split = seed_split
         self.pilot = self._make_pilot()
@@ -140,7 +159,7 @@ class SearchEnvBase(gym.Env):
         changes["outside"] = self.pilot.area_penalty() + outside_area(loop, self._obs, 0)
         reward = self._compute_reward(changes)
         terminated = self.pilot.done(self._obs)
-        truncated = not terminated and loop.t_s >= loop.mission.budget_s - 1e-9
+        truncated = not terminated and loop.budget_spent
         if self.render_mode == "human":
             self.render()
         return enc, reward, terminated, truncated, self._info()

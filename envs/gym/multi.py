@@ -22,11 +22,12 @@ from envs.gym.base import (
     env_settings,
     loop_eval,
     outside_area,
+    warn_unobserved,
 )
 from envs.gym.interface import EnvConfig, Pilot
 from envs.loop import DEFAULT_MODE, ClosedLoop
 from planner.observation import Decision
-from sim.scenario import AgentSpec, Scenario, search_scenario
+from sim.scenario import AgentSpec, Scenario, check_randomised_wind, search_scenario
 from sim.vehicle import WALKER
 
 
@@ -46,7 +47,9 @@ def with_agents(scenario: Scenario, uavs: int, ground: int = 0) -> Scenario:
         specs.append(AgentSpec(name=f"walker-{i + 1}", kind="ground", vehicle=WALKER,
                                gnss=scenario.gnss, start_e_m=s.start_e_m,
                                start_n_m=s.start_n_m))
-    return dataclasses.replace(scenario, agents_=tuple(specs))
+    out = dataclasses.replace(scenario, agents_=tuple(specs))
+    check_randomised_wind(out)  # a walker's 1.4 m/s under the scenario's [randomise] wind
+    return out
 
 
 def agent_roles(scenario: Scenario) -> list[dict]:
@@ -109,6 +112,7 @@ class SearchParallelEnv(ParallelEnv):
             coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
             leave_penalty=leave_penalty)
         sc = search_scenario(scenario)
+        warn_unobserved(sc, max_responders)
         if len(sc.agents) == 1:
             sc = with_agents(sc, uavs, ground)
         self.scenario = sc
@@ -179,7 +183,7 @@ class SearchParallelEnv(ParallelEnv):
                 + (self.pilots[name].area_penalty() if name in actions else 0.0))
             rewards[name] = float(team + own)
         done = self.pilots[self.possible_agents[0]].done(self._obs)
-        out_of_time = not done and loop.t_s >= loop.mission.budget_s - 1e-9
+        out_of_time = not done and loop.budget_spent
         terms = {a: done for a in self.agents}
         truncs = {a: out_of_time for a in self.agents}
         infos = {a: self._info() for a in self.agents}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -477,3 +478,17 @@ def test_osa_search_follows_the_output_rule(tmp_path, capsys):
             assert "cannot" in capsys.readouterr().err
         finally:
             locked.chmod(0o700)
+
+
+@pytest.mark.parametrize("budget_s, flown_s", [(10.03, 10.0), (0.01, 0.0), (10.0, 10.0)])
+def test_a_budget_off_the_vehicles_time_grid_ends(budget_s, flown_s):
+    """The vehicle ticks on its 0.05 s grid: a budget of 10.03 s ends at its last tick
+    within it, 10.0 s (before: the loop asked for the remaining 0.03 s forever, its
+    tracks growing without bound, in osa search, osa evaluate and the envs)."""
+    loop = ClosedLoop(_short(RTK, budget_s), 0)
+    steps = 0
+    while not loop.budget_spent and steps < 10:
+        loop.advance(5.0)
+        steps += 1
+    assert loop.budget_spent and loop.t_s == pytest.approx(flown_s, abs=1e-9)
+    assert steps == math.ceil(budget_s / 5.0)  # 3 decisions for 10.03 s, 1 for 0.01 s

@@ -121,6 +121,19 @@ def test_cli_writes_a_log_and_summarises(tmp_path, capsys):
     assert out.read_bytes() == sim.simulate("paper-apab", 4, tmp_path / "x.jsonl").path.read_bytes()
 
 
+def test_cli_says_which_of_several_agents_flies(tmp_path, capsys):
+    """A fixed flight with three [[agents]]: one log, the first agent's (before: the
+    others were dropped without a word)."""
+    sc = tmp_path / "team.toml"
+    sc.write_text('extends = "paper-apab"\nname = "team"\n[[agents]]\nname = "uav-a"\n'
+                  '[[agents]]\nname = "uav-b"\n[[agents]]\nname = "w"\nkind = "ground"\n')
+    out = tmp_path / "t.jsonl"
+    assert osa(["simulate", str(sc), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert err == "osa simulate: team has 3 agents; the first, uav-a, flies the flight (one log)\n"
+    assert json.loads(out.read_text().splitlines()[0])["agent"] == "uav-a"
+
+
 def test_cli_list(capsys):
     assert osa(["simulate", "--list"]) == 0
     out = capsys.readouterr().out
