@@ -419,6 +419,51 @@ def test_train_refuses_a_folder_it_did_not_write(tmp_path, capsys) -> None:
     assert "is not empty and was written by something else" in one_line(capsys)
 
 
+@pytest.mark.timeout(120)
+def test_train_interrupted_mid_step_stops_its_workers_and_keeps_a_marked_model(
+        short_search, tmp_path, capsys, monkeypatch) -> None:
+    """A signal that lands while the two env workers' replies are read (SIGTERM hung
+    there for good: SB3's close waited for the reply already taken; Ctrl-C ended in an
+    internal error) stops the workers, exits 130 with one line, and leaves the model
+    so far, loadable and marked, never the reused folder's previous model."""
+    pytest.importorskip("stable_baselines3")
+    import multiprocessing
+
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    from envs.gym.trained import TrainedPolicy
+
+    real = SubprocVecEnv.step_wait
+    calls = []
+
+    def cut(self):
+        calls.append(1)
+        if len(calls) == 20:
+            self.remotes[0].recv()  # one worker's reply read, then the signal arrives
+            raise KeyboardInterrupt
+        return real(self)
+
+    monkeypatch.setattr(SubprocVecEnv, "step_wait", cut)
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / ".osa-output").write_text("train\n")  # a previous training's folder
+    (model / "osa-model.json").write_text('{"kind": "search", "steps": 99999}')
+    (model / "model.zip").write_text("the previous training's")
+    argv = ["train", "--scenario", str(short_search), "--steps", "2000", "--envs", "2",
+            "--eval-every", "0", "--checkpoint-every", "0", "--no-progress", "-o", str(model)]
+    assert status_of(argv) == 130
+    steps = 2 * 19  # 19 whole steps of 2 envs
+    # nothing else on stderr: no worker's traceback, no gymnasium note in escapes
+    assert capsys.readouterr().err.splitlines() == [
+        f"osa train: replacing the files in {model}",
+        f"osa train: interrupted: the model after {steps} of 2000 steps is in {model}, "
+        "marked \"interrupted\": true in its osa-model.json"]
+    assert not [p for p in multiprocessing.active_children() if p.is_alive()]
+    meta = json.loads((model / "osa-model.json").read_text())
+    assert (meta["interrupted"], meta["steps"], meta["steps_asked"]) == (True, steps, 2000)
+    assert TrainedPolicy.load(model).model.num_timesteps == steps
+
+
 # ============================================================ silently wrong
 
 
