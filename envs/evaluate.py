@@ -493,7 +493,12 @@ class EpisodeJournal:
             self._fh = self.path.open("a", encoding="utf-8")
         else:
             self._fh = self.path.open("x", encoding="utf-8")  # never over another run's
-            self._write(self.key)
+            try:
+                self._write(self.key)
+            except OSError:  # no journal rather than one without its header
+                self.close()
+                self.path.unlink(missing_ok=True)
+                raise
 
     def _read(self) -> None:
         try:
@@ -528,11 +533,16 @@ class EpisodeJournal:
         os.fsync(self._fh.fileno())
 
     def append(self, e: EpisodeResult) -> None:
-        self.episodes.append(e)
-        self._write(episode_to_json(e))
+        """Keep ``e`` (:class:`JournalError` if it cannot be written: a full disk)."""
+        try:
+            self._write(episode_to_json(e))
+        except OSError as exc:
+            raise JournalError(f"cannot write {self.path}: {exc.strerror or exc}") from exc
+        self.episodes.append(e)  # only once it is on disk
 
     def close(self) -> None:
-        self._fh.close()
+        with contextlib.suppress(OSError):  # what a full disk refused stays refused
+            self._fh.close()
 
     def remove(self) -> None:
         self.close()

@@ -12,6 +12,7 @@ trajectories) into ``--figures DIR``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from pathlib import Path
@@ -254,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
                       example_seeds=seeds[:args.examples], task_timeout_s=args.task_timeout,
                       progress=lambda k, note: bar.update(k, note),
                       done=list(journal.episodes), on_episode=journal.append)
-    except (EpisodeError, EvaluationTimeoutError) as exc:
+    except (EpisodeError, EvaluationTimeoutError, JournalError) as exc:
         bar.close("failed", line=False)  # the reason is the one line
         journal.close()
         print(f"osa evaluate: {exc} ({len(journal.episodes)} of {n} episodes {kept})",
@@ -273,9 +274,29 @@ def run(args: argparse.Namespace) -> int:
     from sim import realise
 
     # the ground under the example worlds (the same terrain for every seed)
-    status = _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
+    try:
+        status = _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
+    except _WriteError as exc:  # a full disk, a folder made read-only meanwhile
+        journal.close()
+        again = "--resume --force" if out.exists() else "--resume"
+        print(f"osa evaluate: {exc} (all {n} episodes kept in {journal.path}; run the same "
+              f"command with {again} to write them)", file=sys.stderr)
+        return 1
     journal.remove()  # every row is in FILE now
     return status
+
+
+class _WriteError(Exception):
+    """A result file that could not be written (one line: the file and why)."""
+
+
+@contextlib.contextmanager
+def _writing(path: Path):
+    """Say which result ``path`` could not be written, and why."""
+    try:
+        yield
+    except OSError as exc:
+        raise _WriteError(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 
 def _file_sha256(path: str) -> str | None:
@@ -300,17 +321,18 @@ def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None
     )
 
     rows = ev.rows
-    with written_whole(out) as tmp:
+    with _writing(out), written_whole(out) as tmp:
         write_rows(rows, tmp)
     if args.summary_json is not None:
-        with written_whole(Path(args.summary_json)) as tmp:
+        with _writing(Path(args.summary_json)), written_whole(Path(args.summary_json)) as tmp:
             Path(tmp).write_text(json_text(summary_json(rows, ev.policies, ev.budget_s)) + "\n",
                                  encoding="utf-8")
     figures: list[Path] = []
     if not args.no_figures:
         from envs.evaluate_plots import plot_evaluation
 
-        figures = plot_evaluation(ev, fig_dir, terrain=terrain)
+        with _writing(fig_dir):
+            figures = plot_evaluation(ev, fig_dir, terrain=terrain)
     if args.json:
         print(json_text(rows))
         return 0
