@@ -511,9 +511,9 @@ class EpisodeJournal:
         except ValueError:
             head = None
         if head != self.key:
-            raise JournalError(f"{self.path} belongs to another run (scenario, policies, "
-                               "seeds or loop options differ): resume with the same command, "
-                               "or start again with --force")
+            raise JournalError(f"{self.path} belongs to another run (scenario, policies or "
+                               "their trained models, seeds or loop options differ): resume "
+                               "with the same command, or start again with --force")
         seen = set()
         for line in lines[1:]:
             try:

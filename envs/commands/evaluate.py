@@ -223,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:  # OutputRefusedError too
         return _fail(exc)
     train = SPLITS["train"]
-    if any(p.startswith("ppo:") for p in policies) and seeds[0] < train[1]:
+    if any("ppo:" in p for p in policies) and seeds[0] < train[1]:  # team:ppo: too
         print("osa evaluate: note: seeds below 1000000 are training seeds (envs/seeds.py); "
               "score trained policies with --split test", file=sys.stderr)
 
@@ -239,6 +239,8 @@ def run(args: argparse.Namespace) -> int:
            "scenario_sha256": _file_sha256(args.scenario), "policies": policies,
            "seeds": [seeds[0], seeds[-1]], "mode": config.mode,
            "decision_period_s": config.decision_period_s, "examples": args.examples}
+    if models := _model_digests(policies):  # a model trained on meanwhile is another run
+        key["models"] = models
     try:
         journal = EpisodeJournal(journal_path(out), key, resume=args.resume)
     except (JournalError, OSError) as exc:
@@ -297,6 +299,25 @@ def _writing(path: Path):
         yield
     except OSError as exc:
         raise _WriteError(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+def _model_digests(policies: list[str]) -> dict[str, str]:
+    """Per trained policy (``ppo:PATH``, ``team:ppo:PATH``): one digest of its model
+    folder's files, so that a journal resumes only with the same models."""
+    import hashlib
+
+    from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, model_dir
+
+    out = {}
+    for spec in policies:
+        _, ppo, path = spec.partition("ppo:")
+        if not ppo:
+            continue
+        h = hashlib.sha256()
+        for name in (MODEL_FILE, STATS_FILE, META_FILE):
+            h.update((_file_sha256(str(model_dir(path) / name)) or "-").encode())
+        out[spec] = h.hexdigest()
+    return out
 
 
 def _file_sha256(path: str) -> str | None:

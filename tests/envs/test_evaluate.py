@@ -471,3 +471,45 @@ def test_cli_notes_a_trained_policy_on_training_seeds(short_toml, tmp_path, caps
     assert "training seeds" in one_line(capsys)
     assert status_of([*argv, "--split", "test", "--force"]) == 0  # rows.csv exists now
     assert capsys.readouterr().err == ""
+
+
+def test_cli_resumes_only_with_the_same_trained_models(short_toml, tmp_path, capsys,
+                                                       monkeypatch):
+    """A run of ppo:MODEL interrupted, MODEL trained on meanwhile (osa train into the
+    same folder): --resume mixed the two models' episodes in one policy's rows; it is
+    refused now, and resumes with the model it started with. team:ppo: is noted as a
+    trained policy on training seeds too."""
+    import envs.evaluate
+    import envs.policies
+
+    model = tmp_path / "model"
+    model.mkdir()
+    for name in ("model.zip", "vecnormalize.pkl", "osa-model.json"):
+        (model / name).write_text("first training")
+    real = envs.policies.load_policy
+    real_episode = envs.evaluate.run_episode
+
+    def fake(spec, scenario=None):  # a stand-in for the trained policy
+        return real("lawnmower" if "ppo:" in spec else spec, scenario)
+
+    def stop_at_seed_1(sc, p, s, *a, **k):
+        if s == 1:
+            raise KeyboardInterrupt
+        return real_episode(sc, p, s, *a, **k)
+
+    monkeypatch.setattr(envs.policies, "load_policy", fake)
+    monkeypatch.setattr(envs.evaluate, "load_policy", fake)
+    monkeypatch.setattr(envs.evaluate, "run_episode", stop_at_seed_1)
+    argv = _argv(short_toml, tmp_path, "--no-figures")
+    argv[argv.index("--policies") + 1] = f"team:ppo:{model}"
+    assert status_of(argv) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert "training seeds" in err[0] and "interrupted: 1 of 2 episodes" in err[-1]
+    monkeypatch.setattr(envs.evaluate, "run_episode", real_episode)
+    (model / "vecnormalize.pkl").write_text("trained on")
+    assert status_of([*argv, "--resume"]) == 2
+    assert "belongs to another run" in capsys.readouterr().err.splitlines()[-1]
+    (model / "vecnormalize.pkl").write_text("first training")
+    assert status_of([*argv, "--resume"]) == 0
+    assert [r["seed"] for r in read_rows(tmp_path / "rows.csv")] == [0, 1]
+
