@@ -174,6 +174,9 @@ def claim_outputs(args: argparse.Namespace, out: Path, fig_dir: Path, inputs: li
     if args.summary_json is not None:
         if Path(args.summary_json).resolve() == out.resolve():
             raise ValueError("--summary-json and -o name the same file")
+        if Path(args.summary_json).resolve() == journal.resolve():
+            raise ValueError(f"--summary-json names the journal of -o ({journal}), which is "
+                             "removed at the end")
         claim_output_file(Path(args.summary_json), force=args.force, inputs=inputs)
     if not args.no_figures:
         for name in FIGURES:

@@ -513,3 +513,13 @@ def test_cli_resumes_only_with_the_same_trained_models(short_toml, tmp_path, cap
     assert status_of([*argv, "--resume"]) == 0
     assert [r["seed"] for r in read_rows(tmp_path / "rows.csv")] == [0, 1]
 
+
+def test_cli_refuses_a_summary_named_as_the_journal(short_toml, tmp_path, capsys):
+    """--summary-json FILE.partial.jsonl was written, said written, then removed with
+    the journal at the end (exit 0, the summary lost)."""
+    journal = tmp_path / "rows.csv.partial.jsonl"
+    assert status_of(_argv(short_toml, tmp_path, "--summary-json", str(journal))) == 2
+    assert one_line(capsys) == (f"osa evaluate: --summary-json names the journal of -o "
+                                f"({journal}), which is removed at the end")
+    assert not journal.exists() and not (tmp_path / "rows.csv").exists()
+
