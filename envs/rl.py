@@ -302,6 +302,12 @@ def check_init(folder: Path, env_id: str, algo: str, env_kwargs: dict) -> str | 
                 {k: v for k, v in config.items() if k not in rewards}:
             return (f"{folder} was trained with other env settings (observation and "
                     "actions) than this training's")
+    from envs.gym.trained import TrainedPolicy
+
+    try:  # its files whole and of its env (one line now, not an error after the start)
+        TrainedPolicy.load(folder)
+    except ValueError as exc:
+        return str(exc)
     return None
 
 

@@ -202,6 +202,13 @@ def test_a_damaged_or_mismatched_model_folder_is_one_clear_line(tmp_path, capsys
         assert status_of(argv) == 2
         assert one_line(capsys).startswith(f"osa evaluate: --policies: {folder}")
         assert not (tmp_path / f"rows{i}.csv.partial.jsonl").exists()
+        # nor does osa train --init start from it (an internal error once training began)
+        env = "osa/Waypoint-v0" if edit is waypoint else "osa/Search-v0"
+        argv = ["train", "--env", env, "--init", str(folder), "--steps", "1", "--envs", "1",
+                "--no-progress", "-o", str(tmp_path / f"m{i}")]
+        assert status_of(argv) == 2
+        assert one_line(capsys).startswith(f"osa train: --init: {folder}")
+        assert not (tmp_path / f"m{i}").exists()
 
 
 def test_training_is_seeded(tmp_path):
