@@ -277,6 +277,8 @@ def _wait_first(pending: set, timeout_s: float, client) -> tuple[set, set]:
                                       return_when="FIRST_COMPLETED")
         except TimeoutError:
             return set(), pending
+        except (cf.CancelledError, OSError) as exc:
+            raise _cluster_lost(exc) from exc
         return set(done), set(not_done)
     done, not_done = cf.wait(pending, timeout=timeout_s, return_when=cf.FIRST_COMPLETED)
     return set(done), set(not_done)
@@ -315,12 +317,24 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
         proc.join(timeout=10)
 
 
+def _cluster_lost(exc: BaseException) -> EpisodeError:
+    """What Dask raises when the scheduler goes away (its tasks cancelled, ``Futures
+    cancelled ... scheduler-connection-lost``; a closed connection), as one line."""
+    reason = " ".join(str(exc).split())[:160]
+    return EpisodeError(f"the Dask scheduler was lost or cancelled the tasks "
+                        f"({type(exc).__name__}{': ' + reason if reason else ''})")
+
+
 def _result(future, timeout_s: float, dask: bool) -> list[EpisodeResult]:
     """A finished task's episodes; a worker that died is an :class:`EpisodeError`."""
     try:
         return future.result(timeout=timeout_s) if dask else future.result()
     except cf.BrokenExecutor as exc:  # BrokenProcessPool
         raise EpisodeError(f"a local worker process died ({exc})") from exc
+    except cf.CancelledError as exc:
+        if dask:
+            raise _cluster_lost(exc) from exc
+        raise
     except Exception as exc:
         if type(exc).__name__ == "KilledWorker":  # distributed.KilledWorker
             raise EpisodeError(f"Dask workers died running a task ({exc})") from exc

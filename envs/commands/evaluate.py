@@ -135,6 +135,12 @@ def connect(address: str, timeout_s: float):
     except ModuleNotFoundError:
         raise ValueError("--scheduler needs Dask distributed: pip install "
                          "'osa-testbed[dist]'") from None
+    import logging
+
+    # Dask logs a lost scheduler with its tracebacks on stderr; the command says it in
+    # one line (envs.evaluate turns it into an EpisodeError)
+    for name in ("distributed", "distributed.client", "distributed.comm"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     try:
         return Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError) as exc:

@@ -523,3 +523,31 @@ def test_cli_refuses_a_summary_named_as_the_journal(short_toml, tmp_path, capsys
                                 f"({journal}), which is removed at the end")
     assert not journal.exists() and not (tmp_path / "rows.csv").exists()
 
+
+@pytest.mark.timeout(180)
+def test_a_lost_scheduler_is_an_episode_error_that_keeps_the_finished(scenario, dask_client,
+                                                                       monkeypatch):
+    """The scheduler going away mid-run (its tasks cancelled: what distributed raises,
+    FuturesCancelledError, a CancelledError) was an internal error with Dask's
+    tracebacks; it is an EpisodeError now (one line, exit 1), the finished kept."""
+    import concurrent.futures as cf
+
+    import distributed
+
+    real_wait = distributed.wait
+    calls = []
+
+    def lost_after_one(*a, **k):
+        calls.append(1)
+        if len(calls) > 1:
+            raise cf.CancelledError("scheduler-connection-lost")
+        return real_wait(*a, **k)
+
+    monkeypatch.setattr(distributed, "wait", lost_after_one)
+    kept = []
+    with pytest.raises(EpisodeError, match=r"^the Dask scheduler was lost or cancelled the "
+                       r"tasks \(CancelledError: scheduler-connection-lost\)$"):
+        evaluate(scenario, ("lawnmower",), (0, 1, 2), client=dask_client, task_size=1,
+                 on_episode=kept.append)
+    assert 1 <= len(kept) <= 3 and len(calls) == 2
+
