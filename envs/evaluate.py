@@ -277,6 +277,8 @@ def _wait_first(pending: set, timeout_s: float, client) -> tuple[set, set]:
                                       return_when="FIRST_COMPLETED")
         except TimeoutError:
             return set(), pending
+        except (cf.CancelledError, OSError) as exc:
+            raise _cluster_lost(exc) from exc
         return set(done), set(not_done)
     done, not_done = cf.wait(pending, timeout=timeout_s, return_when=cf.FIRST_COMPLETED)
     return set(done), set(not_done)
@@ -315,12 +317,24 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
         proc.join(timeout=10)
 
 
+def _cluster_lost(exc: BaseException) -> EpisodeError:
+    """What Dask raises when the scheduler goes away (its tasks cancelled, ``Futures
+    cancelled ... scheduler-connection-lost``; a closed connection), as one line."""
+    reason = " ".join(str(exc).split())[:160]
+    return EpisodeError(f"the Dask scheduler was lost or cancelled the tasks "
+                        f"({type(exc).__name__}{': ' + reason if reason else ''})")
+
+
 def _result(future, timeout_s: float, dask: bool) -> list[EpisodeResult]:
     """A finished task's episodes; a worker that died is an :class:`EpisodeError`."""
     try:
         return future.result(timeout=timeout_s) if dask else future.result()
     except cf.BrokenExecutor as exc:  # BrokenProcessPool
         raise EpisodeError(f"a local worker process died ({exc})") from exc
+    except cf.CancelledError as exc:
+        if dask:
+            raise _cluster_lost(exc) from exc
+        raise
     except Exception as exc:
         if type(exc).__name__ == "KilledWorker":  # distributed.KilledWorker
             raise EpisodeError(f"Dask workers died running a task ({exc})") from exc
@@ -493,7 +507,12 @@ class EpisodeJournal:
             self._fh = self.path.open("a", encoding="utf-8")
         else:
             self._fh = self.path.open("x", encoding="utf-8")  # never over another run's
-            self._write(self.key)
+            try:
+                self._write(self.key)
+            except OSError:  # no journal rather than one without its header
+                self.close()
+                self.path.unlink(missing_ok=True)
+                raise
 
     def _read(self) -> None:
         try:
@@ -506,9 +525,9 @@ class EpisodeJournal:
         except ValueError:
             head = None
         if head != self.key:
-            raise JournalError(f"{self.path} belongs to another run (scenario, policies, "
-                               "seeds or loop options differ): resume with the same command, "
-                               "or start again with --force")
+            raise JournalError(f"{self.path} belongs to another run (scenario, policies or "
+                               "their trained models, seeds or loop options differ): resume "
+                               "with the same command, or start again with --force")
         seen = set()
         for line in lines[1:]:
             try:
@@ -528,11 +547,16 @@ class EpisodeJournal:
         os.fsync(self._fh.fileno())
 
     def append(self, e: EpisodeResult) -> None:
-        self.episodes.append(e)
-        self._write(episode_to_json(e))
+        """Keep ``e`` (:class:`JournalError` if it cannot be written: a full disk)."""
+        try:
+            self._write(episode_to_json(e))
+        except OSError as exc:
+            raise JournalError(f"cannot write {self.path}: {exc.strerror or exc}") from exc
+        self.episodes.append(e)  # only once it is on disk
 
     def close(self) -> None:
-        self._fh.close()
+        with contextlib.suppress(OSError):  # what a full disk refused stays refused
+            self._fh.close()
 
     def remove(self) -> None:
         self.close()

@@ -13,10 +13,12 @@ Needs the optional ``rl`` extra (stable-baselines3 and torch).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import statistics
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +27,7 @@ import gymnasium
 import numpy as np
 
 import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
+from envs.cli import Terminated
 from envs.gym.registration import TEAM_ENV_ID
 from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
 from envs.seeds import split_seeds
@@ -75,9 +78,16 @@ class Episode:
     err_h_m: float | None
 
 
+# gymnasium's note, coloured with terminal escapes, that a later version of an env id
+# exists: osa/Search-v0 (osa train's default) is kept on purpose, so it is not said
+OUT_OF_DATE = r".*The environment osa/.* is out of date"
+
+
 def make_env(env_id: str, kwargs: dict) -> gymnasium.Env:
     """A registered env (module level: picklable for subprocess vector envs)."""
-    return gymnasium.make(env_id, **kwargs)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=OUT_OF_DATE, category=DeprecationWarning)
+        return gymnasium.make(env_id, **kwargs)
 
 
 def batched_vec_env(env_id: str, kwargs: dict, n_envs: int, seed: int):
@@ -88,8 +98,11 @@ def batched_vec_env(env_id: str, kwargs: dict, n_envs: int, seed: int):
 
     from envs.gym.sb3 import SB3VecEnv
 
-    vec = gymnasium.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",
-                             autoreset_mode="same_step", **kwargs)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=OUT_OF_DATE, category=DeprecationWarning)
+        vec = gymnasium.make_vec(env_id, num_envs=n_envs,
+                                 vectorization_mode="vector_entry_point",
+                                 autoreset_mode="same_step", **kwargs)
     venv = VecMonitor(SB3VecEnv(vec))
     venv.seed(seed)
     return venv
@@ -229,8 +242,11 @@ def _callbacks(settings: TrainSettings, out: Path, venv):
     return cbs, val
 
 
-def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None = None) -> None:
-    """The three files ``ppo:FOLDER`` loads."""
+def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None = None,
+         *, interrupted: bool = False) -> None:
+    """The three files ``ppo:FOLDER`` loads (``osa-model.json`` last: a save cut short
+    leaves no model); ``interrupted``: the training stopped before its steps, said in
+    ``osa-model.json`` (``"interrupted": true``)."""
     folder.mkdir(parents=True, exist_ok=True)
     model.save(str(folder / MODEL_FILE))
     venv.save(str(folder / STATS_FILE))
@@ -258,6 +274,7 @@ def save(model, venv, settings: TrainSettings, folder: Path, extra: dict | None 
         **({"imitation_coef": settings.imitation_coef} if settings.imitation_coef else {}),
         **({"critic_warmup": settings.critic_warmup} if settings.critic_warmup else {}),
         **({"validation": extra} if extra else {}),
+        **({"interrupted": True, "steps_asked": settings.steps} if interrupted else {}),
     }
     env.close()
     (folder / META_FILE).write_text(json.dumps(meta, indent=1))
@@ -285,6 +302,12 @@ def check_init(folder: Path, env_id: str, algo: str, env_kwargs: dict) -> str | 
                 {k: v for k, v in config.items() if k not in rewards}:
             return (f"{folder} was trained with other env settings (observation and "
                     "actions) than this training's")
+    from envs.gym.trained import TrainedPolicy
+
+    try:  # its files whole and of its env (one line now, not an error after the start)
+        TrainedPolicy.load(folder)
+    except ValueError as exc:
+        return str(exc)
     return None
 
 
@@ -435,14 +458,51 @@ class TrainSummary:
         return "\n".join(lines)
 
 
+def stop_vec_env(venv) -> None:
+    """Close ``venv`` after an interruption or an error without waiting for its worker
+    processes: SB3's ``SubprocVecEnv.close`` first reads the replies of the step in
+    flight, and waits forever for one that a signal already cut short (SIGTERM's
+    unwinding hung) or raises ``EOFError`` for a worker that Ctrl-C stopped; the
+    workers are ours, so they are terminated."""
+    inner = venv
+    while getattr(inner, "processes", None) is None and getattr(inner, "venv", None) is not None:
+        inner = inner.venv
+    procs = getattr(inner, "processes", None)
+    if procs is None:  # in this process (DummyVecEnv, batched worlds, a team's copies)
+        with contextlib.suppress(Exception):
+            venv.close()
+        return
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=10)
+    for remote in inner.remotes:
+        remote.close()
+    inner.closed = True
+
+
+def _remove_model(folder: Path) -> None:
+    """The model files of a previous training in a reused ``folder`` (and its ``best/``):
+    replaced by this one, they must not stay behind as its result if it stops early."""
+    for d in (folder, folder / "best"):
+        for name in (META_FILE, MODEL_FILE, STATS_FILE):  # the json first: then no model
+            (d / name).unlink(missing_ok=True)
+
+
 def train(settings: TrainSettings, out: Path) -> TrainSummary:
-    """Train and save (see the module docstring); returns what the CLI prints."""
+    """Train and save (see the module docstring); returns what the CLI prints.
+
+    Interrupted (Ctrl-C, SIGTERM) while training, the env workers are stopped, the
+    model reached so far is saved in ``out`` with ``"interrupted": true`` in its
+    ``osa-model.json``, and the interruption goes on up."""
     import torch
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.logger import configure
     from stable_baselines3.common.utils import set_random_seed
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
+    _remove_model(out)
     torch.set_num_threads(1)  # small networks: the envs' subprocesses want the cores
     set_random_seed(settings.seed)
     kwargs = {**settings.env_kwargs, "seed_split": "train"}
@@ -497,8 +557,19 @@ def train(settings: TrainSettings, out: Path) -> TrainSummary:
         if settings.eval_every and (not val.history or val.history[-1]["steps"]
                                     < model.num_timesteps - settings.eval_every // 2):
             val.run()  # the end is far from the last evaluation
-    finally:
-        venv.close()
+    except BaseException as exc:
+        stop_vec_env(venv)
+        if isinstance(exc, KeyboardInterrupt | Terminated):
+            bar = getattr(cbs[0], "bar", None)
+            if bar is not None:
+                bar.close("interrupted", line=False)  # the command says it in one line
+            # the model so far, loadable and marked, rather than nothing (or the
+            # previous training's model in a reused folder)
+            history = getattr(val, "history", None)  # None: stopped before training
+            save(model, venv, settings, out, history[-1] if history else None,
+                 interrupted=True)
+        raise
+    venv.close()
     wall = time.perf_counter() - t0
     save(model, venv, settings, out, val.history[-1] if val.history else None)
     return TrainSummary(out, int(model.num_timesteps), wall, val.history)

@@ -43,6 +43,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from envs.commands._outputs import MARKER
 from envs.commands.train import PPO_RANGES, RECIPE_KEYS, task_settings
 from envs.seeds import TRAIN_SEED_BITS, check_seed
 
@@ -51,6 +52,7 @@ TASK_KEYS = ("name", "env", "scenario", "uavs", "steps", "seed", "algo", "envs",
 SUMMARY_COLUMNS = ("name", "env", "scenario", "uavs", "seed", "steps", "algo", "ppo",
                    "localised", "median_time_s", "mean_return", "recipe")
 TABLES = ("ppo", "reward")  # merged key by key: the command line's, the top level's, the task's
+SUMMARY_FILE = "sweep.csv"  # OUT/sweep.csv: one row per task
 _ONE_TRAINING = threading.Lock()  # torch's random generator is one per process
 
 
@@ -130,6 +132,9 @@ def read_sweep(path: str | Path, defaults: dict) -> list[dict]:
         task.setdefault("name", f"task-{i}")
         if "/" in task["name"] or task["name"] in (".", ".."):
             raise SweepError(f"--sweep {p}: task {i}: name {task['name']!r} is not a folder name")
+        if task["name"] in (SUMMARY_FILE, MARKER):  # its folder would take the file's place
+            raise SweepError(f"--sweep {p}: task {i}: name {task['name']!r} is a file of the "
+                             "sweep's output folder")
         if task["name"] in names:
             raise SweepError(f"--sweep {p}: task name {task['name']!r} repeated")
         names.add(task["name"])
@@ -231,5 +236,5 @@ def run_sweep(tasks: Sequence[dict], out: Path, client=None,
             for fut in as_completed(futures):
                 finished(fut.result())
     ordered = [results[t["name"]] for t in tasks]
-    (out / "sweep.csv").write_text(summary_csv([r.row for r in ordered]))
+    (out / SUMMARY_FILE).write_text(summary_csv([r.row for r in ordered]))
     return ordered

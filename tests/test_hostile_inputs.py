@@ -11,6 +11,7 @@ asked for and none answers), no traceback, and one line for an error.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import resource
@@ -410,6 +411,60 @@ def test_evaluate_resume_reads_a_journal_cut_mid_line(short_search, tmp_path, ca
     assert len({(r["policy"], r["seed"]) for r in rows}) == 4
 
 
+def test_evaluate_on_a_full_disk_keeps_the_episodes_and_says_so_in_one_line(
+        short_search, tmp_path, capsys, monkeypatch) -> None:
+    """The disk fills up after two of four episodes (the third's line half written),
+    then again when the rows are written at the end: each time one line (an internal
+    error before) that counts the episodes really kept; --resume then flies only the
+    missing ones, and the rows equal an uninterrupted run's."""
+    whole = tmp_path / "whole" / "rows.csv"
+    assert status_of(_evaluate(short_search, whole, "--no-figures")) == 0
+    capsys.readouterr()
+    out = tmp_path / "rows.csv"
+    journal = out.with_name("rows.csv.partial.jsonl")
+    real_write = envs.evaluate.EpisodeJournal._write
+    written = []
+
+    def full(self, obj):
+        if len(written) == 3:  # the header and two episodes fit, a part of the third
+            self._fh.write(json.dumps(obj)[:100])
+            self._fh.flush()
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(obj)
+        real_write(self, obj)
+
+    monkeypatch.setattr(envs.evaluate.EpisodeJournal, "_write", full)
+    assert status_of(_evaluate(short_search, out, "--no-figures")) == 1
+    kept = "run the same command with --resume to finish"
+    assert one_line(capsys) == (f"osa evaluate: cannot write {journal}: No space left on "
+                                f"device (2 of 4 episodes kept in {journal}; {kept})")
+    assert not out.exists()
+    monkeypatch.setattr(envs.evaluate.EpisodeJournal, "_write", real_write)
+
+    real_rows = envs.evaluate.write_rows
+
+    def no_space(rows, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(envs.evaluate, "write_rows", no_space)
+    assert status_of(_evaluate(short_search, out, "--no-figures", "--resume")) == 1
+    assert one_line(capsys) == (f"osa evaluate: cannot write {out}: No space left on device "
+                                f"(all 4 episodes kept in {journal}; run the same command "
+                                "with --resume to write them)")
+    # the header, four episodes and the cut line (ended, then skipped when read)
+    assert not out.exists() and len(journal.read_text().splitlines()) == 6
+    monkeypatch.setattr(envs.evaluate, "write_rows", real_rows)
+
+    flown = []
+    real_episode = envs.evaluate.run_episode
+    monkeypatch.setattr(envs.evaluate, "run_episode",
+                        lambda sc, p, s, *a, **k: flown.append((p, s)) or real_episode(sc, p, s,
+                                                                                     *a, **k))
+    assert status_of(_evaluate(short_search, out, "--no-figures", "--resume")) == 0
+    assert flown == []  # the two missing episodes were flown by the run before
+    assert out.read_bytes() == whole.read_bytes() and not journal.exists()
+
+
 def test_train_refuses_a_folder_it_did_not_write(tmp_path, capsys) -> None:
     pytest.importorskip("stable_baselines3")  # the 'rl' extra
     model = tmp_path / "model"
@@ -417,6 +472,51 @@ def test_train_refuses_a_folder_it_did_not_write(tmp_path, capsys) -> None:
     (model / "notes.txt").write_text("precious")
     assert status_of(["train", "-o", str(model), "--steps", "1"]) == 2
     assert "is not empty and was written by something else" in one_line(capsys)
+
+
+@pytest.mark.timeout(120)
+def test_train_interrupted_mid_step_stops_its_workers_and_keeps_a_marked_model(
+        short_search, tmp_path, capsys, monkeypatch) -> None:
+    """A signal that lands while the two env workers' replies are read (SIGTERM hung
+    there for good: SB3's close waited for the reply already taken; Ctrl-C ended in an
+    internal error) stops the workers, exits 130 with one line, and leaves the model
+    so far, loadable and marked, never the reused folder's previous model."""
+    pytest.importorskip("stable_baselines3")
+    import multiprocessing
+
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    from envs.gym.trained import TrainedPolicy
+
+    real = SubprocVecEnv.step_wait
+    calls = []
+
+    def cut(self):
+        calls.append(1)
+        if len(calls) == 20:
+            self.remotes[0].recv()  # one worker's reply read, then the signal arrives
+            raise KeyboardInterrupt
+        return real(self)
+
+    monkeypatch.setattr(SubprocVecEnv, "step_wait", cut)
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / ".osa-output").write_text("train\n")  # a previous training's folder
+    (model / "osa-model.json").write_text('{"kind": "search", "steps": 99999}')
+    (model / "model.zip").write_text("the previous training's")
+    argv = ["train", "--scenario", str(short_search), "--steps", "2000", "--envs", "2",
+            "--eval-every", "0", "--checkpoint-every", "0", "--no-progress", "-o", str(model)]
+    assert status_of(argv) == 130
+    steps = 2 * 19  # 19 whole steps of 2 envs
+    # nothing else on stderr: no worker's traceback, no gymnasium note in escapes
+    assert capsys.readouterr().err.splitlines() == [
+        f"osa train: replacing the files in {model}",
+        f"osa train: interrupted: the model after {steps} of 2000 steps is in {model}, "
+        "marked \"interrupted\": true in its osa-model.json"]
+    assert not [p for p in multiprocessing.active_children() if p.is_alive()]
+    meta = json.loads((model / "osa-model.json").read_text())
+    assert (meta["interrupted"], meta["steps"], meta["steps_asked"]) == (True, steps, 2000)
+    assert TrainedPolicy.load(model).model.num_timesteps == steps
 
 
 # ============================================================ silently wrong

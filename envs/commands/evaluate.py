@@ -12,6 +12,7 @@ trajectories) into ``--figures DIR``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from pathlib import Path
@@ -134,6 +135,12 @@ def connect(address: str, timeout_s: float):
     except ModuleNotFoundError:
         raise ValueError("--scheduler needs Dask distributed: pip install "
                          "'osa-testbed[dist]'") from None
+    import logging
+
+    # Dask logs a lost scheduler with its tracebacks on stderr; the command says it in
+    # one line (envs.evaluate turns it into an EpisodeError)
+    for name in ("distributed", "distributed.client", "distributed.comm"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     try:
         return Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError) as exc:
@@ -173,6 +180,9 @@ def claim_outputs(args: argparse.Namespace, out: Path, fig_dir: Path, inputs: li
     if args.summary_json is not None:
         if Path(args.summary_json).resolve() == out.resolve():
             raise ValueError("--summary-json and -o name the same file")
+        if Path(args.summary_json).resolve() == journal.resolve():
+            raise ValueError(f"--summary-json names the journal of -o ({journal}), which is "
+                             "removed at the end")
         claim_output_file(Path(args.summary_json), force=args.force, inputs=inputs)
     if not args.no_figures:
         for name in FIGURES:
@@ -222,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:  # OutputRefusedError too
         return _fail(exc)
     train = SPLITS["train"]
-    if any(p.startswith("ppo:") for p in policies) and seeds[0] < train[1]:
+    if any("ppo:" in p for p in policies) and seeds[0] < train[1]:  # team:ppo: too
         print("osa evaluate: note: seeds below 1000000 are training seeds (envs/seeds.py); "
               "score trained policies with --split test", file=sys.stderr)
 
@@ -238,6 +248,8 @@ def run(args: argparse.Namespace) -> int:
            "scenario_sha256": _file_sha256(args.scenario), "policies": policies,
            "seeds": [seeds[0], seeds[-1]], "mode": config.mode,
            "decision_period_s": config.decision_period_s, "examples": args.examples}
+    if models := _model_digests(policies):  # a model trained on meanwhile is another run
+        key["models"] = models
     try:
         journal = EpisodeJournal(journal_path(out), key, resume=args.resume)
     except (JournalError, OSError) as exc:
@@ -254,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
                       example_seeds=seeds[:args.examples], task_timeout_s=args.task_timeout,
                       progress=lambda k, note: bar.update(k, note),
                       done=list(journal.episodes), on_episode=journal.append)
-    except (EpisodeError, EvaluationTimeoutError) as exc:
+    except (EpisodeError, EvaluationTimeoutError, JournalError) as exc:
         bar.close("failed", line=False)  # the reason is the one line
         journal.close()
         print(f"osa evaluate: {exc} ({len(journal.episodes)} of {n} episodes {kept})",
@@ -273,9 +285,48 @@ def run(args: argparse.Namespace) -> int:
     from sim import realise
 
     # the ground under the example worlds (the same terrain for every seed)
-    status = _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
+    try:
+        status = _report(args, ev, out, fig_dir, realise(scenario, seeds[0]).world.terrain)
+    except _WriteError as exc:  # a full disk, a folder made read-only meanwhile
+        journal.close()
+        again = "--resume --force" if out.exists() else "--resume"
+        print(f"osa evaluate: {exc} (all {n} episodes kept in {journal.path}; run the same "
+              f"command with {again} to write them)", file=sys.stderr)
+        return 1
     journal.remove()  # every row is in FILE now
     return status
+
+
+class _WriteError(Exception):
+    """A result file that could not be written (one line: the file and why)."""
+
+
+@contextlib.contextmanager
+def _writing(path: Path):
+    """Say which result ``path`` could not be written, and why."""
+    try:
+        yield
+    except OSError as exc:
+        raise _WriteError(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+def _model_digests(policies: list[str]) -> dict[str, str]:
+    """Per trained policy (``ppo:PATH``, ``team:ppo:PATH``): one digest of its model
+    folder's files, so that a journal resumes only with the same models."""
+    import hashlib
+
+    from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, model_dir
+
+    out = {}
+    for spec in policies:
+        _, ppo, path = spec.partition("ppo:")
+        if not ppo:
+            continue
+        h = hashlib.sha256()
+        for name in (MODEL_FILE, STATS_FILE, META_FILE):
+            h.update((_file_sha256(str(model_dir(path) / name)) or "-").encode())
+        out[spec] = h.hexdigest()
+    return out
 
 
 def _file_sha256(path: str) -> str | None:
@@ -300,17 +351,18 @@ def _report(args: argparse.Namespace, ev, out: Path, fig_dir: Path, terrain=None
     )
 
     rows = ev.rows
-    with written_whole(out) as tmp:
+    with _writing(out), written_whole(out) as tmp:
         write_rows(rows, tmp)
     if args.summary_json is not None:
-        with written_whole(Path(args.summary_json)) as tmp:
+        with _writing(Path(args.summary_json)), written_whole(Path(args.summary_json)) as tmp:
             Path(tmp).write_text(json_text(summary_json(rows, ev.policies, ev.budget_s)) + "\n",
                                  encoding="utf-8")
     figures: list[Path] = []
     if not args.no_figures:
         from envs.evaluate_plots import plot_evaluation
 
-        figures = plot_evaluation(ev, fig_dir, terrain=terrain)
+        with _writing(fig_dir):
+            figures = plot_evaluation(ev, fig_dir, terrain=terrain)
     if args.json:
         print(json_text(rows))
         return 0

@@ -364,6 +364,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail("needs the optional 'rl' extra: pip install torch==2.13.0 (or the CPU "
                      "wheel: pip install torch --index-url "
                      "https://download.pytorch.org/whl/cpu), then pip install -e '.[rl]'")
+    from envs.cli import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated
     from envs.rl import train
 
     task = task_of_args(args)
@@ -384,9 +385,30 @@ def run(args: argparse.Namespace) -> int:
         out = claim_output_dir(args.out, command="train", force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         return _fail(exc)
-    summary = train(settings, out)
+    try:
+        summary = train(settings, out)
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"osa train: interrupted: {_kept(out, settings.steps)}", file=sys.stderr)
+        return EXIT_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else EXIT_TERMINATED
     print(summary.text())
     return 0
+
+
+def _kept(out, steps: int) -> str:
+    """What an interrupted training left in ``out`` (envs.rl.train saves the model so far,
+    marked ``"interrupted": true``)."""
+    import json
+
+    from envs.gym.trained import META_FILE
+
+    try:
+        meta = json.loads((out / META_FILE).read_text())
+    except (OSError, ValueError):
+        meta = {}
+    if not (isinstance(meta, dict) and meta.get("interrupted")):
+        return f"no model was saved in {out}"
+    return (f"the model after {meta.get('steps')} of {steps} steps is in {out}, "
+            f"marked \"interrupted\": true in its {META_FILE}")
 
 
 def run_sweep(args: argparse.Namespace, defaults: dict) -> int:

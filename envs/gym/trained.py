@@ -39,6 +39,12 @@ def model_dir(path: str | Path) -> Path:
     return p.parent if p.name == MODEL_FILE else p
 
 
+def _reason(exc: BaseException) -> str:
+    """An exception as a short one-line reason."""
+    text = " ".join(str(exc).split())[:200]
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
 def algo_class(name: str):
     """A Stable-Baselines3 algorithm class by name (PPO, A2C, DQN, SAC, TD3)."""
     import stable_baselines3 as sb3
@@ -88,15 +94,41 @@ class TrainedPolicy:
                              "torch): pip install -e '.[rl]'") from None
         if torch.get_num_threads() > 1:  # one decision at a time: threads only contend
             torch.set_num_threads(1)
-        model = cls_.load(str(d / MODEL_FILE), device="cpu")
+        # a file cut short, another version's or garbage fails in many ways (BadZipFile,
+        # EOFError, UnpicklingError, TypeError of an unknown setting): one line each
+        try:
+            model = cls_.load(str(d / MODEL_FILE), device="cpu")
+        except Exception as exc:
+            raise ValueError(f"{d / MODEL_FILE}: unreadable ({_reason(exc)})") from None
         stats = None
         if (d / STATS_FILE).is_file():
-            with open(d / STATS_FILE, "rb") as f:
-                stats = pickle.load(f)  # a VecNormalize without its env
-            stats.training = False
+            try:
+                with open(d / STATS_FILE, "rb") as f:
+                    stats = pickle.load(f)  # a VecNormalize without its env
+                stats.training = False
+            except Exception as exc:
+                raise ValueError(f"{d / STATS_FILE}: unreadable ({_reason(exc)})") from None
         if kind == "team":
             cls = TrainedTeamPolicy
-        return cls(model, stats, meta, d)
+        try:
+            policy = cls(model, stats, meta, d)
+            pilots = policy._pilots()
+        except (TypeError, ValueError, KeyError) as exc:
+            raise ValueError(f"{meta_p}: settings this version cannot fly "
+                             f"({_reason(exc)})") from None
+        # the network must take the observations and give the actions of the env that
+        # osa-model.json names (not another env's, e.g. a json copied from elsewhere)
+        for pilot in pilots[:1]:
+            if (model.observation_space != pilot.observation_space
+                    or model.action_space != pilot.action_space):
+                raise ValueError(f"{d}: {MODEL_FILE} was not trained in the env of its "
+                                 f"{META_FILE} ({meta.get('env_id', kind)}): its observation "
+                                 "or action space differs")
+        return policy
+
+    def _pilots(self) -> list[Pilot]:
+        """Fresh pilots of the env the model was trained in (its spaces)."""
+        return [Pilot(self.kind, self.config)]
 
     def __reduce__(self):  # pickles as its path (to worker processes): loaded there again
         return (TrainedPolicy.load, (str(self.path),))
@@ -133,6 +165,11 @@ class TrainedTeamPolicy(TrainedPolicy):
     @property
     def team_size(self) -> int:
         return len(self.meta["agents"])
+
+    def _pilots(self) -> list[Pilot]:
+        from envs.gym.multi import team_pilots
+
+        return team_pilots(self.meta["agents"], self.config)
 
     def reset(self, mission: SearchMission, rng: np.random.Generator) -> None:
         from envs.gym.multi import team_pilots

@@ -471,3 +471,83 @@ def test_cli_notes_a_trained_policy_on_training_seeds(short_toml, tmp_path, caps
     assert "training seeds" in one_line(capsys)
     assert status_of([*argv, "--split", "test", "--force"]) == 0  # rows.csv exists now
     assert capsys.readouterr().err == ""
+
+
+def test_cli_resumes_only_with_the_same_trained_models(short_toml, tmp_path, capsys,
+                                                       monkeypatch):
+    """A run of ppo:MODEL interrupted, MODEL trained on meanwhile (osa train into the
+    same folder): --resume mixed the two models' episodes in one policy's rows; it is
+    refused now, and resumes with the model it started with. team:ppo: is noted as a
+    trained policy on training seeds too."""
+    import envs.evaluate
+    import envs.policies
+
+    model = tmp_path / "model"
+    model.mkdir()
+    for name in ("model.zip", "vecnormalize.pkl", "osa-model.json"):
+        (model / name).write_text("first training")
+    real = envs.policies.load_policy
+    real_episode = envs.evaluate.run_episode
+
+    def fake(spec, scenario=None):  # a stand-in for the trained policy
+        return real("lawnmower" if "ppo:" in spec else spec, scenario)
+
+    def stop_at_seed_1(sc, p, s, *a, **k):
+        if s == 1:
+            raise KeyboardInterrupt
+        return real_episode(sc, p, s, *a, **k)
+
+    monkeypatch.setattr(envs.policies, "load_policy", fake)
+    monkeypatch.setattr(envs.evaluate, "load_policy", fake)
+    monkeypatch.setattr(envs.evaluate, "run_episode", stop_at_seed_1)
+    argv = _argv(short_toml, tmp_path, "--no-figures")
+    argv[argv.index("--policies") + 1] = f"team:ppo:{model}"
+    assert status_of(argv) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert "training seeds" in err[0] and "interrupted: 1 of 2 episodes" in err[-1]
+    monkeypatch.setattr(envs.evaluate, "run_episode", real_episode)
+    (model / "vecnormalize.pkl").write_text("trained on")
+    assert status_of([*argv, "--resume"]) == 2
+    assert "belongs to another run" in capsys.readouterr().err.splitlines()[-1]
+    (model / "vecnormalize.pkl").write_text("first training")
+    assert status_of([*argv, "--resume"]) == 0
+    assert [r["seed"] for r in read_rows(tmp_path / "rows.csv")] == [0, 1]
+
+
+def test_cli_refuses_a_summary_named_as_the_journal(short_toml, tmp_path, capsys):
+    """--summary-json FILE.partial.jsonl was written, said written, then removed with
+    the journal at the end (exit 0, the summary lost)."""
+    journal = tmp_path / "rows.csv.partial.jsonl"
+    assert status_of(_argv(short_toml, tmp_path, "--summary-json", str(journal))) == 2
+    assert one_line(capsys) == (f"osa evaluate: --summary-json names the journal of -o "
+                                f"({journal}), which is removed at the end")
+    assert not journal.exists() and not (tmp_path / "rows.csv").exists()
+
+
+@pytest.mark.timeout(180)
+def test_a_lost_scheduler_is_an_episode_error_that_keeps_the_finished(scenario, dask_client,
+                                                                       monkeypatch):
+    """The scheduler going away mid-run (its tasks cancelled: what distributed raises,
+    FuturesCancelledError, a CancelledError) was an internal error with Dask's
+    tracebacks; it is an EpisodeError now (one line, exit 1), the finished kept."""
+    import concurrent.futures as cf
+
+    import distributed
+
+    real_wait = distributed.wait
+    calls = []
+
+    def lost_after_one(*a, **k):
+        calls.append(1)
+        if len(calls) > 1:
+            raise cf.CancelledError("scheduler-connection-lost")
+        return real_wait(*a, **k)
+
+    monkeypatch.setattr(distributed, "wait", lost_after_one)
+    kept = []
+    with pytest.raises(EpisodeError, match=r"^the Dask scheduler was lost or cancelled the "
+                       r"tasks \(CancelledError: scheduler-connection-lost\)$"):
+        evaluate(scenario, ("lawnmower",), (0, 1, 2), client=dask_client, task_size=1,
+                 on_episode=kept.append)
+    assert 1 <= len(kept) <= 3 and len(calls) == 2
+

@@ -23,6 +23,7 @@ policy's quality is measured by the training recipe (docs/rl.md), not here.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -149,6 +150,65 @@ def test_ppo_path_errors_are_clear(tmp_path):
 
     with pytest.raises(ValueError, match="not a model written by osa train"):
         load_policy(f"ppo:{tmp_path}")
+
+
+def _damaged(good, folder, name, edit):
+    import shutil
+
+    shutil.copytree(good, folder)
+    path = folder / name
+    if name == "osa-model.json":
+        import json
+
+        meta = json.loads(path.read_text())
+        edit(meta)
+        path.write_text(json.dumps(meta))
+    else:
+        path.write_bytes(path.read_bytes()[:edit])  # cut short
+    return folder
+
+
+def test_a_damaged_or_mismatched_model_folder_is_one_clear_line(tmp_path, capsys):
+    """A model.zip or vecnormalize.pkl cut short (a copy that stopped), an osa-model.json
+    with a setting this version does not know, or one of another env (copied from
+    another folder): osa evaluate said an internal error (exit 70) for the second and
+    third, and flew the fourth into "cannot reshape array" after the simulation."""
+    from tests.cli import one_line, status_of
+
+    settings = TrainSettings(env_id="osa/Search-v0", steps=64, seed=0, n_envs=1,
+                             eval_every=0, checkpoint_every=0, progress=False,
+                             algo_kwargs=dict(n_steps=64, batch_size=32, n_epochs=1))
+    train(settings, tmp_path / "good")
+    TrainedPolicy.load(tmp_path / "good")  # the untouched folder loads
+
+    def waypoint(meta):
+        meta["kind"], meta["env_id"] = "waypoint", "osa/Waypoint-v0"
+
+    cases = [
+        ("model.zip", 1000, "model.zip: unreadable"),
+        ("vecnormalize.pkl", 100, "vecnormalize.pkl: unreadable (UnpicklingError"),
+        ("osa-model.json", lambda m: m["config"].update(bogus=1),
+         "osa-model.json: settings this version cannot fly (TypeError"),
+        ("osa-model.json", waypoint, "model.zip was not trained in the env of its "
+         "osa-model.json (osa/Waypoint-v0)"),
+    ]
+    for i, (name, edit, needle) in enumerate(cases):
+        folder = _damaged(tmp_path / "good", tmp_path / f"bad{i}", name, edit)
+        with pytest.raises(ValueError, match=re.escape(needle)):
+            TrainedPolicy.load(folder)
+        argv = ["evaluate", "search-random-los-rtk", "--policies", f"ppo:{folder}",
+                "--seeds", "1", "--workers", "1", "--no-progress", "--no-figures",
+                "-o", str(tmp_path / f"rows{i}.csv")]
+        assert status_of(argv) == 2
+        assert one_line(capsys).startswith(f"osa evaluate: --policies: {folder}")
+        assert not (tmp_path / f"rows{i}.csv.partial.jsonl").exists()
+        # nor does osa train --init start from it (an internal error once training began)
+        env = "osa/Waypoint-v0" if edit is waypoint else "osa/Search-v0"
+        argv = ["train", "--env", env, "--init", str(folder), "--steps", "1", "--envs", "1",
+                "--no-progress", "-o", str(tmp_path / f"m{i}")]
+        assert status_of(argv) == 2
+        assert one_line(capsys).startswith(f"osa train: --init: {folder}")
+        assert not (tmp_path / f"m{i}").exists()
 
 
 def test_training_is_seeded(tmp_path):

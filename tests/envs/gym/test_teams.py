@@ -262,6 +262,9 @@ def test_a_sweep_on_a_dask_cluster_equals_the_same_tasks_run_here(tmp_path):
         ("[[task]]\n[task.ppo]\nn_steps = 0.5\n", "n-steps: expected an integer >= 1"),
         ("[[task]]\nalgo = 'A2C'\n[task.ppo]\nn_steps = 64\n", "n-steps: PPO only"),
         ("[[task]]\ninit = 'no-such-model'\n", "init: .*no-such-model"),
+        # its folder took sweep.csv's name: an internal error after every training
+        ("[[task]]\nname = 'sweep.csv'\nsteps = 1\nenvs = 1\neval_every = 0\n",
+         "task 1: name 'sweep.csv' is a file of the sweep's output folder"),
     ],
 )
 def test_osa_train_sweep_refuses_bad_files_in_one_line(tmp_path, capsys, text, match):
