@@ -435,6 +435,7 @@ def test_parallel_env_walkers_under_a_randomised_wind_are_refused_when_made(tmp_
     """[randomise] wind_mps up to 6 m/s and a walker (1.4 m/s) added by ``ground=1``:
     refused when the env is made, as in a scenario file (before: 8 of world seeds 0-9
     crashed in reset, "wind at or above max_speed_mps"); UAVs alone fly it."""
+    pytest.importorskip("pettingzoo")  # the 'rl' extra
     from envs.gym.multi import SearchParallelEnv
 
     p = tmp_path / "windy.toml"
