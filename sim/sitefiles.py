@@ -16,7 +16,9 @@ Readers for the three formats an operator has (docs/scenarios.md, docs/planner.m
 - GeoJSON (RFC 7946): a ``Polygon`` (or ``MultiPolygon`` of one polygon) geometry,
   ``Feature`` or ``FeatureCollection``; ``Point`` features with a ``radius_m``
   property are circles; ``top_m`` is a feature property; a feature whose geometry is
-  ``null`` is no shape. Positions are [lon, lat].
+  ``null`` is no shape. Positions are [lon, lat], or, under a top-level ``crs`` member
+  (GeoJSON 2008, as QGIS and GDAL write a layer saved in its projected CRS), [x, y] in
+  that CRS, converted with pyproj.
 - QGroundControl ``.plan``: its ``geoFence`` polygons and circles ([lat, lon]
   vertices, ``inclusion`` flags).
 
@@ -277,7 +279,57 @@ def _json(text: str, source: str) -> Any:
         raise SiteFileError(f"{source}: {exc}") from None
 
 
-def _geojson_ring(ring: Any, where: str) -> tuple[LatLon, ...]:
+# names of a GeoJSON ``crs`` member that mean RFC 7946's WGS84 longitude, latitude
+_WGS84_NAMES = {"urn:ogc:def:crs:ogc:1.3:crs84", "urn:ogc:def:crs:ogc::crs84", "crs84",
+                "ogc:crs84", "epsg:4326", "urn:ogc:def:crs:epsg::4326",
+                "urn:ogc:def:crs:epsg:6.6:4326", "http://www.opengis.net/def/crs/ogc/1.3/crs84",
+                "http://www.opengis.net/def/crs/epsg/0/4326"}
+
+
+class _Positions:
+    """A GeoJSON file's positions to (lat, lon): [lon, lat] (RFC 7946), or [x, y] in the
+    CRS its top-level ``crs`` member names (GeoJSON 2008; GDAL and QGIS write one for a
+    layer saved in a projected CRS, e.g. ``urn:ogc:def:crs:EPSG::32630``)."""
+
+    def __init__(self, obj: dict, source: str) -> None:
+        self.crs_name = ""
+        self._to_lonlat = None
+        crs = obj.get("crs")
+        if crs is None:
+            return
+        props = crs.get("properties") if isinstance(crs, dict) else None
+        name = props.get("name") if isinstance(props, dict) else None
+        if not (isinstance(crs, dict) and crs.get("type") == "name" and isinstance(name, str)):
+            raise SiteFileError(f"{source}: the crs member {json.dumps(crs)[:80]} is not a "
+                                "named CRS (save the layer in WGS84, EPSG:4326)")
+        if name.strip().lower() in _WGS84_NAMES:
+            return
+        from pyproj import CRS, Transformer
+        from pyproj.exceptions import CRSError, ProjError
+
+        try:
+            self._to_lonlat = Transformer.from_crs(CRS.from_user_input(name), "EPSG:4326",
+                                                   always_xy=True)
+        except (CRSError, ProjError) as exc:
+            raise SiteFileError(f"{source}: its crs {name!r} is not a CRS pyproj can convert "
+                                f"to WGS84 ({str(exc).splitlines()[0]})") from None
+        self.crs_name = name
+
+    def latlon(self, p: list, where: str) -> LatLon:
+        """(lat, lon) of a position's first two numbers."""
+        if self._to_lonlat is None:
+            return _latlon(p[1], p[0], where)
+        for v in p[:2]:
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise SiteFileError(f"{where}: coordinate {v!r} is not a finite number")
+        lon, lat = self._to_lonlat.transform(float(p[0]), float(p[1]))
+        if not (math.isfinite(lon) and math.isfinite(lat)):
+            raise SiteFileError(f"{where}: ({p[0]}, {p[1]}) lies outside its crs "
+                                f"{self.crs_name!r}")
+        return _latlon(lat, lon, where)
+
+
+def _geojson_ring(ring: Any, where: str, pos: _Positions) -> tuple[LatLon, ...]:
     if not isinstance(ring, list):
         raise SiteFileError(f"{where}: a ring is a list of [lon, lat] positions")
     if len(ring) > MAX_VERTICES:
@@ -286,13 +338,14 @@ def _geojson_ring(ring: Any, where: str) -> tuple[LatLon, ...]:
     for p in ring:
         if not isinstance(p, list) or not 2 <= len(p) <= 3:
             raise SiteFileError(f"{where}: a position is [lon, lat] or [lon, lat, h]")
-        verts.append(_latlon(p[1], p[0], where))
+        verts.append(pos.latlon(p, where))
     return _ring(verts, where)
 
 
 def _geojson_shapes(obj: Any, source: str) -> list[GeoShape]:
     if not isinstance(obj, dict):
         raise SiteFileError(f"{source}: the top level is not a GeoJSON object")
+    pos = _Positions(obj, source)
     kind = obj.get("type")
     if kind == "FeatureCollection":
         feats = obj.get("features")
@@ -300,14 +353,14 @@ def _geojson_shapes(obj: Any, source: str) -> list[GeoShape]:
             raise SiteFileError(f"{source}: a FeatureCollection needs a features list")
         out: list[GeoShape] = []
         for k, f in enumerate(feats):
-            out += _geojson_feature(f, f"{source}: feature {k}")
+            out += _geojson_feature(f, f"{source}: feature {k}", pos)
         return out
     if kind == "Feature":
-        return _geojson_feature(obj, source)
-    return _geojson_geometry(obj, {}, source, "")
+        return _geojson_feature(obj, source, pos)
+    return _geojson_geometry(obj, {}, source, "", pos)
 
 
-def _geojson_feature(f: Any, where: str) -> list[GeoShape]:
+def _geojson_feature(f: Any, where: str, pos: _Positions) -> list[GeoShape]:
     if not isinstance(f, dict) or f.get("type") != "Feature":
         raise SiteFileError(f"{where}: not a GeoJSON Feature")
     props = f.get("properties") or {}
@@ -316,10 +369,11 @@ def _geojson_feature(f: Any, where: str) -> list[GeoShape]:
     name = str(props.get("name", ""))
     if "geometry" in f and f["geometry"] is None:
         return []  # an unlocated feature (RFC 7946 section 3.2) is no shape
-    return _geojson_geometry(f.get("geometry"), props, where, name)
+    return _geojson_geometry(f.get("geometry"), props, where, name, pos)
 
 
-def _geojson_geometry(g: Any, props: dict, where: str, name: str) -> list[GeoShape]:
+def _geojson_geometry(g: Any, props: dict, where: str, name: str,
+                      pos: _Positions) -> list[GeoShape]:
     if not isinstance(g, dict):
         raise SiteFileError(f"{where}: missing geometry")
     top = _height(props["top_m"], "top_m", where) if props.get("top_m") is not None else None
@@ -333,13 +387,13 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str) -> list[GeoSha
             return []  # a point without a radius is a label, not a shape
         if not isinstance(coords, list) or not 2 <= len(coords) <= 3:
             raise SiteFileError(f"{where}: a Point is [lon, lat]")
-        return [GeoShape(center_deg=_latlon(coords[1], coords[0], where),
+        return [GeoShape(center_deg=pos.latlon(coords, where),
                          radius_m=_height(props["radius_m"], "radius_m", where, True),
                          top_m=top, name=name)]
     elif kind == "GeometryCollection":
         out: list[GeoShape] = []
         for sub in g.get("geometries") or []:
-            out += _geojson_geometry(sub, props, where, name)
+            out += _geojson_geometry(sub, props, where, name, pos)
         return out
     else:
         return []  # lines and other geometries are not areas
@@ -350,7 +404,7 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str) -> list[GeoSha
         if len(rings) > 1:
             raise SiteFileError(f"{where}: polygons with holes are not supported (draw the "
                                 "hole as a keep-out)")
-        out.append(GeoShape(vertices_deg=_geojson_ring(rings[0], where), top_m=top, name=name))
+        out.append(GeoShape(vertices_deg=_geojson_ring(rings[0], where, pos), top_m=top, name=name))
     return out
 
 

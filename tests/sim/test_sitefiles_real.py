@@ -175,3 +175,47 @@ def test_a_bow_tie_area_or_keep_out_is_refused_where_it_is_read(tmp_path, capsys
     assert code == 2
     assert one_line(capsys).startswith("osa plan: --keepout: placemark 1: the keep-out polygon: "
                                     "its edges 1 and 3 cross at")
+
+
+def test_geojson_saved_by_qgis_in_a_projected_crs(tmp_path):
+    """QGIS / GDAL "Save Features As" GeoJSON in the layer's CRS (UTM, Web Mercator) write
+    [x, y] metres under a GeoJSON 2008 ``crs`` member: read in that CRS (was refused as
+    "(4063515.79..., 366946.64...) is not a latitude/longitude"). A CRS pyproj does not
+    know, or a crs member that names none, is refused in one line naming the file."""
+    from pyproj import Transformer
+
+    def qgis(crs_name, xy, props=None, kind="MultiPolygon"):
+        coords = [[[list(p) for p in [*xy, xy[0]]]]] if kind == "MultiPolygon" else list(xy[0])
+        return {"type": "FeatureCollection", "name": "area",
+                "crs": {"type": "name", "properties": {"name": crs_name}},
+                "features": [{"type": "Feature", "properties": {"fid": 1, **(props or {})},
+                              "geometry": {"type": kind, "coordinates": coords}}]}
+
+    for code, name in (("EPSG:32630", "urn:ogc:def:crs:EPSG::32630"),
+                       ("EPSG:3857", "urn:ogc:def:crs:EPSG::3857")):
+        to = Transformer.from_crs("EPSG:4326", code, always_xy=True)
+        xy = [to.transform(lo, la) for lo, la in RING]
+        f = tmp_path / f"{code[5:]}.geojson"
+        f.write_text(json.dumps(qgis(name, xy), indent=1))
+        got = read_area(f)
+        assert len(got) == len(WANT)
+        assert max(abs(a - b) for g, w in zip(got, WANT, strict=True)
+                   for a, b in zip(g, w, strict=True)) < 1e-9
+        tower = tmp_path / f"tower{code[5:]}.geojson"
+        tower.write_text(json.dumps(qgis(name, [to.transform(-4.486, 36.7125)],
+                                         {"radius_m": 15, "top_m": 40}, kind="Point")))
+        (ko,) = read_keepouts(tower)
+        assert ko.center_deg == pytest.approx((36.7125, -4.486), abs=1e-9)
+        assert (ko.radius_m, ko.top_m) == (15, 40)
+    wgs = tmp_path / "wgs.geojson"  # the names of WGS84 itself: no conversion at all
+    wgs.write_text(json.dumps(qgis("urn:ogc:def:crs:EPSG::4326", RING)))
+    assert read_area(wgs) == WANT
+    for crs, message in ((qgis("EPSG:999999", RING)["crs"], r"its crs 'EPSG:999999' is not a "
+                          r"CRS pyproj can convert to WGS84"),
+                         ({"type": "link", "properties": {"href": "x.prj"}},
+                          r"the crs member .* is not a named CRS")):
+        bad = tmp_path / "bad.geojson"
+        bad.write_text(json.dumps({**qgis("", RING), "crs": crs}))
+        with pytest.raises(SiteFileError, match=r"bad.geojson: " + message) as exc:
+            read_area(bad)
+        assert "\n" not in str(exc.value)
