@@ -184,6 +184,13 @@ def _kml_coords(text: str | None, where: str) -> list[LatLon]:
     return out
 
 
+def _kml_altitude_mode(el: ET.Element) -> str:
+    """A geometry's ``altitudeMode`` (KML's, not ``gx:``), ``clampToGround`` if none."""
+    modes = [c for c in el if c.tag.rsplit("}", 1)[-1] == "altitudeMode"
+             and "google.com/kml/ext" not in c.tag]
+    return (modes[0].text or "").strip() if modes else "clampToGround"
+
+
 def _kml_extended(pm: ET.Element) -> dict[str, str]:
     data: dict[str, str] = {}
     for ext in _children(pm, "ExtendedData"):
@@ -216,8 +223,10 @@ def _xml_text(data: bytes, source: str) -> str:
                             f"{exc.start}") from None
 
 
-def _parse_kml(data: bytes, source: str) -> list[GeoShape]:
-    """The shapes of a KML document given as bytes (:func:`_xml_text` decodes it)."""
+def _parse_kml(data: bytes, source: str, skipped: list[str]) -> list[GeoShape]:
+    """The shapes of a KML document given as bytes (:func:`_xml_text` decodes it); what
+    is no shape but would be one as a keep-out (a path, a Point with a ``top_m`` and no
+    ``radius_m``) is appended to ``skipped``."""
     text = _xml_text(data, source)
     if _DOCTYPE.search(text):
         raise SiteFileError(f"{source}: a document type declaration (DOCTYPE/ENTITY) is not "
@@ -236,7 +245,16 @@ def _parse_kml(data: bytes, source: str) -> list[GeoShape]:
         where = f"{source}: placemark {name!r}"
         ext = _kml_extended(pm)
         top = _height(ext["top_m"], "top_m", where) if ext.get("top_m") else None
-        for poly in _descendants(pm, "Polygon"):
+        polys = _descendants(pm, "Polygon")
+        n_rings = sum(len(_descendants(poly, "LinearRing")) for poly in polys)
+        # a path on the ground (Google Earth's Add Path: clamped, tessellated) is drawn as
+        # an obstacle; one at altitudes is a flight (osa plan's mission, a flight log)
+        ground = [ls for ls in _descendants(pm, "LineString")
+                  if _kml_altitude_mode(ls) not in ("absolute", "relativeToGround")]
+        if ground or len(_descendants(pm, "LinearRing")) > n_rings:
+            skipped.append(f"{where}: a path (LineString or LinearRing) is not a keep-out: "
+                           "draw the corridor to avoid as a Polygon")
+        for poly in polys:
             if _descendants(poly, "innerBoundaryIs"):
                 raise SiteFileError(f"{where}: polygons with holes are not supported (draw "
                                     "the hole as a keep-out)")
@@ -249,8 +267,11 @@ def _parse_kml(data: bytes, source: str) -> list[GeoShape]:
             shapes.append(GeoShape(vertices_deg=_ring(verts, where), top_m=top, name=name))
         for pt in _descendants(pm, "Point"):
             coords = _descendants(pt, "coordinates")
-            if "radius_m" not in ext:
-                continue  # a Point without a radius is a label, not a shape
+            if "radius_m" not in ext:  # a label, not a shape; with a top, a tower unsized
+                if top is not None and not polys:
+                    skipped.append(f"{where}: a Point with a top_m but no radius_m: give "
+                                   "the radius_m of the circle to keep out")
+                continue
             verts = _kml_coords(coords[0].text if coords else "", where)
             if len(verts) != 1:
                 raise SiteFileError(f"{where}: a Point needs one lon,lat")
@@ -289,9 +310,11 @@ _WGS84_NAMES = {"urn:ogc:def:crs:ogc:1.3:crs84", "urn:ogc:def:crs:ogc::crs84", "
 class _Positions:
     """A GeoJSON file's positions to (lat, lon): [lon, lat] (RFC 7946), or [x, y] in the
     CRS its top-level ``crs`` member names (GeoJSON 2008; GDAL and QGIS write one for a
-    layer saved in a projected CRS, e.g. ``urn:ogc:def:crs:EPSG::32630``)."""
+    layer saved in a projected CRS, e.g. ``urn:ogc:def:crs:EPSG::32630``). ``skipped``
+    collects what is no shape but would be one as a keep-out (see :func:`_parse_kml`)."""
 
-    def __init__(self, obj: dict, source: str) -> None:
+    def __init__(self, obj: dict, source: str, skipped: list[str]) -> None:
+        self.skipped = skipped
         self.crs_name = ""
         self._to_lonlat = None
         crs = obj.get("crs")
@@ -342,10 +365,10 @@ def _geojson_ring(ring: Any, where: str, pos: _Positions) -> tuple[LatLon, ...]:
     return _ring(verts, where)
 
 
-def _geojson_shapes(obj: Any, source: str) -> list[GeoShape]:
+def _geojson_shapes(obj: Any, source: str, skipped: list[str]) -> list[GeoShape]:
     if not isinstance(obj, dict):
         raise SiteFileError(f"{source}: the top level is not a GeoJSON object")
-    pos = _Positions(obj, source)
+    pos = _Positions(obj, source, skipped)
     kind = obj.get("type")
     if kind == "FeatureCollection":
         feats = obj.get("features")
@@ -382,21 +405,33 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str,
         polys = [coords]
     elif kind == "MultiPolygon":
         polys = coords if isinstance(coords, list) else [None]
-    elif kind == "Point":
-        if props.get("radius_m") is None:
-            return []  # a point without a radius is a label, not a shape
-        if not isinstance(coords, list) or not 2 <= len(coords) <= 3:
-            raise SiteFileError(f"{where}: a Point is [lon, lat]")
-        return [GeoShape(center_deg=pos.latlon(coords, where),
-                         radius_m=_height(props["radius_m"], "radius_m", where, True),
-                         top_m=top, name=name)]
+    elif kind in ("Point", "MultiPoint"):
+        if props.get("radius_m") is None:  # a label, not a shape; with a top, a tower unsized
+            if top is not None:
+                pos.skipped.append(f"{where}: a Point with a top_m but no radius_m: give the "
+                                   "radius_m of the circle to keep out")
+            return []
+        points = [coords] if kind == "Point" else coords
+        if not isinstance(points, list):
+            raise SiteFileError(f"{where}: a MultiPoint is a list of [lon, lat]")
+        out = []
+        for c in points:
+            if not isinstance(c, list) or not 2 <= len(c) <= 3:
+                raise SiteFileError(f"{where}: a Point is [lon, lat]")
+            out.append(GeoShape(center_deg=pos.latlon(c, where),
+                                radius_m=_height(props["radius_m"], "radius_m", where, True),
+                                top_m=top, name=name))
+        return out
     elif kind == "GeometryCollection":
         out: list[GeoShape] = []
         for sub in g.get("geometries") or []:
             out += _geojson_geometry(sub, props, where, name, pos)
         return out
-    else:
-        return []  # lines and other geometries are not areas
+    else:  # lines and other geometries are not areas
+        if kind in ("LineString", "MultiLineString"):
+            pos.skipped.append(f"{where}: a path ({kind}) is not a keep-out: draw the "
+                               "corridor to avoid as a Polygon")
+        return []
     out = []
     for rings in polys:
         if not isinstance(rings, list) or not rings:
@@ -447,19 +482,25 @@ def _plan_shapes(obj: Any, source: str) -> list[GeoShape]:
 
 def read_shapes(path: str | Path) -> list[GeoShape]:
     """Every polygon and circle of a KML, GeoJSON or ``.plan`` file, in file order."""
+    return _read_shapes(path, [])
+
+
+def _read_shapes(path: str | Path, skipped: list[str]) -> list[GeoShape]:
+    """:func:`read_shapes`, appending to ``skipped`` what is no shape but would be one as
+    a keep-out."""
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in AREA_SUFFIXES:
         raise SiteFileError(f"{p}: unknown site file type {suffix!r} (use .kml, .kmz, .geojson, "
                             ".json or .plan)")
     if suffix == ".kml":
-        return _parse_kml(_read_bytes(p), str(p))
+        return _parse_kml(_read_bytes(p), str(p), skipped)
     if suffix == ".kmz":
-        return _parse_kml(_kmz_kml(p), str(p))
+        return _parse_kml(_kmz_kml(p), str(p), skipped)
     obj = _json(_read(p), str(p))
     if suffix == ".plan":
         return _plan_shapes(obj, str(p))
-    return _geojson_shapes(obj, str(p))
+    return _geojson_shapes(obj, str(p), skipped)
 
 
 def read_area(path: str | Path) -> tuple[LatLon, ...]:
@@ -479,8 +520,15 @@ def read_area(path: str | Path) -> tuple[LatLon, ...]:
 
 def read_keepouts(path: str | Path) -> list[GeoShape]:
     """The keep-outs of a file: its polygons and circles (a ``.plan``: the exclusion
-    ones), each with its ``top_m`` if the file gives one. At least one."""
-    shapes = read_shapes(path)
+    ones), each with its ``top_m`` if the file gives one. At least one. A path on the
+    ground (a KML ``LineString`` clamped to it, a bare ``LinearRing``, a
+    GeoJSON ``LineString``) or a point with a ``top_m`` but no ``radius_m`` is refused:
+    drawn in a keep-out file, it was meant as one, and keeping out of nothing there
+    would be silent."""
+    skipped: list[str] = []
+    shapes = _read_shapes(path, skipped)
+    if skipped:
+        raise SiteFileError(skipped[0])
     if Path(path).suffix.lower() == ".plan":
         shapes = [s for s in shapes if not s.inclusion]
     if not shapes:

@@ -219,3 +219,80 @@ def test_geojson_saved_by_qgis_in_a_projected_crs(tmp_path):
         with pytest.raises(SiteFileError, match=r"bad.geojson: " + message) as exc:
             read_area(bad)
         assert "\n" not in str(exc.value)
+
+
+def test_a_path_or_an_unsized_tower_in_a_keep_out_file_is_refused_not_dropped(tmp_path, capsys):
+    """A power line drawn as Google Earth draws it: towers (Points with radius_m and
+    top_m) and the wires as a path (Add Path: a LineString). The path was silently
+    dropped (5 keep-outs read, the wires none) and so was a tower whose radius_m a QGIS
+    export left null; now each is refused in one line naming the file and placemark /
+    feature. In an area file a path stays a note; a MultiPoint of towers is circles."""
+    from tests.cli import one_line, status_of
+
+    def tower(k, lon, lat, radius=True):
+        data = ('<Data name="radius_m"><value>15</value></Data>' if radius else "")
+        return (f"<Placemark><name>tower {k}</name><ExtendedData>{data}<Data name=\"top_m\">"
+                f"<value>40</value></Data></ExtendedData><Point><coordinates>{lon},{lat},0"
+                "</coordinates></Point></Placemark>")
+
+    towers = [(-4.4847178, 36.7070543), (-4.4865162, 36.7087801), (-4.4883147, 36.7105060)]
+    wires = ("<Placemark><name>wires</name><styleUrl>#line</styleUrl><LineString>"
+             "<tessellate>1</tessellate><coordinates>\n\t\t\t"
+             + " ".join(f"{lo},{la},0" for lo, la in towers) + "\n\t\t</coordinates>"
+             "</LineString></Placemark>")
+    body = "".join(tower(k, lo, la) for k, (lo, la) in enumerate(towers, 1))
+    drawn = tmp_path / "line.kml"
+    drawn.write_text(_kml(f"<Document><Folder><name>line</name>{body}{wires}</Folder></Document>"))
+    with pytest.raises(SiteFileError, match=r"line.kml: placemark 'wires': a path \(LineString "
+                                            r"or LinearRing\) is not a keep-out: draw the "
+                                            r"corridor to avoid as a Polygon$"):
+        read_keepouts(drawn)
+    ok = tmp_path / "ok.kml"
+    ok.write_text(_kml(f"<Placemark>{_polygon(_coords(RING))}</Placemark>"))
+    code = status_of(["plan", "lawnmower", "--area", str(ok), "--keepout", str(drawn),
+                      "-o", str(tmp_path / "m.plan")])
+    assert code == 2 and "placemark 'wires': a path" in one_line(capsys)
+    assert not (tmp_path / "m.plan").exists()
+    unsized = tmp_path / "unsized.kml"
+    unsized.write_text(_kml(f"<Document>{body}{tower(4, -4.4901132, 36.7122317, False)}"
+                            "</Document>"))
+    with pytest.raises(SiteFileError, match=r"unsized.kml: placemark 'tower 4': a Point with a "
+                                            r"top_m but no radius_m"):
+        read_keepouts(unsized)
+    assert [s.radius_m for s in read_keepouts(tmp_path / "ok.kml")] == [None]
+    # a path at altitudes is a flight (osa plan's own mission KML, a log): left aside
+    flown = tmp_path / "flown.kml"
+    flown.write_text(_kml("<Document>" + body + "".join(
+        f"<Placemark><name>flight {m}</name><LineString><altitudeMode>{m}</altitudeMode>"
+        "<coordinates>-4.487,36.712,180 -4.486,36.713,185</coordinates></LineString>"
+        "</Placemark>" for m in ("absolute", "relativeToGround")) + "</Document>"))
+    assert [(s.name, s.top_m) for s in read_keepouts(flown)] == [
+        (f"tower {k}", 40.0) for k in (1, 2, 3)]
+    # the same towers as a QGIS GeoJSON layer: one with radius_m null, then a MultiPoint
+    feats = [{"type": "Feature", "properties": {"name": f"t{k}", "top_m": 40, "radius_m": 15},
+              "geometry": {"type": "Point", "coordinates": [lo, la]}}
+             for k, (lo, la) in enumerate(towers)]
+    feats[2]["properties"]["radius_m"] = None
+    gj = tmp_path / "towers.geojson"
+    gj.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    with pytest.raises(SiteFileError, match=r"towers.geojson: feature 2: a Point with a top_m "
+                                            r"but no radius_m"):
+        read_keepouts(gj)
+    feats[2] = {"type": "Feature", "properties": {"top_m": 25},
+                "geometry": {"type": "LineString", "coordinates": [list(p) for p in towers]}}
+    gj.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    with pytest.raises(SiteFileError, match=r"towers.geojson: feature 2: a path \(LineString\) "
+                                            r"is not a keep-out"):
+        read_keepouts(gj)
+    multi = tmp_path / "multi.geojson"
+    multi.write_text(json.dumps({"type": "Feature", "properties": {"top_m": 40, "radius_m": 15},
+                                 "geometry": {"type": "MultiPoint",
+                                              "coordinates": [list(p) for p in towers]}}))
+    got = read_keepouts(multi)
+    assert [(s.center_deg, s.radius_m, s.top_m) for s in got] == [
+        ((la, lo), 15.0, 40.0) for lo, la in towers]
+    # an area file keeps its paths and labels as notes (as Google Earth's folders hold them)
+    area = tmp_path / "area.kml"
+    area.write_text(_kml(f"<Document>{wires}{tower(9, -4.4865, 36.712, False)}<Placemark>"
+                         f"{_polygon(_coords(RING))}</Placemark></Document>"))
+    assert read_area(area) == WANT
