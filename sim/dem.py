@@ -47,8 +47,12 @@ Refusals (:class:`DemError`, one line naming the file): unreadable file, no CRS 
 pyproj cannot reach from WGS84 (a local grid), a picture's band (red, palette...)
 rather than heights, a window beyond :data:`MAX_WINDOW_CELLS`, and through
 :meth:`DemTerrain.require_points` / :meth:`DemTerrain.require_polygon`, a point or
-area whose bilinear support leaves the file's extent (the message gives the file's
-extent in degrees) or touches a nodata cell.
+area that leaves the file's extent (the message gives it in degrees) or whose bilinear
+support touches a nodata cell. The extent of a GeoTIFF of cells (PixelIsArea) is its
+bounds, the outer edges of its edge cells: a DEM clipped to the area's bounding box, or
+downloaded for it, holds the area; in the outer half of an edge cell the edge value is
+held across the edge (bilinear along it). The extent of posts (SRTM, PixelIsPoint) is
+its outermost posts.
 """
 
 from __future__ import annotations
@@ -148,8 +152,12 @@ class DemTerrain:
                 raise DemError(f"{self.name}: its coordinate reference system ({self.crs}) "
                                f"cannot be reached from WGS84 latitude and longitude "
                                f"({_first_line(exc)})") from None
-            self.extent_text = _extent_text(src)
             self.pixel_is_point = src.tags().get("AREA_OR_POINT", "Area").lower() == "point"
+            # how far beyond the outermost pixel centres the file holds heights (index
+            # units): a cell's value is its whole cell's (PixelIsArea), to the file's
+            # bounds; a post's is its point only (SRTM, PixelIsPoint)
+            self._pad = 0.0 if self.pixel_is_point else 0.5
+            self.extent_text = _extent_text(src, self._pad)
             # the window: the box plus the margin, through the exact map (u = 0)
             m = max(float(margin_m), 0.0)
             wi, wj = self._exact_index(*_box_ring(e0 - m, e1 + m, n0 - m, n1 + m),
@@ -417,8 +425,9 @@ class DemTerrain:
         return i + self._c0, j + self._r0
 
     def require_points(self, points_en: ArrayLike, what: str) -> None:
-        """Refuse (:class:`DemError`) points whose bilinear support leaves the file's
-        extent or touches a nodata cell."""
+        """Refuse (:class:`DemError`) points that leave the file's extent (a cell file's
+        bounds, a post file's outermost posts) or whose bilinear support touches a nodata
+        cell."""
         p = np.asarray(points_en, dtype=float).reshape(-1, 2)
         if len(p) == 0:
             return
@@ -430,9 +439,15 @@ class DemTerrain:
         ny, nx = self.values_m.shape
         H, W = self.file_shape
         fi, fj = i + self._c0, j + self._r0
-        eps = 1e-9
-        out = (fi < -eps) | (fj < -eps) | (fi > W - 1 + eps) | (fj > H - 1 + eps)
-        win_out = (i < -eps) | (j < -eps) | (i > nx - 1 + eps) | (j > ny - 1 + eps)
+        # the fitted map's residual (~1e-6 pixel) must not refuse a vertex on the bounds
+        eps, pad = 1e-3, self._pad
+        out = ((fi < -pad - eps) | (fj < -pad - eps) | (fi > W - 1 + pad + eps)
+               | (fj > H - 1 + pad + eps))
+        # the window's own edges, and the file's half cell where the window reaches it
+        lo_i, lo_j = (-pad if self._c0 == 0 else 0.0), (-pad if self._r0 == 0 else 0.0)
+        hi_i = nx - 1 + (pad if self._c0 + nx == W else 0.0)
+        hi_j = ny - 1 + (pad if self._r0 + ny == H else 0.0)
+        win_out = (i < lo_i - eps) | (j < lo_j - eps) | (i > hi_i + eps) | (j > hi_j + eps)
         if np.any(out):
             k = int(np.argmax(out))
             lat, lon, _ = self._frame.to_geodetic(p[k, 0], p[k, 1], 0.0)
@@ -554,13 +569,18 @@ def _latlon_text(lat: float, lon: float) -> str:
             f"{abs(float(lon)):.5f} {'E' if lon >= 0 else 'W'}")
 
 
-def _extent_text(src) -> str:
-    """What a file covers, for messages: 'the DEM covers 36.70000..36.72000 N,
-    4.50000..4.47000 W' (its bounds in WGS84; with GDAL's half pixel for posts)."""
+def _extent_text(src, pad: float) -> str:
+    """What a file covers, for messages: 'the DEM covers latitude 36.70000..36.72000,
+    longitude -4.50000..-4.47000' in WGS84: its pixel centres' hull widened by ``pad``
+    pixels (its bounds for cells, its outermost posts for posts)."""
     from rasterio.warp import transform_bounds
 
+    lo, hi_c, hi_r = 0.5 - pad, src.width - 0.5 + pad, src.height - 0.5 + pad
+    xs, ys = zip(*(src.transform @ (c, r) for c in (lo, hi_c) for r in (lo, hi_r)),
+                 strict=True)
     try:
-        w, s, e, n = transform_bounds(src.crs, "EPSG:4326", *src.bounds, densify_pts=21)
+        w, s, e, n = transform_bounds(src.crs, "EPSG:4326", min(xs), min(ys), max(xs),
+                                      max(ys), densify_pts=21)
     except Exception:  # a message's detail only
         return "its extent cannot be given in WGS84"
     return f"the DEM covers latitude {s:.5f}..{n:.5f}, longitude {w:.5f}..{e:.5f}"

@@ -5,6 +5,7 @@ against the plane the file was made from, or refused in one line naming the file
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 
@@ -241,3 +242,64 @@ def test_a_picture_a_damaged_file_and_a_short_tile_are_refused_in_one_line(tmp_p
         assert [str(w.message) for w in caught] == []
         line = one_line(capsys)
         assert rc == 2 and re.search(f"^osa plan: \\S*{message}", line), line
+
+
+def test_a_dem_clipped_to_the_areas_box_holds_the_area(tmp_path):
+    """A GeoTIFF clipped to the search area's bounding box (QGIS "Clip raster by
+    extent", a DEM downloaded for the area's box): its cells cover the area to their
+    outer edges. It was refused: "the area leaves the DEM's extent at (-300.0, ...) m,
+    36.70780 N 4.49386 W (the DEM covers latitude 36.70768..36.71331, ...)", a point
+    inside the extent it gave, as only the hull of the cell centres was usable. Now in
+    the outer half of an edge cell the edge value holds across the edge (bilinear along
+    it); beyond the bounds is refused with the bounds; an SRTM tile's extent is its
+    outermost posts (GDAL's bounds reach half a post beyond them)."""
+    fr = ExactENU(LAT0, LON0, H0)
+    lat, lon, _ = fr.to_geodetic(SQUARE[:, 0], SQUARE[:, 1], np.zeros(4))
+    x, y = Transformer.from_crs("EPSG:4326", UTM, always_xy=True).transform(
+        np.asarray(lon), np.asarray(lat))
+    west, north = float(x.min()), float(y.max())
+    w, h = (math.ceil((float(x.max()) - west) / RES_M), math.ceil((north - float(y.min()))
+                                                                  / RES_M))
+    tr = from_origin(west, north, RES_M, RES_M)
+    xs, ys = west + RES_M * (np.arange(w) + 0.5), north - RES_M * (np.arange(h) + 0.5)
+    z = _plane(*np.meshgrid(xs, ys))
+    f = tmp_path / "clipped.tif"
+    with rasterio.open(f, "w", driver="GTiff", width=w, height=h, count=1, dtype="float64",
+                       crs=UTM, transform=tr) as dst:
+        dst.write(z, 1)
+    dem = DemTerrain(f, (LAT0, LON0, H0), (-300, 300, -300, 300))
+    dem.require_polygon(SQUARE, "the area")  # was refused
+    # the west-most and north-most corners lie on the bounds: index -0.5, the edge held
+    for k in (int(np.argmin(x)), int(np.argmax(y))):
+        e, n = SQUARE[k]
+        u = float(dem.height_m(e, n))
+        la, lo, hh = fr.to_geodetic(e, n, u)
+        px, py = Transformer.from_crs("EPSG:4326", UTM, always_xy=True).transform(lo, la)
+        col, row = ~tr @ (px, py)
+        ci, cj = col - 0.5, row - 0.5
+        assert min(ci, cj) == pytest.approx(-0.5, abs=1e-3)
+        ci, cj = min(max(ci, 0.0), w - 1.0), min(max(cj, 0.0), h - 1.0)
+        i0, j0 = min(int(ci), w - 2), min(int(cj), h - 2)
+        ti, tj = ci - i0, cj - j0
+        hand = ((z[j0, i0] * (1 - ti) + z[j0, i0 + 1] * ti) * (1 - tj)
+                + (z[j0 + 1, i0] * (1 - ti) + z[j0 + 1, i0 + 1] * ti) * tj)
+        assert float(hh) == pytest.approx(hand, abs=1e-4)
+    # a cell and a half beyond the west bound: refused, outside the extent it names
+    k = int(np.argmin(x))
+    with pytest.raises(DemError, match=r"clipped.tif: the flight leaves the DEM's extent") as exc:
+        dem.require_points([(SQUARE[k, 0] - 1.5 * RES_M, SQUARE[k, 1])], "the flight")
+    west_lon = float(re.search(r"longitude (-?[\d.]+)\.\.", str(exc.value)).group(1))
+    at_lon = -float(re.search(r" N ([\d.]+) W", str(exc.value)).group(1))
+    assert at_lon < west_lon < float(lon[k])  # the corner held lies inside the extent named
+    # an SRTM tile: its posts are its extent, whatever GDAL's half-post bounds say
+    tile = tmp_path / "N36W005.hgt"
+    np.full((1201, 1201), 300, dtype=">i2").tofile(tile)
+    o = (36.5, -4.995, 300.0)
+    srtm = DemTerrain(tile, o, (-600, 100, -100, 100))
+    e_post = float(ExactENU(*o).to_enu(36.5, -5.0, 300.0)[0])
+    srtm.require_points([(e_post + 0.01, 0.0)], "the start")  # on the west posts
+    e_half = float(ExactENU(*o).to_enu(36.5, -5.0 - 1 / 2400, 300.0)[0])
+    with pytest.raises(DemError, match=r"N36W005.hgt: the start leaves the DEM's extent at .*"
+                                       r"\(the DEM covers latitude 36.00000..37.00000, "
+                                       r"longitude -5.00000..-4.00000\)$"):
+        srtm.require_points([(0.5 * (e_post + e_half), 0.0)], "the start")
