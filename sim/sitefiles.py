@@ -16,9 +16,10 @@ Readers for the three formats an operator has (docs/scenarios.md, docs/planner.m
 - GeoJSON (RFC 7946): a ``Polygon`` (or ``MultiPolygon`` of one polygon) geometry,
   ``Feature`` or ``FeatureCollection``; ``Point`` features with a ``radius_m``
   property are circles; ``top_m`` is a feature property; a feature whose geometry is
-  ``null`` is no shape. Positions are [lon, lat], or, under a top-level ``crs`` member
-  (GeoJSON 2008, as QGIS and GDAL write a layer saved in its projected CRS), [x, y] in
-  that CRS, converted with pyproj.
+  ``null`` is no shape. Positions are [lon, lat] (a height and further numbers, such
+  as a measure or a time, are ignored, as RFC 7946 allows), or, under a top-level
+  ``crs`` member (GeoJSON 2008, as QGIS and GDAL write a layer saved in its projected
+  CRS), [x, y] in that CRS, converted with pyproj.
 - QGroundControl ``.plan``: its ``geoFence`` polygons and circles ([lat, lon]
   vertices, ``inclusion`` flags).
 
@@ -359,7 +360,7 @@ def _geojson_ring(ring: Any, where: str, pos: _Positions) -> tuple[LatLon, ...]:
         raise SiteFileError(f"{where}: more than {MAX_VERTICES:,} vertices")
     verts = []
     for p in ring:
-        if not isinstance(p, list) or not 2 <= len(p) <= 3:
+        if not isinstance(p, list) or len(p) < 2:  # RFC 7946 3.1.1: two or more numbers
             raise SiteFileError(f"{where}: a position is [lon, lat] or [lon, lat, h]")
         verts.append(pos.latlon(p, where))
     return _ring(verts, where)
@@ -416,7 +417,7 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str,
             raise SiteFileError(f"{where}: a MultiPoint is a list of [lon, lat]")
         out = []
         for c in points:
-            if not isinstance(c, list) or not 2 <= len(c) <= 3:
+            if not isinstance(c, list) or len(c) < 2:
                 raise SiteFileError(f"{where}: a Point is [lon, lat]")
             out.append(GeoShape(center_deg=pos.latlon(c, where),
                                 radius_m=_height(props["radius_m"], "radius_m", where, True),

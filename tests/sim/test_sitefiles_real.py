@@ -296,3 +296,27 @@ def test_a_path_or_an_unsized_tower_in_a_keep_out_file_is_refused_not_dropped(tm
     area.write_text(_kml(f"<Document>{wires}{tower(9, -4.4865, 36.712, False)}<Placemark>"
                          f"{_polygon(_coords(RING))}</Placemark></Document>"))
     assert read_area(area) == WANT
+
+
+def test_geojson_positions_with_a_measure_or_a_time(tmp_path):
+    """RFC 7946 3.1.1: a position has two or more numbers; elements after the third (a
+    measure, a timestamp, as some trackers and mapping sites export) may be ignored. A
+    [lon, lat, h, t] area was refused ("a position is [lon, lat] or [lon, lat, h]"); now
+    it reads to the same vertices, and a tower Point [lon, lat, h, t] to its circle."""
+    ring = [[lo, la, 112.0, 1_700_000_000 + k] for k, (lo, la) in enumerate([*RING, RING[0]])]
+    f = tmp_path / "track.geojson"
+    f.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"title": "Area A"},
+         "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    assert read_area(f) == WANT
+    t = tmp_path / "tower.geojson"
+    t.write_text(json.dumps({"type": "Feature", "properties": {"radius_m": 15, "top_m": 40},
+                             "geometry": {"type": "Point",
+                                          "coordinates": [-4.486, 36.7125, 150.0, 0.0]}}))
+    (ko,) = read_keepouts(t)
+    assert (ko.center_deg, ko.radius_m, ko.top_m) == ((36.7125, -4.486), 15.0, 40.0)
+    short = tmp_path / "short.geojson"  # one number is no position
+    short.write_text(json.dumps({"type": "Feature", "properties": {}, "geometry": {
+        "type": "Polygon", "coordinates": [[[-4.48], [-4.47, 36.71], [-4.46, 36.72]]]}}))
+    with pytest.raises(SiteFileError, match=r"short.geojson: a position is \[lon, lat\]"):
+        read_area(short)
