@@ -177,6 +177,9 @@ def _kml_coords(text: str | None, where: str) -> list[LatLon]:
         parts = tok.split(",")
         if len(parts) < 2:
             raise SiteFileError(f"{where}: coordinates {tok!r} are not lon,lat[,alt]")
+        if len(parts) > 3:  # "lon,lat,alt, lon,lat,alt": which numbers go together?
+            raise SiteFileError(f"{where}: coordinates {_short(tok)!r} run tuples together: "
+                                "a tuple is lon,lat[,alt], tuples are separated by spaces")
         try:
             lon, lat = float(parts[0]), float(parts[1])
         except ValueError:
@@ -190,6 +193,10 @@ def _kml_altitude_mode(el: ET.Element) -> str:
     modes = [c for c in el if c.tag.rsplit("}", 1)[-1] == "altitudeMode"
              and "google.com/kml/ext" not in c.tag]
     return (modes[0].text or "").strip() if modes else "clampToGround"
+
+
+def _short(text: str, n: int = 60) -> str:
+    return text if len(text) <= n else text[:n] + "..."
 
 
 def _kml_extended(pm: ET.Element) -> dict[str, str]:

@@ -320,3 +320,25 @@ def test_geojson_positions_with_a_measure_or_a_time(tmp_path):
         "type": "Polygon", "coordinates": [[[-4.48], [-4.47, 36.71], [-4.46, 36.72]]]}}))
     with pytest.raises(SiteFileError, match=r"short.geojson: a position is \[lon, lat\]"):
         read_area(short)
+
+
+def test_a_kml_tuple_run_into_the_next_is_refused_not_merged(tmp_path):
+    """A hand-edited ring with one "lon,lat,alt, lon,lat,alt" (a comma and a space between
+    two tuples): the space was closed up with the comma, the two tuples became one
+    token, and its second vertex was silently dropped (a hexagon read as a pentagon).
+    Now refused in one line naming the file, the placemark and the tuples."""
+    tuples = [f"{lo},{la},0" for lo, la in [*RING, RING[0]]]
+    text = " ".join(tuples[:2]) + ", " + " ".join(tuples[2:])
+    f = tmp_path / "edited.kml"
+    f.write_text(_kml(f"<Placemark><name>zone B</name>{_polygon(text)}</Placemark>"))
+    with pytest.raises(SiteFileError, match=r"edited.kml: placemark 'zone B': coordinates "
+                                            r"'-4.4821132,36.7131071,0,-4.4835854,36.7156415,0' "
+                                            r"run tuples together") as exc:
+        read_area(f)
+    assert "\n" not in str(exc.value)
+    two_d = tmp_path / "pairs.kml"  # "lon,lat, lon,lat, ...": every tuple run together
+    two_d.write_text(_kml("<Placemark>" + _polygon(", ".join(f"{lo},{la}" for lo, la in RING))
+                          + "</Placemark>"))
+    with pytest.raises(SiteFileError, match=r"pairs.kml: placemark 'placemark 1': "
+                                            r"coordinates '.*\.\.\.' run tuples together"):
+        read_area(two_d)
