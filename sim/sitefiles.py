@@ -318,7 +318,8 @@ _WGS84_NAMES = {"urn:ogc:def:crs:ogc:1.3:crs84", "urn:ogc:def:crs:ogc::crs84", "
 class _Positions:
     """A GeoJSON file's positions to (lat, lon): [lon, lat] (RFC 7946), or [x, y] in the
     CRS its top-level ``crs`` member names (GeoJSON 2008; GDAL and QGIS write one for a
-    layer saved in a projected CRS, e.g. ``urn:ogc:def:crs:EPSG::32630``). ``skipped``
+    layer saved in a projected CRS, e.g. ``urn:ogc:def:crs:EPSG::32630``; or the 2008
+    draft's ``{"type": "EPSG", "properties": {"code": 32630}}``). ``skipped``
     collects what is no shape but would be one as a keep-out (see :func:`_parse_kml`)."""
 
     def __init__(self, obj: dict, source: str, skipped: list[str]) -> None:
@@ -326,13 +327,16 @@ class _Positions:
         self.crs_name = ""
         self._to_lonlat = None
         crs = obj.get("crs")
-        if crs is None:
-            return
         props = crs.get("properties") if isinstance(crs, dict) else None
-        name = props.get("name") if isinstance(props, dict) else None
-        if not (isinstance(crs, dict) and crs.get("type") == "name" and isinstance(name, str)):
-            raise SiteFileError(f"{source}: the crs member {json.dumps(crs)[:80]} is not a "
-                                "named CRS (save the layer in WGS84, EPSG:4326)")
+        if not isinstance(props, dict):
+            return
+        if crs.get("type") == "name" and isinstance(props.get("name"), str):
+            name = props["name"]
+        elif (crs.get("type") == "EPSG" and isinstance(props.get("code"), int | str)
+              and not isinstance(props.get("code"), bool)):  # the 2008 draft's form
+            name = f"EPSG:{props['code']}"
+        else:  # a link to a file, or nothing known: RFC 7946's longitude, latitude
+            return
         if name.strip().lower() in _WGS84_NAMES:
             return
         from pyproj import CRS, Transformer

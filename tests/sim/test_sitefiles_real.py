@@ -181,7 +181,7 @@ def test_geojson_saved_by_qgis_in_a_projected_crs(tmp_path):
     """QGIS / GDAL "Save Features As" GeoJSON in the layer's CRS (UTM, Web Mercator) write
     [x, y] metres under a GeoJSON 2008 ``crs`` member: read in that CRS (was refused as
     "(4063515.79..., 366946.64...) is not a latitude/longitude"). A CRS pyproj does not
-    know, or a crs member that names none, is refused in one line naming the file."""
+    know is refused in one line naming the file; a link is left as lon, lat."""
     from pyproj import Transformer
 
     def qgis(crs_name, xy, props=None, kind="MultiPolygon"):
@@ -207,18 +207,22 @@ def test_geojson_saved_by_qgis_in_a_projected_crs(tmp_path):
         (ko,) = read_keepouts(tower)
         assert ko.center_deg == pytest.approx((36.7125, -4.486), abs=1e-9)
         assert (ko.radius_m, ko.top_m) == (15, 40)
-    wgs = tmp_path / "wgs.geojson"  # the names of WGS84 itself: no conversion at all
-    wgs.write_text(json.dumps(qgis("urn:ogc:def:crs:EPSG::4326", RING)))
-    assert read_area(wgs) == WANT
-    for crs, message in ((qgis("EPSG:999999", RING)["crs"], r"its crs 'EPSG:999999' is not a "
-                          r"CRS pyproj can convert to WGS84"),
-                         ({"type": "link", "properties": {"href": "x.prj"}},
-                          r"the crs member .* is not a named CRS")):
-        bad = tmp_path / "bad.geojson"
-        bad.write_text(json.dumps({**qgis("", RING), "crs": crs}))
-        with pytest.raises(SiteFileError, match=r"bad.geojson: " + message) as exc:
-            read_area(bad)
-        assert "\n" not in str(exc.value)
+    old = tmp_path / "geoserver.geojson"  # the 2008 draft's {"type": "EPSG"} form
+    old.write_text(json.dumps({**qgis("", xy), "crs": {"type": "EPSG",
+                                                      "properties": {"code": 3857}}}))
+    assert max(abs(a - b) for g, w in zip(read_area(old), WANT, strict=True)
+               for a, b in zip(g, w, strict=True)) < 1e-9
+    for crs in (qgis("urn:ogc:def:crs:EPSG::4326", RING)["crs"],  # WGS84 itself, or a
+                {"type": "link", "properties": {"href": "x.prj"}}):  # link: lon, lat
+        wgs = tmp_path / "wgs.geojson"
+        wgs.write_text(json.dumps({**qgis("", RING), "crs": crs}))
+        assert read_area(wgs) == WANT
+    bad = tmp_path / "bad.geojson"
+    bad.write_text(json.dumps(qgis("EPSG:999999", RING)))
+    with pytest.raises(SiteFileError, match=r"bad.geojson: its crs 'EPSG:999999' is not a "
+                                            r"CRS pyproj can convert to WGS84") as exc:
+        read_area(bad)
+    assert "\n" not in str(exc.value)
 
 
 def test_a_path_or_an_unsized_tower_in_a_keep_out_file_is_refused_not_dropped(tmp_path, capsys):
