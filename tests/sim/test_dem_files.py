@@ -303,3 +303,95 @@ def test_a_dem_clipped_to_the_areas_box_holds_the_area(tmp_path):
                                        r"\(the DEM covers latitude 36.00000..37.00000, "
                                        r"longitude -5.00000..-4.00000\)$"):
         srtm.require_points([(0.5 * (e_post + e_half), 0.0)], "the start")
+
+
+def _hand_bilinear(path, lat, lon):
+    """Bilinear of band 1 between pixel centres at (lat, lon), through rasterio's affine
+    and pyproj alone (no sim.dem code): the reference the DEM's heights must equal."""
+    with rasterio.open(path) as src:
+        x, y = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True).transform(lon, lat)
+        col, row = ~src.transform @ (np.asarray(x), np.asarray(y))
+        v = src.read(1).astype(float) * (src.scales[0] or 1.0) + (src.offsets[0] or 0.0)
+    ci, cj = np.asarray(col) - 0.5, np.asarray(row) - 0.5
+    i0, j0 = np.floor(ci).astype(int), np.floor(cj).astype(int)
+    ti, tj = ci - i0, cj - j0
+    return ((v[j0, i0] * (1 - ti) + v[j0, i0 + 1] * ti) * (1 - tj)
+            + (v[j0 + 1, i0] * (1 - ti) + v[j0 + 1, i0 + 1] * ti) * tj)
+
+
+@pytest.mark.parametrize("kind", ["utm-south", "web-mercator", "north-down", "rotated",
+                                  "pixel-is-point", "geographic-south-west"])
+def test_grids_as_tools_write_them_match_a_hand_bilinear(tmp_path, kind):
+    """Rough random terrain in grids as GIS tools write them, sampled at 150 ground points
+    and compared with a hand bilinear through rasterio's affine and pyproj: a southern UTM
+    zone, Web Mercator (cells of 20 m / cos(lat)), a north-down raster (positive y pixel
+    size), a geotransform rotated by 30 degrees, a PixelIsPoint int16 GeoTIFF with scale
+    0.1 (posts: GDAL shifts its transform half a pixel), EPSG:4326 in the southern and
+    western hemispheres."""
+    from rasterio.transform import Affine
+
+    rng = np.random.default_rng(11)
+    lat0, lon0, crs, n = -22.5, 16.0, "EPSG:32733", 80
+    z = 300.0 + np.cumsum(np.cumsum(rng.normal(0, 1, (n, n)), 0), 1) / 10
+    tags = {}
+    if kind == "geographic-south-west":
+        lat0, lon0, crs, res = -33.45, -70.66, "EPSG:4326", 1 / 3600
+        tr = from_origin(lon0 - n / 2 * res, lat0 + n / 2 * res, res, res)
+    else:
+        if kind in ("web-mercator", "pixel-is-point"):
+            lat0, lon0, crs = 47.0, 15.0, "EPSG:3857" if kind == "web-mercator" else "EPSG:32633"
+        x0, y0 = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon0, lat0)
+        res = 20.0 / math.cos(math.radians(lat0)) if kind == "web-mercator" else 20.0
+        tr = from_origin(x0 - n / 2 * res, y0 + n / 2 * res, res, res)
+        if kind == "north-down":
+            tr = Affine(res, 0.0, x0 - n / 2 * res, 0.0, res, y0 - n / 2 * res)
+        elif kind == "rotated":
+            a = math.radians(30.0)
+            tr = (Affine.translation(x0, y0) @ Affine.rotation(30.0)
+                  @ Affine.translation(-n / 2 * res, n / 2 * res) @ Affine.scale(res, -res))
+            assert tr.b != 0.0 and abs(tr.a - res * math.cos(a)) < 1e-9
+        elif kind == "pixel-is-point":
+            tags = {"AREA_OR_POINT": "Point"}
+    f = tmp_path / f"{kind}.tif"
+    dtype = "int16" if kind == "pixel-is-point" else "float32"
+    data = np.round(z * 10).astype("int16") if dtype == "int16" else z.astype("float32")
+    with rasterio.open(f, "w", driver="GTiff", width=n, height=n, count=1, dtype=dtype,
+                       crs=crs, transform=tr, nodata=-32768 if dtype == "int16" else None,
+                       tiled=True, blockxsize=16, blockysize=16, compress="deflate") as dst:
+        dst.write(data, 1)
+        dst.update_tags(**tags)
+        if dtype == "int16":
+            dst.scales = [0.1]
+    origin = (lat0, lon0, 300.0)
+    dem = DemTerrain(f, origin, (-300, 300, -300, 300))
+    assert dem.pixel_is_point == (kind == "pixel-is-point")
+    e, n_ = rng.uniform(-300, 300, 150), rng.uniform(-300, 300, 150)
+    lat, lon, h = ExactENU(*origin).to_geodetic(e, n_, np.asarray(dem.height_m(e, n_)))
+    hand = _hand_bilinear(f, np.asarray(lat), np.asarray(lon))
+    assert np.max(np.abs(np.asarray(h) - hand)) < 1e-4
+    assert np.ptp(hand) > 5.0  # rough enough that a misplaced sample would show
+    if kind == "pixel-is-point":  # the file's own tie point: raster (0, 0) is a post
+        X, Y = _tiepoint(f)
+        assert (X, Y) == pytest.approx((tr.c + res / 2, tr.f - res / 2), abs=1e-6)
+        lo, la = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(X, Y)
+        fr = ExactENU(*origin)
+        pe, pn, _ = fr.to_enu(la, lo, 300.0)
+        far = DemTerrain(f, origin, (float(pe) - 5, float(pe) + 5, float(pn) - 5, float(pn) + 5))
+        got = fr.to_geodetic(float(pe), float(pn), float(far.height_m(float(pe), float(pn))))
+        assert float(got[2]) == pytest.approx(data[0, 0] * 0.1, abs=0.01)
+
+
+def _tiepoint(path) -> tuple[float, float]:
+    """(X, Y) of a classic little-endian GeoTIFF's ModelTiepointTag (raster (0, 0))."""
+    import struct
+
+    b = path.read_bytes()
+    assert b[:4] == b"II*\0"
+    off = struct.unpack("<I", b[4:8])[0]
+    for k in range(struct.unpack("<H", b[off:off + 2])[0]):
+        tag, _typ, _count, at = struct.unpack("<HHII", b[off + 2 + 12 * k:off + 14 + 12 * k])
+        if tag == 33922:
+            i, j, _, x, y, _ = struct.unpack("<6d", b[at:at + 48])
+            assert (i, j) == (0.0, 0.0)
+            return x, y
+    raise AssertionError("no ModelTiepointTag")
