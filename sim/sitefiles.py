@@ -120,10 +120,15 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _read(path: Path) -> str:
+    """A JSON file's text: UTF-8 (RFC 8259), or UTF-16 with its byte order mark (what
+    Windows PowerShell's ``Out-File`` and Notepad's "Unicode" write)."""
+    data = _read_bytes(path)
+    codec = "utf-16" if data.startswith((b"\xff\xfe", b"\xfe\xff")) else "utf-8-sig"
     try:
-        return _read_bytes(path).decode("utf-8-sig")
+        return data.decode(codec)
     except UnicodeDecodeError as exc:
-        raise SiteFileError(f"{path}: cannot read: {exc}") from None
+        raise SiteFileError(f"{path}: not {codec.removesuffix('-sig').upper()} text: "
+                            f"{exc.reason} at byte {exc.start}") from None
 
 
 def _kmz_kml(path: Path) -> bytes:

@@ -346,3 +346,28 @@ def test_a_kml_tuple_run_into_the_next_is_refused_not_merged(tmp_path):
     with pytest.raises(SiteFileError, match=r"pairs.kml: placemark 'placemark 1': "
                                             r"coordinates '.*\.\.\.' run tuples together"):
         read_area(two_d)
+
+
+def test_json_site_files_in_utf16_as_windows_writes_them(tmp_path):
+    """GeoJSON and .plan written by Windows PowerShell (``ConvertTo-Json | Out-File``:
+    UTF-16 LE with a byte order mark) or Notepad's "Unicode": were refused as "cannot
+    read: 'utf-8' codec can't decode byte 0xff in position 0"; now read by their byte
+    order mark to the same shapes. A file in neither encoding is refused in one line."""
+    obj = {"type": "Feature", "properties": {"name": "Zona de búsqueda"}, "geometry": {
+        "type": "Polygon", "coordinates": [[[lo, la] for lo, la in [*RING, RING[0]]]]}}
+    for codec in ("utf-16-le", "utf-16-be"):
+        f = tmp_path / f"{codec}.geojson"
+        bom = "\ufeff".encode(codec)
+        f.write_bytes(bom + json.dumps(obj, indent=4, ensure_ascii=False).replace(
+            "\n", "\r\n").encode(codec))
+        assert read_area(f) == WANT, codec
+    plan = {"fileType": "Plan", "version": 1, "geoFence": {"version": 2, "circles": [],
+            "polygons": [{"inclusion": True, "polygon": [[la, lo] for lo, la in RING]}]}}
+    fp = tmp_path / "fence.plan"
+    fp.write_text(json.dumps(plan), encoding="utf-16")
+    assert read_area(fp) == WANT
+    bad = tmp_path / "latin.geojson"
+    bad.write_bytes(json.dumps(obj, ensure_ascii=False).encode("latin-1"))
+    with pytest.raises(SiteFileError, match=r"latin.geojson: not UTF-8 text: invalid start "
+                                            r"byte at byte \d+$"):
+        read_area(bad)
