@@ -547,7 +547,12 @@ def read_keepouts(path: str | Path) -> list[GeoShape]:
     if skipped:
         raise SiteFileError(skipped[0])
     if Path(path).suffix.lower() == ".plan":
+        n_incl = sum(s.inclusion for s in shapes)
         shapes = [s for s in shapes if not s.inclusion]
+        if not shapes:
+            raise SiteFileError(f"{path}: its geoFence holds no exclusion polygon or circle "
+                                f"({n_incl} inclusion shape{'s' * (n_incl != 1)}: a .plan's "
+                                "keep-outs are its exclusion fences)")
     if not shapes:
         raise SiteFileError(f"{path}: holds no keep-out (a polygon, or a point with a radius_m)")
     return shapes

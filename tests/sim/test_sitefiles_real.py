@@ -151,6 +151,14 @@ def test_qgc_plan_with_every_fence_kind_and_rally_points(tmp_path):
     assert [k.is_circle for k in kos] == [False, True]
     assert kos[0].vertices_deg == tuple(tuple(v) for v in hole)
     assert kos[1].center_deg == (36.7125, -4.486) and kos[1].radius_m == 30
+    # the same plan with its inclusion fence only, given as a keep-out file: was "holds no
+    # keep-out (a polygon, or a point with a radius_m)", though it holds a polygon
+    plan["geoFence"]["polygons"], plan["geoFence"]["circles"] = plan["geoFence"]["polygons"][:1], []
+    f.write_text(json.dumps(plan, indent=4))
+    with pytest.raises(SiteFileError, match=r"site.plan: its geoFence holds no exclusion "
+                                            r"polygon or circle \(1 inclusion shape: a .plan's "
+                                            r"keep-outs are its exclusion fences\)$"):
+        read_keepouts(f)
 
 
 def test_a_bow_tie_area_or_keep_out_is_refused_where_it_is_read(tmp_path, capsys):
