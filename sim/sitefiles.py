@@ -397,7 +397,20 @@ def _geojson_shapes(obj: Any, source: str, skipped: list[str]) -> list[GeoShape]
         return out
     if kind == "Feature":
         return _geojson_feature(obj, source, pos)
+    if kind not in _GEOJSON_GEOMETRIES:  # not GeoJSON: say what it looks like
+        if "geometryType" in obj or "spatialReference" in obj:
+            what = "an Esri JSON (ArcGIS's 'Features To JSON'): export it as GeoJSON"
+        elif kind == "Topology":
+            what = "a TopoJSON: convert it to GeoJSON (mapshaper, QGIS)"
+        else:
+            what = "expected a FeatureCollection, a Feature or a geometry"
+        raise SiteFileError(f"{source}: not GeoJSON (its top level's type is {kind!r}): "
+                            f"{what}")
     return _geojson_geometry(obj, {}, source, "", pos)
+
+
+_GEOJSON_GEOMETRIES = ("Point", "MultiPoint", "LineString", "MultiLineString", "Polygon",
+                       "MultiPolygon", "GeometryCollection")
 
 
 def _geojson_feature(f: Any, where: str, pos: _Positions) -> list[GeoShape]:

@@ -379,3 +379,28 @@ def test_json_site_files_in_utf16_as_windows_writes_them(tmp_path):
     with pytest.raises(SiteFileError, match=r"latin.geojson: not UTF-8 text: invalid start "
                                             r"byte at byte \d+$"):
         read_area(bad)
+
+
+def test_json_that_is_not_geojson_is_named_not_read_as_empty(tmp_path):
+    """An ArcGIS 'Features To JSON' export (Esri JSON: rings, spatialReference) or a
+    TopoJSON saved as .json: read as holding nothing ("holds 0 polygons; a search area
+    is exactly one", or "holds no keep-out" for a file full of polygons); now refused as
+    not GeoJSON, saying what it looks like."""
+    esri = {"displayFieldName": "name", "geometryType": "esriGeometryPolygon",
+            "spatialReference": {"wkid": 4326, "latestWkid": 4326},
+            "fields": [{"name": "top_m", "type": "esriFieldTypeDouble"}],
+            "features": [{"attributes": {"top_m": 40},
+                          "geometry": {"rings": [[list(p) for p in [*RING, RING[0]]]]}}]}
+    topo = {"type": "Topology", "objects": {"area": {"type": "Polygon", "arcs": [[0]]}},
+            "arcs": [[list(p) for p in [*RING, RING[0]]]]}
+    for name, obj, hint in (("esri.json", esri, r"its top level's type is None\): an Esri "
+                             r"JSON \(ArcGIS's 'Features To JSON'\): export it as GeoJSON"),
+                            ("topo.json", topo, r"its top level's type is 'Topology'\): a "
+                             r"TopoJSON: convert it to GeoJSON \(mapshaper, QGIS\)"),
+                            ("other.json", {"type": "Area"}, r"its top level's type is "
+                             r"'Area'\): expected a FeatureCollection, a Feature or a geometry")):
+        f = tmp_path / name
+        f.write_text(json.dumps(obj))
+        for read in (read_area, read_keepouts):
+            with pytest.raises(SiteFileError, match=rf"{name}: not GeoJSON \({hint}$"):
+                read(f)
