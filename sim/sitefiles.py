@@ -63,6 +63,7 @@ class GeoShape:
     top_m: float | None = None
     name: str = ""
     inclusion: bool = False  # a .plan fence shape's flag (areas are inclusion polygons)
+    survey: bool = False  # a .plan's Survey pattern polygon (an area, never a keep-out)
 
     @property
     def is_circle(self) -> bool:
@@ -479,10 +480,26 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str,
 def _plan_shapes(obj: Any, source: str) -> list[GeoShape]:
     if not isinstance(obj, dict) or obj.get("fileType") != "Plan":
         raise SiteFileError(f"{source}: not a QGroundControl plan (fileType 'Plan')")
-    fence = obj.get("geoFence")
+    fence = obj.get("geoFence", {})
     if not isinstance(fence, dict):
-        raise SiteFileError(f"{source}: the plan has no geoFence")
+        raise SiteFileError(f"{source}: the plan's geoFence is not an object")
     out: list[GeoShape] = []
+    mission = obj.get("mission")
+    items = mission.get("items") if isinstance(mission, dict) else None
+    for k, item in enumerate(items if isinstance(items, list) else []):
+        if not (isinstance(item, dict) and item.get("type") == "ComplexItem"
+                and item.get("complexItemType") == "survey"):
+            continue
+        where = f"{source}: mission.items[{k}] (Survey)"
+        verts = item.get("polygon")
+        if not isinstance(verts, list) or len(verts) > MAX_VERTICES:
+            raise SiteFileError(f"{where}: expected a polygon of [lat, lon] vertices")
+        pts = []
+        for v in verts:
+            if not isinstance(v, list) or len(v) != 2:
+                raise SiteFileError(f"{where}: a vertex is [lat, lon]")
+            pts.append(_latlon(v[0], v[1], where))
+        out.append(GeoShape(vertices_deg=_ring(pts, where), survey=True, name=f"survey {k}"))
     for k, p in enumerate(fence.get("polygons") or []):
         where = f"{source}: geoFence.polygons[{k}]"
         verts = p.get("polygon") if isinstance(p, dict) else None
@@ -535,17 +552,44 @@ def _read_shapes(path: str | Path, skipped: list[str]) -> list[GeoShape]:
 
 def read_area(path: str | Path) -> tuple[LatLon, ...]:
     """The search area's polygon, (lat, lon) vertices: the one polygon of a KML or
-    GeoJSON file, or the one inclusion polygon of a ``.plan``'s geoFence."""
+    GeoJSON file; of a ``.plan``, the one inclusion polygon of its geoFence, or, when it
+    has none, its one inclusion circle (as :data:`CIRCLE_VERTICES` vertices on it) or
+    the polygon of its one Survey pattern."""
     shapes = read_shapes(path)
     if Path(path).suffix.lower() == ".plan":
         polys = [s for s in shapes if not s.is_circle and s.inclusion]
         what = "inclusion polygons in its geoFence"
+        if not polys:
+            polys = [_circle_polygon(s) if s.is_circle else s for s in shapes
+                     if (s.is_circle and s.inclusion) or s.survey]
+            what = ("inclusion polygons in its geoFence, and "
+                    f"{len(polys)} inclusion circles and Survey polygons")
+            if len(polys) != 1:
+                raise SiteFileError(f"{path}: holds 0 {what}; a search area is exactly one")
     else:
         polys = [s for s in shapes if not s.is_circle]
         what = "polygons"
     if len(polys) != 1:
         raise SiteFileError(f"{path}: holds {len(polys)} {what}; a search area is exactly one")
     return polys[0].vertices_deg
+
+
+CIRCLE_VERTICES = 72  # a circle as an area: vertices on it, 0.1 % of its radius inside
+
+
+def _circle_polygon(shape: GeoShape) -> GeoShape:
+    """A circle as the polygon of :data:`CIRCLE_VERTICES` vertices on it (exact WGS84)."""
+    import numpy as np
+
+    from estimator.geodesy import ExactENU
+
+    lat, lon = shape.center_deg  # type: ignore[misc]
+    th = np.linspace(0.0, 2.0 * math.pi, CIRCLE_VERTICES, endpoint=False)
+    r = float(shape.radius_m)  # type: ignore[arg-type]
+    la, lo, _ = ExactENU(lat, lon, 0.0).to_geodetic(r * np.sin(th), r * np.cos(th),
+                                                     np.zeros_like(th))
+    verts = tuple((float(a), float(b)) for a, b in zip(la, lo, strict=True))
+    return GeoShape(vertices_deg=verts, inclusion=True, name=shape.name)
 
 
 def read_keepouts(path: str | Path) -> list[GeoShape]:
@@ -561,7 +605,7 @@ def read_keepouts(path: str | Path) -> list[GeoShape]:
         raise SiteFileError(skipped[0])
     if Path(path).suffix.lower() == ".plan":
         n_incl = sum(s.inclusion for s in shapes)
-        shapes = [s for s in shapes if not s.inclusion]
+        shapes = [s for s in shapes if not (s.inclusion or s.survey)]
         if not shapes:
             raise SiteFileError(f"{path}: its geoFence holds no exclusion polygon or circle "
                                 f"({n_incl} inclusion shape{'s' * (n_incl != 1)}: a .plan's "

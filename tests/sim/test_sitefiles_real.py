@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import zipfile
 
+import numpy as np
 import pytest
 
 from sim.sitefiles import SiteFileError, read_area, read_keepouts
@@ -404,3 +405,61 @@ def test_json_that_is_not_geojson_is_named_not_read_as_empty(tmp_path):
         for read in (read_area, read_keepouts):
             with pytest.raises(SiteFileError, match=rf"{name}: not GeoJSON \({hint}$"):
                 read(f)
+
+
+def test_a_qgc_plan_whose_area_is_a_survey_or_an_inclusion_circle(tmp_path, capsys):
+    """QGroundControl users draw the area to search as a Survey pattern (a ComplexItem
+    with its polygon) or fence it with a circle. Such a .plan as the area was refused:
+    "holds 0 inclusion polygons in its geoFence". Now, when its geoFence holds no
+    inclusion polygon, its one Survey polygon or its one inclusion circle (72 vertices
+    on it) is the area; an inclusion polygon still comes first; two candidates are
+    refused; a Survey is never a keep-out."""
+    from estimator.geodesy import ExactENU
+    from tests.cli import status_of
+
+    survey = {"type": "ComplexItem", "complexItemType": "survey", "version": 5, "angle": 0,
+              "entryLocation": 0, "flyAlternateTransects": False, "splitConcavePolygons": False,
+              "polygon": [[la, lo] for lo, la in RING],
+              "TransectStyleComplexItem": {"CameraCalc": {"DistanceToSurface": 50,
+                                                          "version": 2},
+                                           "Items": [], "VisualTransectPoints": [],
+                                           "TurnAroundDistance": 10, "version": 2}}
+    takeoff = {"type": "SimpleItem", "command": 22, "frame": 3, "autoContinue": True,
+               "doJumpId": 1, "params": [0, 0, 0, None, 36.711, -4.487, 50]}
+
+    def plan(items, polygons=(), circles=()):
+        return {"fileType": "Plan", "version": 1, "groundStation": "QGroundControl",
+                "mission": {"version": 2, "firmwareType": 12, "vehicleType": 2,
+                            "plannedHomePosition": [36.711, -4.487, 100], "items": items},
+                "geoFence": {"version": 2, "polygons": list(polygons),
+                             "circles": list(circles)},
+                "rallyPoints": {"version": 2, "points": []}}
+
+    f = tmp_path / "survey.plan"
+    f.write_text(json.dumps(plan([takeoff, survey]), indent=4))
+    assert read_area(f) == WANT
+    code = status_of(["plan", "lawnmower", "--area", str(f), "-o", str(tmp_path / "m.plan")])
+    assert code == 0, capsys.readouterr().err
+    ring = {"circle": {"center": [36.712, -4.487], "radius": 300.0}, "inclusion": True,
+            "version": 1}
+    c = tmp_path / "circle.plan"
+    c.write_text(json.dumps(plan([takeoff], circles=[ring])))
+    got = read_area(c)
+    assert len(got) == 72
+    e, n, _ = ExactENU(36.712, -4.487, 0.0).to_enu(*np.array(got).T, np.zeros(72))
+    assert np.max(np.abs(np.hypot(e, n) - 300.0)) < 1e-3
+    fence = {"inclusion": True, "polygon": [[la, lo] for lo, la in RING], "version": 1}
+    both = tmp_path / "both.plan"
+    both.write_text(json.dumps(plan([takeoff, {**survey, "polygon": [[36.0, -4.0],
+                                                                     [36.0, -4.01],
+                                                                     [36.01, -4.0]]}],
+                                    polygons=[fence])))
+    assert read_area(both) == WANT  # the fence first, as before
+    two = tmp_path / "two.plan"
+    two.write_text(json.dumps(plan([takeoff, survey], circles=[ring])))
+    with pytest.raises(SiteFileError, match=r"two.plan: holds 0 inclusion polygons in its "
+                                            r"geoFence, and 2 inclusion circles and Survey "
+                                            r"polygons; a search area is exactly one$"):
+        read_area(two)
+    with pytest.raises(SiteFileError, match=r"survey.plan: its geoFence holds no exclusion"):
+        read_keepouts(f)
