@@ -11,7 +11,11 @@ One ``Document`` (KML 2.2) holding:
 - ``search area``: a ``Polygon`` on the ground (when there is one);
 - each keep-out: a ``Polygon`` (a circle as 64 vertices), extruded up to its ``top_m``
   above the ground when it has one (Google Earth draws the obstacle as a block), with
-  ``top_m`` in its ``ExtendedData`` (so the file reads back as a keep-out file).
+  ``top_m`` in its ``ExtendedData``.
+
+Each placemark's ``ExtendedData`` gives its role (``osa_role``: ``mission``, ``home``,
+``search area``, ``keep-out``), so the file reads back whole: as ``--area`` its search
+area, as ``--keepout`` its keep-outs with their tops (``sim.sitefiles``).
 
 Coordinates are ``lon,lat,alt`` with 7 decimals (about 1 cm) and altitudes in mm.
 """
@@ -26,6 +30,7 @@ from xml.sax.saxutils import escape
 from planner.geojson import circle_ring
 
 LatLon = tuple[float, float]
+ROLE_KEY = "osa_role"  # as sim.sitefiles.ROLE_KEY (planner does not import sim)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -61,9 +66,17 @@ def _ring(shape: KmlShape) -> list[LatLon]:
     return ring if ring[0] == ring[-1] else [*ring, ring[0]]
 
 
-def _polygon(name: str, ring: Sequence[LatLon], style: str, top_m: float | None) -> str:
-    ext = (f'<ExtendedData><Data name="top_m"><value>{top_m:g}</value></Data></ExtendedData>'
-           if top_m is not None else "")
+def _role(role: str, top_m: float | None = None) -> str:
+    """The placemark's ExtendedData: its role (``sim.sitefiles`` reads the file back: the
+    search area as the area, never a keep-out; the mission path as no obstacle) and top."""
+    top = f'<Data name="top_m"><value>{top_m:g}</value></Data>' if top_m is not None else ""
+    return (f'<ExtendedData><Data name="{ROLE_KEY}"><value>{role}</value></Data>{top}'
+            "</ExtendedData>")
+
+
+def _polygon(name: str, ring: Sequence[LatLon], style: str, top_m: float | None,
+             role: str = "keep-out") -> str:
+    ext = _role(role, top_m)
     if top_m is not None and top_m > 0:
         geom = ("<extrude>1</extrude><altitudeMode>relativeToGround</altitudeMode>",
                 " ".join(_coord(la, lo, top_m) for la, lo in ring))
@@ -98,15 +111,16 @@ def mission_kml(
         f"<name>{escape(name)}</name>",
         f"<description>{escape(description)}</description>" if description else "",
         _STYLES,
-        f"<Placemark><name>mission</name><styleUrl>#path</styleUrl><LineString>"
+        f"<Placemark><name>mission</name><styleUrl>#path</styleUrl>{_role('mission')}"
+        "<LineString>"
         f"<altitudeMode>{mode}</altitudeMode><coordinates>{coords}</coordinates>"
         "</LineString></Placemark>",
-        f"<Placemark><name>home</name><Point><altitudeMode>{mode}</altitudeMode>"
+        f"<Placemark><name>home</name>{_role('home')}<Point><altitudeMode>{mode}</altitudeMode>"
         f"<coordinates>{_coord(*home)}</coordinates></Point></Placemark>",
     ]
     if area_deg is not None:
         ring = list(area_deg) if area_deg[0] == area_deg[-1] else [*area_deg, area_deg[0]]
-        parts.append(_polygon("search area", ring, "area", None))
+        parts.append(_polygon("search area", ring, "area", None, role="search area"))
     for k in keep_outs:
         parts.append(_polygon(k.name, _ring(k), "flown-over" if k.flown_over else "keepout",
                               k.top_m))

@@ -62,7 +62,7 @@ class GeoShape:
     radius_m: float | None = None
     top_m: float | None = None
     name: str = ""
-    inclusion: bool = False  # a .plan fence shape's flag (areas are inclusion polygons)
+    inclusion: bool = False  # an area: a .plan's inclusion fence, osa plan's KML's area
     survey: bool = False  # a .plan's Survey pattern polygon (an area, never a keep-out)
 
     @property
@@ -158,6 +158,9 @@ def _kmz_kml(path: Path) -> bytes:
 
 # ----------------------------------------------------------------------------- KML
 
+# ExtendedData that osa plan's KML gives each placemark: "mission", "home", "search area"
+# or "keep-out"; its search area is the file's area, never one of its keep-outs
+ROLE_KEY = "osa_role"
 _DOCTYPE = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 _XML_ENCODING = re.compile(rb"^<\?xml[^>]*?encoding\s*=\s*[\"']([A-Za-z0-9._-]+)[\"']")
 _COMMA = re.compile(r"\s*,\s*")
@@ -192,13 +195,6 @@ def _kml_coords(text: str | None, where: str) -> list[LatLon]:
             raise SiteFileError(f"{where}: coordinates {tok!r} are not numbers") from None
         out.append(_latlon(lat, lon, where))
     return out
-
-
-def _kml_altitude_mode(el: ET.Element) -> str:
-    """A geometry's ``altitudeMode`` (KML's, not ``gx:``), ``clampToGround`` if none."""
-    modes = [c for c in el if c.tag.rsplit("}", 1)[-1] == "altitudeMode"
-             and "google.com/kml/ext" not in c.tag]
-    return (modes[0].text or "").strip() if modes else "clampToGround"
 
 
 def _short(text: str, n: int = 60) -> str:
@@ -259,13 +255,13 @@ def _parse_kml(data: bytes, source: str, skipped: list[str]) -> list[GeoShape]:
         where = f"{source}: placemark {name!r}"
         ext = _kml_extended(pm)
         top = _height(ext["top_m"], "top_m", where) if ext.get("top_m") else None
+        role = ext.get(ROLE_KEY, "")  # what osa plan's own KML says a placemark is
         polys = _descendants(pm, "Polygon")
         n_rings = sum(len(_descendants(poly, "LinearRing")) for poly in polys)
-        # a path on the ground (Google Earth's Add Path: clamped, tessellated) is drawn as
-        # an obstacle; one at altitudes is a flight (osa plan's mission, a flight log)
-        ground = [ls for ls in _descendants(pm, "LineString")
-                  if _kml_altitude_mode(ls) not in ("absolute", "relativeToGround")]
-        if ground or len(_descendants(pm, "LinearRing")) > n_rings:
+        # a path (Google Earth's Add Path: power lines, fences) is drawn as an obstacle,
+        # on the ground or in the air; osa plan's mission path says it is a flight
+        if role != "mission" and (_descendants(pm, "LineString")
+                                  or len(_descendants(pm, "LinearRing")) > n_rings):
             skipped.append(f"{where}: a path (LineString or LinearRing) is not a keep-out: "
                            "draw the corridor to avoid as a Polygon")
         for poly in polys:
@@ -278,7 +274,8 @@ def _parse_kml(data: bytes, source: str, skipped: list[str]) -> list[GeoShape]:
                 raise SiteFileError(f"{where}: a Polygon needs one outerBoundaryIs ring")
             verts = _kml_coords(rings[0].text, where)
             n_vertices += len(verts)
-            shapes.append(GeoShape(vertices_deg=_ring(verts, where), top_m=top, name=name))
+            shapes.append(GeoShape(vertices_deg=_ring(verts, where), top_m=top, name=name,
+                                   inclusion=role == "search area"))
         for pt in _descendants(pm, "Point"):
             coords = _descendants(pt, "coordinates")
             if "radius_m" not in ext:  # a label, not a shape; with a top, a tower unsized
@@ -569,6 +566,9 @@ def read_area(path: str | Path) -> tuple[LatLon, ...]:
     else:
         polys = [s for s in shapes if not s.is_circle]
         what = "polygons"
+        if any(s.inclusion for s in polys):  # osa plan's KML: its marked search area
+            polys = [s for s in polys if s.inclusion]
+            what = f"polygons marked {ROLE_KEY} 'search area'"
     if len(polys) != 1:
         raise SiteFileError(f"{path}: holds {len(polys)} {what}; a search area is exactly one")
     return polys[0].vertices_deg
@@ -603,13 +603,12 @@ def read_keepouts(path: str | Path) -> list[GeoShape]:
     shapes = _read_shapes(path, skipped)
     if skipped:
         raise SiteFileError(skipped[0])
-    if Path(path).suffix.lower() == ".plan":
-        n_incl = sum(s.inclusion for s in shapes)
-        shapes = [s for s in shapes if not (s.inclusion or s.survey)]
-        if not shapes:
-            raise SiteFileError(f"{path}: its geoFence holds no exclusion polygon or circle "
-                                f"({n_incl} inclusion shape{'s' * (n_incl != 1)}: a .plan's "
-                                "keep-outs are its exclusion fences)")
+    n_incl = sum(s.inclusion for s in shapes)
+    shapes = [s for s in shapes if not (s.inclusion or s.survey)]  # areas, not keep-outs
+    if Path(path).suffix.lower() == ".plan" and not shapes:
+        raise SiteFileError(f"{path}: its geoFence holds no exclusion polygon or circle "
+                            f"({n_incl} inclusion shape{'s' * (n_incl != 1)}: a .plan's "
+                            "keep-outs are its exclusion fences)")
     if not shapes:
         raise SiteFileError(f"{path}: holds no keep-out (a polygon, or a point with a radius_m)")
     return shapes

@@ -278,11 +278,22 @@ def test_kml_output_for_google_earth(site, frame, capsys):
     assert agl[1:].min() >= AGL - 2.02 and agl.max() <= AGL + 25.02
     names = [p.find("k:name", ns).text for p in root.iter(f"{{{ns['k']}}}Placemark")]
     assert names[:3] == ["mission", "home", "search area"] and {"tower", "wires"} <= set(names)
-    # the KML reads back as a site file: the area and the keep-outs with their tops
+    # the KML reads back as a site file: as --area its search area, as --keepout its
+    # keep-outs with their tops, never the search area (which read as a keep-out made a
+    # re-plan from the file fail: "lawnmower path enters keep-out 0 (a polygon)")
     shapes = read_keepouts(out)
     tops = sorted(s.top_m for s in shapes if s.top_m is not None)
     assert tops == [15.0, 60.0]
-    assert len(read_area(site["area"])) == 5
+    assert [s.name for s in shapes] == names[3:]
+    area = read_area(site["area"])
+    assert len(area) == 5
+    assert np.max(np.abs(np.array(read_area(out)) - np.array(area))) < 1e-7
+    if frame == "relative":  # and plans again from itself alone
+        again = site["dir"] / "again.kml"
+        rc = main(["plan", "lawnmower", "--area", str(out), "--keepout", str(out), "--dem",
+                   site["dem"], "--agl", str(AGL), "--spacing", "80", "-o", str(again)])
+        assert rc == 0, capsys.readouterr().err
+        assert read_keepouts(again) == read_keepouts(out)
 
 
 @pytest.mark.parametrize(("extra", "needle"), [

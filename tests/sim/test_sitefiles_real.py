@@ -273,14 +273,23 @@ def test_a_path_or_an_unsized_tower_in_a_keep_out_file_is_refused_not_dropped(tm
                                             r"top_m but no radius_m"):
         read_keepouts(unsized)
     assert [s.radius_m for s in read_keepouts(tmp_path / "ok.kml")] == [None]
-    # a path at altitudes is a flight (osa plan's own mission KML, a log): left aside
-    flown = tmp_path / "flown.kml"
-    flown.write_text(_kml("<Document>" + body + "".join(
-        f"<Placemark><name>flight {m}</name><LineString><altitudeMode>{m}</altitudeMode>"
-        "<coordinates>-4.487,36.712,180 -4.486,36.713,185</coordinates></LineString>"
-        "</Placemark>" for m in ("absolute", "relativeToGround")) + "</Document>"))
-    assert [(s.name, s.top_m) for s in read_keepouts(flown)] == [
-        (f"tower {k}", 40.0) for k in (1, 2, 3)]
+    # a path drawn in the air (wires at 25 m above the ground, or at absolute heights) is
+    # an obstacle too; only osa plan's own mission path, marked osa_role, is a flight
+    for mode, role, refused in (("relativeToGround", "", True), ("absolute", "", True),
+                                ("absolute", "mission", False)):
+        ext = (f'<ExtendedData><Data name="osa_role"><value>{role}</value></Data>'
+               "</ExtendedData>" if role else "")
+        flown = tmp_path / "flown.kml"
+        flown.write_text(_kml(f"<Document>{body}<Placemark><name>flight</name>{ext}"
+                              f"<LineString><altitudeMode>{mode}</altitudeMode><coordinates>"
+                              "-4.487,36.712,25 -4.486,36.713,25</coordinates></LineString>"
+                              "</Placemark></Document>"))
+        if refused:
+            with pytest.raises(SiteFileError, match=r"placemark 'flight': a path"):
+                read_keepouts(flown)
+        else:
+            assert [(s.name, s.top_m) for s in read_keepouts(flown)] == [
+                (f"tower {k}", 40.0) for k in (1, 2, 3)]
     # the same towers as a QGIS GeoJSON layer: one with radius_m null, then a MultiPoint
     feats = [{"type": "Feature", "properties": {"name": f"t{k}", "top_m": 40, "radius_m": 15},
               "geometry": {"type": "Point", "coordinates": [lo, la]}}
