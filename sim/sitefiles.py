@@ -423,8 +423,8 @@ def _geojson_feature(f: Any, where: str, pos: _Positions) -> list[GeoShape]:
     return _geojson_geometry(f.get("geometry"), props, where, name, pos)
 
 
-def _geojson_geometry(g: Any, props: dict, where: str, name: str,
-                      pos: _Positions) -> list[GeoShape]:
+def _geojson_geometry(g: Any, props: dict, where: str, name: str, pos: _Positions,
+                      beside_polygon: bool = False) -> list[GeoShape]:
     if not isinstance(g, dict):
         raise SiteFileError(f"{where}: missing geometry")
     top = _height(props["top_m"], "top_m", where) if props.get("top_m") is not None else None
@@ -435,7 +435,7 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str,
         polys = coords if isinstance(coords, list) else [None]
     elif kind in ("Point", "MultiPoint"):
         if props.get("radius_m") is None:  # a label, not a shape; with a top, a tower unsized
-            if top is not None:
+            if top is not None and not beside_polygon:  # (not a polygon's label)
                 pos.skipped.append(f"{where}: a Point with a top_m but no radius_m: give the "
                                    "radius_m of the circle to keep out")
             return []
@@ -452,8 +452,11 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str,
         return out
     elif kind == "GeometryCollection":
         out: list[GeoShape] = []
-        for sub in g.get("geometries") or []:
-            out += _geojson_geometry(sub, props, where, name, pos)
+        subs = g.get("geometries") or []
+        poly = any(isinstance(x, dict) and x.get("type") in ("Polygon", "MultiPolygon")
+                   for x in subs)
+        for sub in subs:
+            out += _geojson_geometry(sub, props, where, name, pos, poly)
         return out
     else:  # lines and other geometries are not areas
         if kind in ("LineString", "MultiLineString"):

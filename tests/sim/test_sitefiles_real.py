@@ -306,6 +306,14 @@ def test_a_path_or_an_unsized_tower_in_a_keep_out_file_is_refused_not_dropped(tm
     with pytest.raises(SiteFileError, match=r"towers.geojson: feature 2: a path \(LineString\) "
                                             r"is not a keep-out"):
         read_keepouts(gj)
+    # a polygon with its label point (a GeometryCollection) and a top: the polygon's top
+    labelled = tmp_path / "labelled.geojson"
+    labelled.write_text(json.dumps({"type": "Feature", "properties": {"top_m": 25},
+                                    "geometry": {"type": "GeometryCollection", "geometries": [
+                                        {"type": "Point", "coordinates": list(towers[0])},
+                                        {"type": "Polygon", "coordinates": [
+                                            [list(p) for p in [*RING, RING[0]]]]}]}}))
+    assert [(len(s.vertices_deg), s.top_m) for s in read_keepouts(labelled)] == [(6, 25.0)]
     multi = tmp_path / "multi.geojson"
     multi.write_text(json.dumps({"type": "Feature", "properties": {"top_m": 40, "radius_m": 15},
                                  "geometry": {"type": "MultiPoint",
