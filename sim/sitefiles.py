@@ -158,6 +158,10 @@ def _kmz_kml(path: Path) -> bytes:
 
 # ----------------------------------------------------------------------------- KML
 
+# a hole's meaning differs for an area (not to search, may be flown over) and a keep-out
+# (may be entered): the file must say which (docs/scenarios.md, "Site files")
+_HOLES = ("polygons with holes are not supported (an area's hole: draw it as a keep-out "
+          "if it must not be flown; a keep-out with a hole: draw it as polygons without holes)")
 # ExtendedData that osa plan's KML gives each placemark: "mission", "home", "search area"
 # or "keep-out"; its search area is the file's area, never one of its keep-outs
 ROLE_KEY = "osa_role"
@@ -266,8 +270,7 @@ def _parse_kml(data: bytes, source: str, skipped: list[str]) -> list[GeoShape]:
                            "draw the corridor to avoid as a Polygon")
         for poly in polys:
             if _descendants(poly, "innerBoundaryIs"):
-                raise SiteFileError(f"{where}: polygons with holes are not supported (draw "
-                                    "the hole as a keep-out)")
+                raise SiteFileError(f"{where}: {_HOLES}")
             rings = [r for ob in _descendants(poly, "outerBoundaryIs")
                      for r in _descendants(ob, "coordinates")]
             if len(rings) != 1:
@@ -468,8 +471,7 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str, pos: _Position
         if not isinstance(rings, list) or not rings:
             raise SiteFileError(f"{where}: a Polygon needs its rings")
         if len(rings) > 1:
-            raise SiteFileError(f"{where}: polygons with holes are not supported (draw the "
-                                "hole as a keep-out)")
+            raise SiteFileError(f"{where}: {_HOLES}")
         out.append(GeoShape(vertices_deg=_geojson_ring(rings[0], where, pos), top_m=top, name=name))
     return out
 

@@ -93,7 +93,11 @@ def test_kml_and_kmz_refusals_are_one_line(tmp_path):
                           "<innerBoundaryIs><LinearRing><coordinates>-4.488,36.7115 "
                           "-4.4865,36.7115 -4.4865,36.7125 -4.488,36.7115</coordinates>"
                           "</LinearRing></innerBoundaryIs></Polygon></Placemark>"))
-    cases = [(holed, r"holed.kml: placemark .*polygons with holes are not supported")]
+    # a keep-out with a hole was told to "draw the hole as a keep-out": the hole is where
+    # it may be entered; the advice now says what to do for an area and for a keep-out
+    cases = [(holed, r"holed.kml: placemark .*polygons with holes are not supported \(an "
+                     r"area's hole: draw it as a keep-out if it must not be flown; a keep-out "
+                     r"with a hole: draw it as polygons without holes\)$")]
     empty = tmp_path / "empty.kmz"
     with zipfile.ZipFile(empty, "w") as z:
         z.writestr("image.png", b"\x89PNG")
