@@ -648,8 +648,13 @@ def _keepouts(raw: Any, origin: Origin, base_dir: Path) -> tuple[KeepOutZone, ..
                 shapes = read_keepouts(path)
             except SiteFileError as exc:
                 raise ConfigError(f"{where}.file: {exc}") from None
-            for j, sh in enumerate(shapes):
-                nm = f"{name}/{sh.name}" if sh.name else f"{name}/{j}"
+            # names within the file: Google Earth calls every new polygon "Untitled
+            # Polygon", a GIS layer may name every tower "pylon": the repeats are numbered
+            own = [sh.name or str(j) for j, sh in enumerate(shapes)]
+            seen: dict[str, int] = {}
+            for sh, base in zip(shapes, own, strict=True):
+                seen[base] = seen.get(base, 0) + 1
+                nm = f"{name}/{base}" if own.count(base) == 1 else f"{name}/{base} {seen[base]}"
                 out.append(_zone(sh, origin, f"{where}.file", name=nm,
                                  top_m=sh.top_m if sh.top_m is not None else top))
             continue

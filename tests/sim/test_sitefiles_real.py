@@ -484,3 +484,30 @@ def test_a_qgc_plan_whose_area_is_a_survey_or_an_inclusion_circle(tmp_path, caps
         read_area(two)
     with pytest.raises(SiteFileError, match=r"survey.plan: its geoFence holds no exclusion"):
         read_keepouts(f)
+
+
+def test_keep_outs_named_alike_as_google_earth_names_them(tmp_path):
+    """Google Earth names every new polygon "Untitled Polygon" (a GIS layer may name
+    every tower "pylon"): a keep-out file with two such placemarks was refused by the
+    scenario, "the name 'keepout[0]/Untitled Polygon' is used twice". Now the repeats
+    are numbered in file order; a unique name stays as it was."""
+    from sim.scenario import load_scenario
+
+    def square(lon, lat, d=0.0004):
+        return _polygon(_coords([(lon, lat), (lon + d, lat), (lon + d, lat + d),
+                                 (lon, lat + d)]))
+
+    body = "".join(f"<Placemark><name>{nm}</name>{square(lo, la)}</Placemark>"
+                   for nm, lo, la in (("Untitled Polygon", -4.4880, 36.7115),
+                                      ("Untitled Polygon", -4.4860, 36.7125),
+                                      ("mast", -4.4850, 36.7140)))
+    (tmp_path / "obstacles.kml").write_text(_kml(f"<Document>{body}</Document>"))
+    area = tmp_path / "area.kml"
+    area.write_text(_kml(f"<Placemark>{_polygon(_coords(RING))}</Placemark>"))
+    toml = tmp_path / "site.toml"
+    toml.write_text('name = "site"\n[world.origin]\nlat_deg = 36.712\nlon_deg = -4.4875\n'
+                    'h_m = 150.0\n[search]\narea_file = "area.kml"\nstart_e_m = -100.0\n'
+                    'start_n_m = 0.0\nrandom_responders = 1\n[[search.keepout]]\n'
+                    'name = "obstacles"\nfile = "obstacles.kml"\n')
+    assert [k.name for k in load_scenario(toml).keepouts] == [
+        "obstacles/Untitled Polygon 1", "obstacles/Untitled Polygon 2", "obstacles/mast"]
