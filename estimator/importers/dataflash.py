@@ -4,9 +4,12 @@
 week) for the time, ``Status`` (0-1 no fix, skipped as ``no_fix``; 2 ``2d``, 3
 ``3d``, 4 ``dgps``, 5 ``rtk_float``, 6 ``rtk_fixed``), ``NSats``, ``HDop``, ``Lat``,
 ``Lng`` and ``Alt`` (above mean sea level). The ``GPA`` message written with it (same
-instance ``I`` and ``TimeUS``) gives ``HAcc`` and ``VAcc`` (``acc_m``, ``vacc_m``) and,
-in recent firmware, ``Und``: the receiver's geoid undulation N, so alt_m = Alt + Und.
-Without ``Und``, ``--geoid-offset`` gives N (else a warning); without ``HAcc``,
+instance ``I`` and ``TimeUS``) gives ``HAcc`` and ``VAcc`` (``acc_m``, ``vacc_m``) and
+the height above the ellipsoid: ``Und`` (ArduPilot 4.6 and the releases before it) is
+``AP_GPS::get_undulation``, the height of mean sea level above the ellipsoid, -N (uBlox
+``hMSL - height``), so alt_m = Alt - Und; ``AEl`` (later firmware) is the ellipsoidal
+height itself (cm; INT32_MIN unknown). A zero ``Und`` is a receiver without a geoid
+model. Without either, ``--geoid-offset`` gives N (else a warning); without ``HAcc``,
 acc_m = 1.5 m x HDop (as for NMEA). Instance 0 is read (``--topic GPS[1]`` picks the
 second receiver; in logs before ArduPilot 4.1, without the ``I`` column, its messages
 are ``GPS2`` and ``GPA2``, also named by ``--topic GPS2``). Fixes without GPS time
@@ -49,6 +52,7 @@ KIND = "gnss"
 HEAD = b"\xa3\x95\x80"  # message header bytes, then the FMT message's type (128)
 GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
 HDOP_TO_ACC_M = 1.5
+AEL_UNKNOWN_M = -(2**31) / 100  # GPA.AEl's INT32_MIN (cm): no ellipsoidal height
 STATUS = {2: "2d", 3: "3d", 4: "dgps", 5: "rtk_float", 6: "rtk_fixed"}
 # (UTC date from which it holds, GPS - UTC in seconds)
 LEAP_SECONDS: tuple[tuple[str, int], ...] = (
@@ -278,7 +282,7 @@ class Reader:
         for inst, n in self.other_instances.items():
             tally.counts.unknown_types[f"GPS[{inst}]"] += n
         g, a = self.gps, self.gpa
-        has = {c: c in a for c in ("HAcc", "VAcc", "Und")}
+        has = {c: c in a for c in ("HAcc", "VAcc", "Und", "AEl")}
         for i in range(self.n):
             tally.counts.lines += 1
             j = int(self.gpa_index[i])
@@ -297,16 +301,25 @@ class Reader:
             raise Skip("no_utc")
         hacc = round(float(a["HAcc"][j]), 2) if a is not None and has["HAcc"] else None
         vacc = round(float(a["VAcc"][j]), 2) if a is not None and has["VAcc"] else None
+        # Und is ArduPilot's undulation: mean sea level above the ellipsoid, -N
         und = float32_decimal(a["Und"][j]) if a is not None and has["Und"] else None
         if und == 0.0:  # a receiver without an undulation model logs 0
             und = None
+        ael = round(float(a["AEl"][j]), 2) if a is not None and has["AEl"] else None
+        if ael is not None and ael <= AEL_UNKNOWN_M:
+            ael = None
         if not hacc and "HDop" in g:
             hdop = round(float(g["HDop"][i]), 2)
             if hdop:
                 hacc = HDOP_TO_ACC_M * hdop
                 self.source.warn("fixes without GPA.HAcc: acc_m = 1.5 m x HDop")
-        alt, how = ellipsoidal_m(self.source, round(float(g["Alt"][i]), 2), und,
-                                 self.options.geoid_offset_m)
+        if ael is not None:
+            alt, how = ael, "ellipsoid"
+        else:
+            alt, how = ellipsoidal_m(self.source, round(float(g["Alt"][i]), 2),
+                                     None if und is None else -und,
+                                     self.options.geoid_offset_m)
+            alt = round(alt, 6)  # cm + a float32's shortest decimal, without binary noise
         fix = make_fix(
             lat_deg=round(float(g["Lat"][i]), 7), lon_deg=round(float(g["Lng"][i]), 7),
             alt_m=alt, acc_m=hacc, vacc_m=vacc, fix=STATUS[status],

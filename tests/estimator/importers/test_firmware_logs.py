@@ -1,0 +1,103 @@
+"""DataFlash and ULog files as the autopilots' firmware writes them, every value checked
+against a hand computation: ArduPilot's ``FMT``/``UNIT``/``MULT``/``FMTU`` preamble, the
+``GPA`` layouts of its releases, PX4's GNSS topics of v1.11 to v1.15."""
+
+from __future__ import annotations
+
+import pytest
+
+from estimator.importers.common import GnssOptions, Tally
+from estimator.importers.dataflash import Reader as DataFlashReader
+from tests.estimator.importers.writers import DF_GPS, DataFlashWriter
+
+# 2025-06-12T10:12:00Z is GPS week 2370 + 382,338,000 ms (GPS time is 18 s ahead)
+WEEK, WEEK_MS, UTC_NS = 2370, 382_338_000, 1_749_723_120 * 1_000_000_000
+INT32_MIN = -(2**31)
+
+# ArduPilot's GPA layouts: 4.1 on (no height), up to 4.6 (Und: AMSL minus ellipsoid,
+# AP_GPS::get_undulation), later (AEl: the ellipsoidal height in cm, INT32_MIN unknown)
+GPA_NO_HEIGHT = ("GPA", "QBCCCCfBIH", "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta")
+GPA_UND = ("GPA", "QBCCCCfBIHfHH", "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta,Und,"
+           "RTCMFU,RTCMFD")
+GPA_AEL = ("GPA", "QBCCCCfBIHeHH", "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta,AEl,"
+           "RTCMFU,RTCMFD")
+UNITS = {"s": "s", "m": "m", "D": "deglatitude", "U": "deglongitude", "S": "satellites",
+         "n": "m/s", "h": "degheading", "d": "deg", "#": "instance", "-": ""}
+MULTS = {"-": 0.0, "0": 1.0, "B": 1e-2, "C": 1e-3, "F": 1e-6, "G": 1e-7}
+
+
+def ardupilot_log(path, gpa, rows):
+    """A log as ArduPilot 4.x starts it: ``FMT`` of ``FMT``, the ``UNIT`` and ``MULT``
+    tables, each type's ``FMT`` then ``FMTU`` before its first message; then ``rows``:
+    (GPS values, GPA values) written with one ``TimeUS`` as ``AP_GPS::Write_GPS`` does."""
+    w = DataFlashWriter(path)
+    w.define(177, ("UNIT", "QbZ", "TimeUS,Id,Label"))
+    w.define(178, ("MULT", "Qbd", "TimeUS,Id,Mult"))
+    w.define(179, ("FMTU", "QBNN", "TimeUS,FmtType,UnitIds,MultIds"))
+    for k, label in UNITS.items():
+        w.write("UNIT", 0, ord(k), label.encode())
+    for k, mult in MULTS.items():
+        w.write("MULT", 0, ord(k), mult)
+    w.define(130, DF_GPS)
+    w.write("FMTU", 0, 130, b"s#-s-S-DUmnhnh-", b"F--C-0BGGB000--")
+    w.define(131, gpa)
+    w.write("FMTU", 0, 131, b"s#-mmmnd-ssm--", b"F-BBBB0-CC0B--")
+    for gps, gpa_values in rows:
+        w.write("GPS", *gps)
+        w.write("GPA", *gpa_values)
+    w.close()
+    return path
+
+
+def _gps(t_us, inst, alt_cm, status=3, week=WEEK, ms=WEEK_MS):
+    # Malaga: 36.7136672 N, 4.4791287 W, 20 satellites, HDop 0.60
+    return (t_us, inst, status, ms, week, 20, 60, 367_136_672, -44_791_287, alt_cm, 6.5,
+            90.0, -0.1, 0.0, 1)
+
+
+def _gpa(t_us, inst, height=()):
+    return (t_us, inst, 110, 90, 142, 40, 0.0, 1, t_us // 1000, 200, *height)
+
+
+def _fixes(path, **options):
+    reader = DataFlashReader(path, GnssOptions(**options))
+    tally = Tally()
+    return list(reader.records(tally)), tally, reader.source
+
+
+@pytest.mark.parametrize(("gpa", "height", "alt_m", "how"), [
+    # 131.96 m AMSL where the geoid is 50.125 m above the ellipsoid: ArduPilot logs
+    # Und = AMSL - ellipsoid = -50.125 (uBlox hMSL - height); the ellipsoidal height
+    # is 131.96 + 50.125 = 182.085 m
+    (GPA_UND, (-50.125, 0, 0), 182.085, "undulation"),
+    # where the geoid is below the ellipsoid (the US midwest, N = -31.5 m): Und +31.5
+    (GPA_UND, (31.5, 0, 0), 100.46, "undulation"),
+    # later firmware logs the ellipsoidal height itself: 182.08 m in cm
+    (GPA_AEL, (18_208, 0, 0), 182.08, "ellipsoid"),
+])
+def test_dataflash_heights_as_ardupilot_logs_them(tmp_path, gpa, height, alt_m, how):
+    rows = [(_gps(60_000_000, 0, 13_196), _gpa(60_000_000, 0, height))]
+    (fix,), tally, source = _fixes(ardupilot_log(tmp_path / "a.bin", gpa, rows))
+    assert fix.record.alt_m == alt_m
+    assert dict(tally.heights) == {how: 1}
+    assert source.warnings == []
+    assert (fix.record.lat_deg, fix.record.lon_deg) == (36.7136672, -4.4791287)
+    assert (fix.record.acc_m, fix.record.vacc_m, fix.record.sats) == (0.9, 1.42, 20)
+    assert fix.utc_ns == UTC_NS
+
+
+@pytest.mark.parametrize(("gpa", "height"), [
+    (GPA_UND, (0.0, 0, 0)),  # a receiver without a geoid model: get_undulation false
+    (GPA_AEL, (INT32_MIN, 0, 0)),  # AEl unknown
+    (GPA_NO_HEIGHT, ()),
+])
+def test_dataflash_without_a_height_above_the_ellipsoid(tmp_path, gpa, height):
+    rows = [(_gps(60_000_000, 0, 13_196), _gpa(60_000_000, 0, height))]
+    path = ardupilot_log(tmp_path / "a.bin", gpa, rows)
+    (fix,), tally, source = _fixes(path)
+    assert fix.record.alt_m == 131.96
+    assert dict(tally.heights) == {"msl_as_ellipsoid": 1}
+    assert any("--geoid-offset" in w for w in source.warnings)
+    (fix,), tally, _ = _fixes(path, geoid_offset_m=50.125)
+    assert fix.record.alt_m == 182.085
+    assert dict(tally.heights) == {"geoid_offset": 1}
