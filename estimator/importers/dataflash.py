@@ -212,7 +212,8 @@ class Reader:
                             cols[c].dtype if c in cols else float)
                         cols[c] = np.concatenate([cols[c], extra]) if c in cols else extra
         self.corrupt_bytes = max(0, df.data_len - covered)
-        inst = gps.get("I", np.full(len(gps["TimeUS"]), self.instance, dtype=np.int64))
+        n_all = len(gps["GMS"])
+        inst = gps.get("I", np.full(n_all, self.instance, dtype=np.int64))
         self.other_instances = {int(i): int(n) for i, n in zip(
             *np.unique(inst[inst != self.instance], return_counts=True), strict=True)}
         for name in older:  # the other receivers' messages of an older log
@@ -221,18 +222,20 @@ class Reader:
         mine = inst == self.instance
         self.gps = {k: v[mine] for k, v in gps.items()}
         self.n = int(mine.sum())
-        # the GPA written with each GPS: same instance and TimeUS
+        # the GPA written with each GPS: same instance and boot time (TimeUS; logs
+        # before ArduPilot 3.3 have no TimeUS, and no GPA)
         self.gpa_index = np.full(self.n, -1, dtype=np.int64)
-        if gpa:
-            gi = gpa.get("I", np.full(len(gpa["TimeUS"]), self.instance, dtype=np.int64))
+        key = "TimeUS"
+        if gpa and key in gpa and key in self.gps:
+            gi = gpa.get("I", np.full(len(gpa[key]), self.instance, dtype=np.int64))
             sel = np.flatnonzero(gi == self.instance)
-            t = gpa["TimeUS"][sel]
+            t = gpa[key][sel]
             order = np.argsort(t, kind="stable")
             ts = t[order]
-            pos = np.searchsorted(ts, self.gps["TimeUS"])
+            pos = np.searchsorted(ts, self.gps[key])
             ok = pos < len(ts)
             hit = np.zeros(self.n, dtype=bool)
-            hit[ok] = ts[pos[ok]] == self.gps["TimeUS"][ok]
+            hit[ok] = ts[pos[ok]] == self.gps[key][ok]
             self.gpa_index[hit] = sel[order[pos[hit]]]
         self.gpa = gpa
 
@@ -311,7 +314,7 @@ class Reader:
         if not hacc and "HDop" in g:
             hdop = round(float(g["HDop"][i]), 2)
             if hdop:
-                hacc = HDOP_TO_ACC_M * hdop
+                hacc = round(HDOP_TO_ACC_M * hdop, 3)  # HDop: 0.01 steps
                 self.source.warn("fixes without GPA.HAcc: acc_m = 1.5 m x HDop")
         if ael is not None:
             alt, how = ael, "ellipsoid"

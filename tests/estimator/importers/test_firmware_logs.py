@@ -101,3 +101,22 @@ def test_dataflash_without_a_height_above_the_ellipsoid(tmp_path, gpa, height):
     (fix,), tally, _ = _fixes(path, geoid_offset_m=50.125)
     assert fix.record.alt_m == 182.085
     assert dict(tally.heights) == {"geoid_offset": 1}
+
+
+def test_dataflash_of_arduplane_3_2_without_timeus_and_gpa(tmp_path):
+    """ArduPlane 3.2 logs GPS with GMS/GWk and its boot time as ``T`` (ms), no
+    ``TimeUS`` and no GPA: the fixes are read, their accuracy from HDop (1.5 m x 1.20)."""
+    w = DataFlashWriter(tmp_path / "plane32.bin")
+    w.define(130, ("GPS", "BIHBcLLeeEefI", "Status,GMS,GWk,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,"
+                   "GCrs,VZ,T"))
+    for k in range(3):
+        w.write("GPS", 3, WEEK_MS + 200 * k, WEEK, 10, 120, 367_136_672 + k, -44_791_287,
+                1000, 13_196, 650, 9000, -0.1, 60_000 + 200 * k)
+    w.close()
+    fixes, tally, source = _fixes(tmp_path / "plane32.bin", geoid_offset_m=50.125)
+    assert [f.utc_ns for f in fixes] == [UTC_NS + k * 200_000_000 for k in range(3)]
+    assert [f.record.lat_deg for f in fixes] == [36.7136672, 36.7136673, 36.7136674]
+    assert {(f.record.alt_m, f.record.acc_m, f.record.vacc_m) for f in fixes} == {
+        (182.085, 1.8, None)}
+    assert dict(tally.counts.rejected) == {}
+    assert any("HDop" in w for w in source.warnings)
