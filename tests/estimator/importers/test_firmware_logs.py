@@ -120,3 +120,31 @@ def test_dataflash_of_arduplane_3_2_without_timeus_and_gpa(tmp_path):
         (182.085, 1.8, None)}
     assert dict(tally.counts.rejected) == {}
     assert any("HDop" in w for w in source.warnings)
+
+
+def test_dataflash_two_receivers_and_the_leap_seconds_of_the_log_date(tmp_path):
+    """Two receivers (``I`` 0 and 1, each with its GPA, a few microseconds apart as
+    ``Write_GPS`` logs them), in June 2016: GPS time was 17 s ahead of UTC then.
+    2016-06-12T10:12:00Z (a Sunday) = GPS 10:12:17 = week 1901 + 36,737,000 ms."""
+    week, ms = 1901, 36_737_000
+    rows = []
+    for k in range(4):
+        t = 60_000_000 + 200_000 * k
+        rows.append((_gps(t, 0, 13_196, ms=ms + 200 * k, week=week),
+                     _gpa(t, 0, (-50.125, 0, 0))))
+        second = list(_gps(t + 9, 1, 13_496, ms=ms + 200 * k, week=week))
+        second[7] += 200  # 2e-5 degrees north
+        rows.append((tuple(second), (t + 9, 1, 180, 300, 450, 60, 0.0, 1, t // 1000, 200,
+                                     -50.125, 0, 0)))
+    path = ardupilot_log(tmp_path / "2016.bin", GPA_UND, rows)
+    utc0 = 1_465_726_320 * 1_000_000_000  # 2016-06-12T10:12:00Z
+    first, tally, _ = _fixes(path)
+    assert [f.utc_ns for f in first] == [utc0 + k * 200_000_000 for k in range(4)]
+    assert {(f.record.lat_deg, f.record.alt_m, f.record.acc_m) for f in first} == {
+        (36.7136672, 182.085, 0.9)}
+    assert dict(tally.counts.unknown_types) == {"GPS[1]": 4}
+    second, tally, _ = _fixes(path, topic="GPS[1]")
+    assert [f.utc_ns for f in second] == [utc0 + k * 200_000_000 for k in range(4)]
+    assert {(f.record.lat_deg, f.record.alt_m, f.record.acc_m, f.record.vacc_m)
+            for f in second} == {(36.7136872, 185.085, 3.0, 4.5)}
+    assert dict(tally.counts.unknown_types) == {"GPS[0]": 4}
