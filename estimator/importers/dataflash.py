@@ -26,6 +26,7 @@ import contextlib
 import io
 import os
 import re
+import struct
 import sys
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -50,6 +51,8 @@ from estimator.importers.common import (
 FORMAT = "dataflash"
 KIND = "gnss"
 HEAD = b"\xa3\x95\x80"  # message header bytes, then the FMT message's type (128)
+FMT_TYPE = 0x80
+CHUNK_MIN, CHUNK_MAX = 1 << 16, 1 << 23  # re-indexing past a corrupt stretch (bytes)
 GPS_EPOCH_S = 315_964_800  # 1980-01-06T00:00:00Z in Unix seconds
 HDOP_TO_ACC_M = 1.5
 AEL_UNKNOWN_M = -(2**31) / 100  # GPA.AEl's INT32_MIN (cm): no ellipsoidal height
@@ -145,6 +148,87 @@ def message_dtype(msg_struct: str) -> np.dtype:
     return np.dtype(fields)
 
 
+def _fast_index() -> bool:
+    """Whether pymavlink's compiled indexer is there (it is in its wheels)."""
+    from pymavlink import dfindexer
+
+    return bool(dfindexer.available)
+
+
+def _fmt_fields(df) -> tuple[int, int, int]:
+    """(length, offset of ``Type``, offset of ``Length``) of the log's ``FMT`` message."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    fmt = df.formats[FMT_TYPE]
+    at, where = 3, {}
+    for col, code in zip(fmt.columns, fmt.format, strict=True):
+        where[col] = at
+        at += struct.calcsize("<" + FORMAT_TO_STRUCT[code][0])
+    return fmt.len, where["Type"], where["Length"]
+
+
+def _index_past_corruption(df, offset: int) -> int:
+    """Index the messages from ``offset`` on into ``df.offsets``, past every corrupt
+    stretch; the bytes they cover.
+
+    pymavlink's compiled indexer stops for good at a message header of an undefined
+    type (bad bytes that look like a header). It learns message lengths from the
+    ``FMT`` messages it meets, so it is run again on the rest of the file, a chunk at
+    a time, each chunk led by the log's ``FMT`` messages: from one byte past the bad
+    header, from the last whole message at a chunk's end. The chunks grow from 64 KiB
+    to 8 MiB while the index runs through them (memory stays bounded; a file with many
+    corrupt stretches is not copied many times over)."""
+    from pymavlink import DFReader, dfindexer
+
+    fmt_len, type_at, length_at = _fmt_fields(df)
+    data, n = df.data_map, df.data_len
+    prefix = b"".join(data[o:o + fmt_len] for o in df.offsets[FMT_TYPE] if o + fmt_len <= n)
+    covered = 0
+    pos, size = offset, CHUNK_MIN
+    while pos + 3 <= n:
+        chunk = prefix + data[pos:pos + size]
+        base = len(prefix)
+        offs = dfindexer.build_offsets(memoryview(chunk), FMT_TYPE, fmt_len, type_at,
+                                       length_at, HEAD[0], HEAD[1])
+        # FMT messages met here define types for the rest of the file
+        for o in offs[FMT_TYPE]:
+            if o >= base and o + fmt_len <= len(chunk):
+                body = struct.unpack(df.formats[FMT_TYPE].msg_struct, chunk[o + 3:o + fmt_len])
+                f = DFReader.DFFormat(body[0], DFReader.null_term(body[2]), body[1],
+                                      DFReader.null_term(body[3]),
+                                      DFReader.null_term(body[4]),
+                                      oldfmt=df.formats.get(body[0]))
+                df.formats[f.type] = f
+                df.name_to_id[f.name] = f.type
+                df.id_to_name[f.type] = f.name
+                prefix += chunk[o:o + fmt_len]
+        end = base  # the end of the last whole message of the chunk
+        for t, found in enumerate(offs):
+            if not found or t not in df.formats:
+                continue
+            length = df.formats[t].len
+            whole = [o for o in found if o >= base and o + length <= len(chunk)]
+            df.offsets[t].extend(o - base + pos for o in whole)
+            covered += len(whole) * length
+            if whole:
+                end = max(end, whole[-1] + length)
+        # where the indexer stopped: the first header after the last whole message
+        h = chunk.find(HEAD[:2], end)
+        at_eof = pos + size >= n
+        if 0 <= h < len(chunk) - 2 and chunk[h + 2] not in df.formats:
+            nxt, size = pos + (h - base) + 1, CHUNK_MIN  # a bad header: one byte past it
+        elif at_eof:
+            break  # the rest is a message cut off by the end of the file, or junk
+        else:  # a message cut by the chunk's end (or junk up to it): the next chunk
+            nxt = pos + ((h if h >= 0 else len(chunk) - 2) - base)
+            size = min(2 * size, CHUNK_MAX)
+        if nxt <= pos:
+            break
+        pos = nxt
+    df.counts = [len(o) for o in df.offsets]
+    return covered
+
+
 class Reader:
     """The fixes of one DataFlash log (see the module docstring).
 
@@ -154,8 +238,10 @@ class Reader:
     description (the same values ``DFReader``'s messages give, tested), once: the
     reader keeps the GNSS columns, as the ULog reader keeps its topic. pymavlink's
     index stops at the first message header of an undefined type (a corrupt stretch);
-    the rest of the file is then read message by message with ``DFReader.recv_msg``,
-    which skips bad bytes. Bytes no message covers are counted (``corrupt_bytes``).
+    the rest of the file is then indexed past it with the same compiled indexer
+    (:func:`_index_past_corruption`), or, without it, read message by message with
+    ``DFReader.recv_msg``, which skips bad bytes. Bytes no message covers are counted
+    (``corrupt_bytes``).
     """
 
     def __init__(self, path: Path, options: GnssOptions) -> None:
@@ -189,6 +275,11 @@ class Reader:
         covered = sum(len(df.offsets[t]) * df.formats[t].len for t in types)
         end = max((df.offsets[t][-1] + df.formats[t].len for t in types if df.offsets[t]),
                   default=0)
+        if end < df.data_len - 3 and _fast_index():
+            # the index stopped at a corrupt stretch: index the rest past it
+            with quiet_output():  # the indexer prints about the bad bytes
+                covered += _index_past_corruption(df, end)
+            end = df.data_len
         self.truncated = 0
         gps_name, gpa_name = _names(df, self.instance)
         if gps_name not in df.name_to_id:
@@ -205,9 +296,8 @@ class Reader:
             covered += n_bytes
             for name, cols in ((gps_name, gps), (gpa_name, gpa)):
                 rows = more[name]
-                if rows:
-                    fmt = df.formats[df.name_to_id[name]]
-                    for c in fmt.columns:
+                if rows:  # (its FMT may be after the index's end: not in name_to_id)
+                    for c in rows[0]:
                         extra = np.array([r[c] for r in rows]).astype(
                             cols[c].dtype if c in cols else float)
                         cols[c] = np.concatenate([cols[c], extra]) if c in cols else extra
