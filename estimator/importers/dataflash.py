@@ -23,12 +23,14 @@ since 2017).
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
+import math
 import os
 import re
 import struct
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -146,6 +148,26 @@ def message_dtype(msg_struct: str) -> np.dtype:
         shape = (int(count),) if count and code != "s" else ()
         fields.append((f"f{k}", np.dtype(np_code), shape) if shape else (f"f{k}", np_code))
     return np.dtype(fields)
+
+
+def _exact_values(fmt) -> dict[str, Callable[[float], float]]:
+    """For each column of a format, what makes its value the number the field holds:
+    a fixed-point field (``L`` 1e-7 degrees, ``e``/``c``/``C`` hundredths) rounded to
+    its step, a single-precision one (``f``) as its shortest decimal (0.9, not
+    0.8999999761581421), others as they are."""
+    out: dict[str, Callable[[float], float]] = {}
+    for col, code, mult in zip(fmt.columns, fmt.format, fmt.msg_mults, strict=False):
+        if mult is not None and 0.0 < mult < 1.0:
+            out[col] = functools.partial(_rounded, digits=round(-math.log10(mult)))
+        elif code == "f":
+            out[col] = float32_decimal
+        else:
+            out[col] = float
+    return out
+
+
+def _rounded(value: float, digits: int) -> float:
+    return round(float(value), digits)
 
 
 def _fast_index() -> bool:
@@ -291,8 +313,11 @@ class Reader:
             self.source.label = f"{gps_name} with {gpa_name}"
         gps = self._columns(df, gps_name)
         gpa = self._columns(df, gpa_name) if gpa_name in df.name_to_id else {}
+        fmts = {n: df.formats[df.name_to_id[n]] for n in (gps_name, gpa_name)
+                if n in df.name_to_id}
         if end < df.data_len - 3:  # the index stopped: read on message by message
-            more, n_bytes = self._read_on(df, end, (gps_name, gpa_name))
+            more, n_bytes, more_fmts = self._read_on(df, end, (gps_name, gpa_name))
+            fmts.update(more_fmts)
             covered += n_bytes
             for name, cols in ((gps_name, gps), (gpa_name, gpa)):
                 rows = more[name]
@@ -328,13 +353,18 @@ class Reader:
             hit[ok] = ts[pos[ok]] == self.gps[key][ok]
             self.gpa_index[hit] = sel[order[pos[hit]]]
         self.gpa = gpa
+        self.exact_gps = _exact_values(fmts[gps_name])
+        self.exact_gpa = _exact_values(fmts[gpa_name]) if gpa_name in fmts else {}
 
     @staticmethod
-    def _read_on(df, offset: int, names: tuple[str, str]) -> tuple[dict[str, list[dict]], int]:
+    def _read_on(df, offset: int, names: tuple[str, str]) -> tuple[dict[str, list[dict]],
+                                                                    int, dict]:
         """The ``names`` (GPS and GPA) messages from ``offset`` on, parsed one by one by
-        DFReader (which skips bad bytes), and the bytes the messages parsed there cover."""
+        DFReader (which skips bad bytes), the bytes the messages parsed there cover and
+        the formats of those names."""
         df.offset, df.remaining = offset, df.data_len - offset
         out: dict[str, list[dict]] = {n: [] for n in names}
+        fmts = {}
         n_bytes = 0
         with quiet_output():
             while (m := df.recv_msg()) is not None:
@@ -342,7 +372,8 @@ class Reader:
                 kind = m.get_type()
                 if kind in out:
                     out[kind].append({c: getattr(m, c) for c in m.fmt.columns})
-        return out, n_bytes
+                    fmts[kind] = m.fmt
+        return out, n_bytes, fmts
 
     def _columns(self, df, name: str) -> dict[str, np.ndarray]:
         """Every column of the indexed ``name`` messages, scaled as DFReader scales them."""
@@ -392,29 +423,33 @@ class Reader:
         week, ms = int(g["GWk"][i]), int(g["GMS"][i])
         if week <= 0:
             raise Skip("no_utc")
-        hacc = round(float(a["HAcc"][j]), 2) if a is not None and has["HAcc"] else None
-        vacc = round(float(a["VAcc"][j]), 2) if a is not None and has["VAcc"] else None
+        eg, ea = self.exact_gps, self.exact_gpa
+
+        def gpa(col: str) -> float | None:
+            return ea[col](a[col][j]) if a is not None and has[col] else None
+
+        hacc, vacc = gpa("HAcc"), gpa("VAcc")
         # Und is ArduPilot's undulation: mean sea level above the ellipsoid, -N
-        und = float32_decimal(a["Und"][j]) if a is not None and has["Und"] else None
+        und = gpa("Und")
         if und == 0.0:  # a receiver without an undulation model logs 0
             und = None
-        ael = round(float(a["AEl"][j]), 2) if a is not None and has["AEl"] else None
+        ael = gpa("AEl")
         if ael is not None and ael <= AEL_UNKNOWN_M:
             ael = None
         if not hacc and "HDop" in g:
-            hdop = round(float(g["HDop"][i]), 2)
+            hdop = eg["HDop"](g["HDop"][i])
             if hdop:
                 hacc = round(HDOP_TO_ACC_M * hdop, 3)  # HDop: 0.01 steps
                 self.source.warn("fixes without GPA.HAcc: acc_m = 1.5 m x HDop")
         if ael is not None:
             alt, how = ael, "ellipsoid"
         else:
-            alt, how = ellipsoidal_m(self.source, round(float(g["Alt"][i]), 2),
+            alt, how = ellipsoidal_m(self.source, eg["Alt"](g["Alt"][i]),
                                      None if und is None else -und,
                                      self.options.geoid_offset_m)
             alt = round(alt, 6)  # cm + a float32's shortest decimal, without binary noise
         fix = make_fix(
-            lat_deg=round(float(g["Lat"][i]), 7), lon_deg=round(float(g["Lng"][i]), 7),
+            lat_deg=eg["Lat"](g["Lat"][i]), lon_deg=eg["Lng"](g["Lng"][i]),
             alt_m=alt, acc_m=hacc, vacc_m=vacc, fix=STATUS[status],
             sats=int(g["NSats"][i]) if "NSats" in g else None,
             default_acc_m=self.options.default_acc_m,

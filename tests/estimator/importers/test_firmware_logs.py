@@ -227,3 +227,19 @@ def test_dataflash_corrupt_stretches_without_the_compiled_indexer(tmp_path, monk
     slow, slow_tally, _ = _fixes(corrupt)
     assert [(f.record, f.utc_ns) for f in slow] == [(f.record, f.utc_ns) for f in fast]
     assert slow_tally.counts.rejected == fast_tally.counts.rejected == {"corrupt_bytes": n_bad}
+
+
+def test_dataflash_alt_in_metres_keeps_its_millimetres(tmp_path):
+    """``Alt`` as ArduPilot logs it is ``e`` (int32 cm); a logger that writes it as
+    ``f`` (float32 metres) keeps what it wrote: 131.957 m, not rounded to 131.96."""
+    w = DataFlashWriter(tmp_path / "f.bin")
+    w.define(130, ("GPS", "QBBIHBcLLffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,"
+                   "Spd,GCrs,VZ,U"))
+    w.define(131, GPA_UND)
+    w.write("GPS", 60_000_000, 0, 3, WEEK_MS, WEEK, 20, 60, 367_136_672, -44_791_287,
+            131.957, 6.5, 90.0, -0.1, 1)
+    w.write("GPA", *_gpa(60_000_000, 0, (-50.125, 0, 0)))
+    w.close()
+    (fix,), tally, _ = _fixes(tmp_path / "f.bin")
+    assert fix.record.alt_m == 182.082  # 131.957 + 50.125
+    assert dict(tally.heights) == {"undulation": 1}
