@@ -243,3 +243,78 @@ def test_dataflash_alt_in_metres_keeps_its_millimetres(tmp_path):
     (fix,), tally, _ = _fixes(tmp_path / "f.bin")
     assert fix.record.alt_m == 182.082  # 131.957 + 50.125
     assert dict(tally.heights) == {"undulation": 1}
+
+
+# PX4's GNSS message across releases (ULog formats as its logger writes them): v1.11-1.12
+# vehicle_gps_position and v1.13 sensor_gps in 1e-7 degree / mm integers; v1.15
+# sensor_gps in doubles, fix_type moved up, more fields (v1.14's is in writers.py)
+_INT_FIELDS = (
+    ("uint64_t", "timestamp"), ("uint64_t", "time_utc_usec"), ("int32_t", "lat"),
+    ("int32_t", "lon"), ("int32_t", "alt"), ("int32_t", "alt_ellipsoid"),
+    ("float", "s_variance_m_s"), ("float", "c_variance_rad"), ("float", "eph"),
+    ("float", "epv"), ("float", "hdop"), ("float", "vdop"), ("int32_t", "noise_per_ms"),
+    ("int32_t", "jamming_indicator"), ("float", "vel_m_s"), ("float", "vel_n_m_s"),
+    ("float", "vel_e_m_s"), ("float", "vel_d_m_s"), ("float", "cog_rad"),
+    ("int32_t", "timestamp_time_relative"), ("float", "heading"),
+    ("float", "heading_offset"), ("uint8_t", "fix_type"), ("uint8_t", "jamming_state"),
+    ("bool", "vel_ned_valid"), ("uint8_t", "satellites_used"), ("uint8_t", "selected"),
+    ("uint8_t[3]", "_padding0"))
+_V113_SENSOR_GPS = (("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"),
+                    ("uint32_t", "device_id"), *_INT_FIELDS[1:])
+_V115_SENSOR_GPS = (
+    ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+    ("double", "latitude_deg"), ("double", "longitude_deg"), ("double", "altitude_msl_m"),
+    ("double", "altitude_ellipsoid_m"), ("float", "s_variance_m_s"),
+    ("float", "c_variance_rad"), ("uint8_t", "fix_type"), ("float", "eph"), ("float", "epv"),
+    ("float", "hdop"), ("float", "vdop"), ("int32_t", "noise_per_ms"),
+    ("uint16_t", "automatic_gain_control"), ("uint8_t", "jamming_state"),
+    ("int32_t", "jamming_indicator"), ("uint8_t", "spoofing_state"), ("float", "vel_m_s"),
+    ("float", "vel_n_m_s"), ("float", "vel_e_m_s"), ("float", "vel_d_m_s"),
+    ("float", "cog_rad"), ("bool", "vel_ned_valid"), ("int32_t", "timestamp_time_relative"),
+    ("uint64_t", "time_utc_usec"), ("uint8_t", "satellites_used"), ("float", "heading"),
+    ("float", "heading_offset"), ("float", "heading_accuracy"),
+    ("float", "rtcm_injection_rate"), ("uint8_t", "selected_rtcm_instance"),
+    ("uint8_t[5]", "_padding0"))
+
+
+@pytest.mark.parametrize(("topic", "fields"), [
+    ("vehicle_gps_position", _INT_FIELDS),  # v1.11, v1.12
+    ("sensor_gps", _V113_SENSOR_GPS),  # v1.13, sensor_gps only
+    ("sensor_gps", _V115_SENSOR_GPS),  # v1.15
+])
+def test_ulog_gnss_layouts_of_px4_releases(tmp_path, topic, fields):
+    """Two receivers (multi_id 0 and 1), the first three fixes before UTC, a logged
+    string and a dropout between: each value as the release's fields give it."""
+    from estimator.importers.ulog import Reader as ULogReader
+    from tests.estimator.importers.writers import ULogWriter, _pack
+
+    w = ULogWriter(tmp_path / "px4.ulg")
+    dtype = w.format(topic, fields)
+    ids = [w.add_logged(topic, m) for m in (0, 1)]
+    w.logged_string(ord("6"), 29_000_000, "[gps] u-blox firmware version: SPG 5.10")
+    for k in range(10):
+        for m, msg_id in enumerate(ids):
+            lat_e7 = 367_136_672 + k + 1000 * m
+            w.data(msg_id, _pack(dtype, {
+                "timestamp": 30_000_000 + 200_000 * k,
+                "time_utc_usec": 0 if k < 3 else UTC_NS // 1000 + 200_000 * k,
+                "lat": lat_e7, "lon": -44_791_287, "alt": 131_960, "alt_ellipsoid": 182_085,
+                "latitude_deg": lat_e7 / 1e7, "longitude_deg": -4.4791287,
+                "altitude_msl_m": 131.96, "altitude_ellipsoid_m": 182.085,
+                "eph": 0.9 + 3 * m, "epv": 1.42, "fix_type": 3 if k else 1,
+                "satellites_used": 20 - m}))
+        if k == 5:
+            w.dropout(40)
+    w.close()
+    for m in (0, 1):
+        reader = ULogReader(tmp_path / "px4.ulg", GnssOptions(topic=f"{topic}[{m}]"))
+        tally = Tally()
+        fixes = list(reader.records(tally))
+        assert dict(tally.counts.rejected) == {"no_utc": 3}
+        assert [f.utc_ns for f in fixes] == [UTC_NS + 200_000_000 * k for k in range(3, 10)]
+        assert [f.record.lat_deg for f in fixes] == [
+            round(36.7136672 + (k + 1000 * m) * 1e-7, 7) for k in range(3, 10)]
+        assert {(f.record.lon_deg, f.record.alt_m, f.record.acc_m, f.record.vacc_m,
+                 f.record.sats, f.record.fix) for f in fixes} == {
+            (-4.4791287, 182.085, 0.9 + 3 * m, 1.42, 20 - m, "3d")}
+        assert dict(tally.heights) == {"ellipsoid": 7}
