@@ -189,6 +189,26 @@ def _fmt_fields(df) -> tuple[int, int, int]:
     return fmt.len, where["Type"], where["Length"]
 
 
+def _new_format(df, body: bytes):
+    """The ``DFFormat`` an ``FMT`` message's body defines, if it is sound: its length is
+    its fields' (with the 3 header bytes), one column per field, and its type is new or
+    defined alike; else ``None``."""
+    from pymavlink import DFReader
+
+    try:
+        t, length, name, fmt, columns = struct.unpack(df.formats[FMT_TYPE].msg_struct, body)
+        name, fmt, columns = (DFReader.null_term(x) for x in (name, fmt, columns))
+        size = struct.calcsize("<" + "".join(DFReader.FORMAT_TO_STRUCT[c][0] for c in fmt))
+        if size + 3 != length or len(columns.split(",")) != len(fmt):
+            return None
+        old = df.formats.get(t)
+        if old is not None and (old.name, old.format, old.len) != (name, fmt, length):
+            return None
+        return DFReader.DFFormat(t, name, length, fmt, columns, oldfmt=old)
+    except Exception:  # bad bytes: pymavlink raises bare Exceptions
+        return None
+
+
 def _index_past_corruption(df, offset: int) -> int:
     """Index the messages from ``offset`` on into ``df.offsets``, past every corrupt
     stretch; the bytes they cover.
@@ -200,7 +220,7 @@ def _index_past_corruption(df, offset: int) -> int:
     header, from the last whole message at a chunk's end. The chunks grow from 64 KiB
     to 8 MiB while the index runs through them (memory stays bounded; a file with many
     corrupt stretches is not copied many times over)."""
-    from pymavlink import DFReader, dfindexer
+    from pymavlink import dfindexer
 
     fmt_len, type_at, length_at = _fmt_fields(df)
     data, n = df.data_map, df.data_len
@@ -212,14 +232,18 @@ def _index_past_corruption(df, offset: int) -> int:
         base = len(prefix)
         offs = dfindexer.build_offsets(memoryview(chunk), FMT_TYPE, fmt_len, type_at,
                                        length_at, HEAD[0], HEAD[1])
-        # FMT messages met here define types for the rest of the file
+        # FMT messages met here define types for the rest of the file; a bad one (a
+        # layout that does not add up, or another for a type already defined: ArduPilot
+        # defines each type once a log) is bad bytes: the chunk's index ends there
+        limit = len(chunk)
         for o in offs[FMT_TYPE]:
-            if o >= base and o + fmt_len <= len(chunk):
-                body = struct.unpack(df.formats[FMT_TYPE].msg_struct, chunk[o + 3:o + fmt_len])
-                f = DFReader.DFFormat(body[0], DFReader.null_term(body[2]), body[1],
-                                      DFReader.null_term(body[3]),
-                                      DFReader.null_term(body[4]),
-                                      oldfmt=df.formats.get(body[0]))
+            if o < base or o + fmt_len > len(chunk):
+                continue
+            f = _new_format(df, chunk[o + 3:o + fmt_len])
+            if f is None:
+                limit = o
+                break
+            if f.type not in df.formats:
                 df.formats[f.type] = f
                 df.name_to_id[f.name] = f.type
                 df.id_to_name[f.type] = f.name
@@ -229,15 +253,19 @@ def _index_past_corruption(df, offset: int) -> int:
             if not found or t not in df.formats:
                 continue
             length = df.formats[t].len
-            whole = [o for o in found if o >= base and o + length <= len(chunk)]
+            whole = [o for o in found if o >= base and o + length <= limit]
             df.offsets[t].extend(o - base + pos for o in whole)
             covered += len(whole) * length
             if whole:
                 end = max(end, whole[-1] + length)
-        # where the indexer stopped: the first header after the last whole message
-        h = chunk.find(HEAD[:2], end)
+        # where the indexer stopped: the first header after the last whole message; a
+        # bad one (of no type, a bad FMT, one the indexer refused) or a message the
+        # chunk's end cut
+        h = limit if limit < len(chunk) else chunk.find(HEAD[:2], end)
         at_eof = pos + size >= n
-        if 0 <= h < len(chunk) - 2 and chunk[h + 2] not in df.formats:
+        t = chunk[h + 2] if 0 <= h < len(chunk) - 2 else None
+        if t is not None and (h == limit or t not in df.formats
+                              or h + df.formats[t].len <= len(chunk)):
             nxt, size = pos + (h - base) + 1, CHUNK_MIN  # a bad header: one byte past it
         elif at_eof:
             break  # the rest is a message cut off by the end of the file, or junk
@@ -281,8 +309,14 @@ class Reader:
             raise SourceError(f"{path}: not a readable DataFlash log ({brief(exc)})") from None
         try:
             self._load(df, path)
+        except SourceError:
+            raise
+        except Exception as exc:  # bad bytes pymavlink let through
+            raise SourceError(f"{path}: a DataFlash log this reader cannot read "
+                              f"({brief(exc)})") from None
         finally:
-            df.close()
+            with contextlib.suppress(BufferError):  # arrays on its map still referenced
+                df.close()
 
     def _load(self, df, path: Path) -> None:
         if "GPS" not in df.name_to_id:

@@ -318,3 +318,30 @@ def test_ulog_gnss_layouts_of_px4_releases(tmp_path, topic, fields):
                  f.record.sats, f.record.fix) for f in fixes} == {
             (-4.4791287, 182.085, 0.9 + 3 * m, 1.42, 20 - m, "3d")}
         assert dict(tally.heights) == {"ellipsoid": 7}
+
+
+def _fmt_message(type_id, length, name, fmt, columns):
+    import struct
+
+    return b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", type_id, length, name, fmt, columns)
+
+
+@pytest.mark.parametrize("bad_fmt", [
+    _fmt_message(200, 10, b"XXX", b"zz", b"a,b"),  # format characters that do not exist
+    _fmt_message(131, 12, b"GPA", b"QB", b"TimeUS,I"),  # GPA again, another layout
+    _fmt_message(201, 2, b"YY", b"", b""),  # shorter than a message header
+], ids=["unknown-format-chars", "gpa-redefined", "too-short"])
+def test_dataflash_bad_fmt_bytes_in_a_corrupt_stretch(tmp_path, bad_fmt):
+    """A corrupt stretch holding what looks like an FMT message: bad bytes like any
+    other (ArduPilot defines each type once in a log), counted, and every fix kept."""
+    junk = b"\xa3\x95\x07" + bad_fmt
+    rows = [(_gps(60_000_000 + 200_000 * k, 0, 13_196, ms=WEEK_MS + 200 * k),
+             _gpa(60_000_000 + 200_000 * k, 0, (-50.125, 0, 0))) for k in range(50)]
+    path = ardupilot_log(tmp_path / "a.bin", GPA_UND, rows)
+    data = path.read_bytes()
+    cut = data.index(b"\xa3\x95\x82", len(data) - 40 * 90)  # a GPS message
+    path.write_bytes(data[:cut] + junk + data[cut:])
+    fixes, tally, _ = _fixes(path)
+    assert len(fixes) == 50
+    assert {(f.record.alt_m, f.record.acc_m) for f in fixes} == {(182.085, 0.9)}
+    assert dict(tally.counts.rejected) == {"corrupt_bytes": len(junk)}
