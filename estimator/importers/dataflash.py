@@ -1,4 +1,5 @@
-"""ArduPilot DataFlash logs (``.bin``), read with pymavlink's ``DFReader``.
+"""ArduPilot DataFlash logs (``.bin``, or the text ``.log`` Mission Planner makes of
+one), read with pymavlink's ``DFReader``.
 
 ``GPS`` messages give the fix: ``GWk`` (GPS week) and ``GMS`` (milliseconds of the
 week) for the time, ``Status`` (0-1 no fix, skipped as ``no_fix``; 2 ``2d``, 3
@@ -48,6 +49,7 @@ from estimator.importers.common import (
     ellipsoidal_m,
     float32_decimal,
     make_fix,
+    open_file,
 )
 
 FORMAT = "dataflash"
@@ -74,7 +76,13 @@ _LEAPS_NS = tuple(
 
 
 def sniff(head: bytes) -> bool:
-    return head.startswith(HEAD)
+    return head.startswith(HEAD) or _is_text(head)
+
+
+def _is_text(head: bytes) -> bool:
+    """A DataFlash log as text (Mission Planner's ``.log``, pymavlink's text form):
+    its first line the ``FMT`` message of ``FMT``."""
+    return head.removeprefix(b"\xef\xbb\xbf").startswith((b"FMT, 128,", b"FMT,128,"))
 
 
 def gps_to_utc_ns(week: int, ms: int) -> int:
@@ -130,10 +138,24 @@ def _names(df, instance: int) -> tuple[str, str]:
     """The message names of receiver ``instance``: ``GPS``/``GPA`` with their ``I``
     column (ArduPilot 4.1 on), or, in older logs without it, ``GPS``/``GPA`` for the
     first receiver and ``GPS2``/``GPA2`` for the second."""
-    gps_fmt = df.formats[df.name_to_id["GPS"]]
-    if instance == 0 or "I" in gps_fmt.columns:
+    if instance == 0 or "I" in _format(df, "GPS").columns:
         return "GPS", "GPA"
     return f"GPS{instance + 1}", f"GPA{instance + 1}"
+
+
+def _format(df, name: str):
+    """The ``DFFormat`` of message ``name`` (binary readers key formats by type number,
+    the text reader by name), or ``None``."""
+    if isinstance(df, _text_reader()):
+        return df.formats.get(name)
+    t = df.name_to_id.get(name)
+    return None if t is None else df.formats.get(t)
+
+
+def _text_reader() -> type:
+    from pymavlink import DFReader
+
+    return DFReader.DFReader_text
 
 
 _NUMPY = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "q": "<i8",
@@ -302,13 +324,20 @@ class Reader:
         self.source = Source(path=path, format=FORMAT, kind=KIND,
                              label=f"GPS[{self.instance}] with GPA",
                              utc_uncertainty_ns=500_000)  # GMS: 1 ms steps
+        with open_file(path) as fh:
+            text = _is_text(fh.read(16))
         try:
             with quiet_output():  # pymavlink prints about bad bytes, from C too
-                df = DFReader.DFReader_binary(str(path), zero_time_base=True)
+                df = (DFReader.DFReader_text if text else DFReader.DFReader_binary)(
+                    str(path), zero_time_base=True)
         except Exception as exc:  # pymavlink raises bare Exceptions on foreign data
             raise SourceError(f"{path}: not a readable DataFlash log ({brief(exc)})") from None
         try:
-            self._load(df, path)
+            if text:
+                self.source.label += " (text log)"
+                self._load_text(df, path)
+            else:
+                self._load(df, path)
         except SourceError:
             raise
         except Exception as exc:  # bad bytes pymavlink let through
@@ -318,15 +347,54 @@ class Reader:
             with contextlib.suppress(BufferError):  # arrays on its map still referenced
                 df.close()
 
-    def _load(self, df, path: Path) -> None:
-        if "GPS" not in df.name_to_id:
+    def _check(self, df, path: Path) -> tuple[str, str]:
+        """The GPS and GPA message names of the receiver read, after checking the log
+        has them with the columns needed."""
+        gps_fmt = _format(df, "GPS")
+        if gps_fmt is None:
             raise SourceError(f"{path}: no GPS messages (no FMT for GPS)")
-        gps_fmt = df.formats[df.name_to_id["GPS"]]
         missing = [c for c in ("GMS", "GWk", "Lat", "Lng", "Alt", "Status")
                    if c not in gps_fmt.columns]
         if missing:
             raise SourceError(f"{path}: GPS messages without {', '.join(missing)} "
                               "(a log older than ArduPilot 3.3?)")
+        gps_name, gpa_name = _names(df, self.instance)
+        if _format(df, gps_name) is None:
+            raise SourceError(f"{path}: no {gps_name} messages (the second receiver of a log "
+                              "without instance numbers)")
+        if gps_name != "GPS":
+            self.source.label = f"{gps_name} with {gpa_name}"
+        return gps_name, gpa_name
+
+    def _older(self, df, gps_name: str) -> list[str]:
+        """The other receivers' message names in a log without instance numbers."""
+        if "I" in _format(df, "GPS").columns:
+            return []
+        names = df.formats if isinstance(df, _text_reader()) else df.name_to_id
+        return [n for n in names if (n == "GPS" or (n[:3] == "GPS" and n[3:].isdigit()))
+                and n != gps_name]
+
+    def _load_text(self, df, path: Path) -> None:
+        """The GPS and GPA messages of a text log (values as written: already scaled)."""
+        gps_name, gpa_name = self._check(df, path)
+        rows: dict[str, list] = {gps_name: [], gpa_name: []}
+        with quiet_output():
+            while (m := df.recv_match(type=[gps_name, gpa_name])) is not None:
+                rows[m.get_type()].append([getattr(m, c) for c in m.fmt.columns])
+        cols = {}
+        for name, found in rows.items():
+            fmt = _format(df, name)
+            cols[name] = {c: np.array([r[k] for r in found]) for k, c in
+                          enumerate(fmt.columns)} if found and fmt is not None else {}
+        if not cols[gps_name]:
+            cols[gps_name] = {c: np.zeros(0) for c in _format(df, gps_name).columns}
+        fmts = {n: _format(df, n) for n in (gps_name, gpa_name) if _format(df, n)}
+        older = {n: df.counts.get(n, 0) for n in self._older(df, gps_name)}
+        self.truncated = self.corrupt_bytes = 0
+        self._select(cols[gps_name], cols[gpa_name], fmts, gps_name, gpa_name, older)
+
+    def _load(self, df, path: Path) -> None:
+        gps_name, gpa_name = self._check(df, path)
         types = [t for t in df.formats if isinstance(t, int) and t < len(df.offsets)]
         covered = sum(len(df.offsets[t]) * df.formats[t].len for t in types)
         end = max((df.offsets[t][-1] + df.formats[t].len for t in types if df.offsets[t]),
@@ -337,14 +405,6 @@ class Reader:
                 covered += _index_past_corruption(df, end)
             end = df.data_len
         self.truncated = 0
-        gps_name, gpa_name = _names(df, self.instance)
-        if gps_name not in df.name_to_id:
-            raise SourceError(f"{path}: no {gps_name} messages (the second receiver of a log "
-                              "without instance numbers)")
-        receivers = [n for n in df.name_to_id if n == "GPS" or (n[:3] == "GPS" and n[3:].isdigit())]
-        older = [] if "I" in gps_fmt.columns else [n for n in receivers if n != gps_name]
-        if gps_name != "GPS":
-            self.source.label = f"{gps_name} with {gpa_name}"
         gps = self._columns(df, gps_name)
         gpa = self._columns(df, gpa_name) if gpa_name in df.name_to_id else {}
         fmts = {n: df.formats[df.name_to_id[n]] for n in (gps_name, gpa_name)
@@ -361,13 +421,20 @@ class Reader:
                             cols[c].dtype if c in cols else float)
                         cols[c] = np.concatenate([cols[c], extra]) if c in cols else extra
         self.corrupt_bytes = max(0, df.data_len - covered)
+        older = {n: len(df.offsets[df.name_to_id[n]]) for n in self._older(df, gps_name)}
+        self._select(gps, gpa, fmts, gps_name, gpa_name, older)
+
+    def _select(self, gps: dict, gpa: dict, fmts: dict, gps_name: str, gpa_name: str,
+                older: dict[str, int]) -> None:
+        """Keep the receiver's GPS columns and pair each fix with its GPA; count the
+        other receivers' (``older``: their message counts in a log without ``I``)."""
         n_all = len(gps["GMS"])
         inst = gps.get("I", np.full(n_all, self.instance, dtype=np.int64))
         self.other_instances = {int(i): int(n) for i, n in zip(
             *np.unique(inst[inst != self.instance], return_counts=True), strict=True)}
-        for name in older:  # the other receivers' messages of an older log
+        for name, count in older.items():  # the other receivers' messages of an older log
             k = 0 if name == "GPS" else int(name[3:]) - 1
-            self.other_instances[k] = len(df.offsets[df.name_to_id[name]])
+            self.other_instances[k] = count
         mine = inst == self.instance
         self.gps = {k: v[mine] for k, v in gps.items()}
         self.n = int(mine.sum())

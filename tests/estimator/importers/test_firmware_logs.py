@@ -345,3 +345,47 @@ def test_dataflash_bad_fmt_bytes_in_a_corrupt_stretch(tmp_path, bad_fmt):
     assert len(fixes) == 50
     assert {(f.record.alt_m, f.record.acc_m) for f in fixes} == {(182.085, 0.9)}
     assert dict(tally.counts.rejected) == {"corrupt_bytes": len(junk)}
+
+
+def _as_text_log(binary, text):
+    """The log as Mission Planner's text ``.log``: one line a message, its values as
+    pymavlink reads them (float32 fields in their shortest form)."""
+    import numpy as np
+    from pymavlink import DFReader
+
+    df = DFReader.DFReader_binary(str(binary), zero_time_base=True)
+    lines = []
+    while (m := df.recv_msg()) is not None:
+        values = []
+        for c, code in zip(m.fmt.columns, m.fmt.format, strict=True):
+            v = getattr(m, c)
+            values.append(str(np.float32(v)) if code == "f" else str(v))
+        lines.append(", ".join([m.get_type(), *values]))
+    df.close()
+    text.write_text("\r\n".join(lines) + "\r\n")
+    return text
+
+
+def test_dataflash_text_log_reads_as_the_binary_log(tmp_path):
+    """Mission Planner converts the ``.bin`` it downloads to a text ``.log`` (and users
+    share that): it reads to the same fixes, for either receiver."""
+    rows = []
+    for k in range(6):
+        t = 60_000_000 + 200_000 * k
+        rows.append((_gps(t, 0, 13_196 + k, ms=WEEK_MS + 200 * k), _gpa(t, 0, (-50.125, 0, 0))))
+        rows.append((_gps(t + 9, 1, 13_496, ms=WEEK_MS + 200 * k),
+                     (t + 9, 1, 180, 300, 450, 60, 0.0, 1, t // 1000, 200, -50.125, 0, 0)))
+    binary = ardupilot_log(tmp_path / "00000007.BIN", GPA_UND, rows)
+    text = _as_text_log(binary, tmp_path / "00000007.log")
+    assert text.read_text().startswith("FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format")
+    for topic in (None, "GPS[1]"):
+        want, want_tally, _ = _fixes(binary, topic=topic)
+        got, tally, source = _fixes(text, topic=topic)
+        assert [(f.record, f.utc_ns) for f in got] == [(f.record, f.utc_ns) for f in want]
+        assert len(got) == 6
+        assert tally.counts.unknown_types == want_tally.counts.unknown_types
+        assert source.label.endswith("(text log)")
+    assert got[0].record.alt_m == 185.085 and got[0].record.acc_m == 3.0
+    from estimator.importers import detect_format
+
+    assert detect_format(text) == "dataflash"
