@@ -389,3 +389,38 @@ def test_dataflash_text_log_reads_as_the_binary_log(tmp_path):
     from estimator.importers import detect_format
 
     assert detect_format(text) == "dataflash"
+
+
+def test_ulog_with_appended_hardfault_data(tmp_path):
+    """PX4 appends a hardfault's text after the end of a log (flag bits: data appended,
+    its offset); the fixes before it are all read, nothing is counted as corrupt."""
+    import struct
+
+    from estimator.importers.ulog import Reader as ULogReader
+    from tests.estimator.importers.writers import SENSOR_GPS_V114, ULogWriter, _pack
+
+    path = tmp_path / "hardfault.ulg"
+    w = ULogWriter(path)
+    dtype = w.format("sensor_gps", SENSOR_GPS_V114)
+    msg_id = w.add_logged("sensor_gps", 0)
+    for k in range(30):
+        w.data(msg_id, _pack(dtype, {
+            "timestamp": 30_000_000 + 200_000 * k, "time_utc_usec": UTC_NS // 1000 + 200_000 * k,
+            "latitude_deg": 36.7136672, "longitude_deg": -4.4791287,
+            "altitude_ellipsoid_m": 182.085, "eph": 0.9, "epv": 1.42, "fix_type": 3}))
+    w.fh.flush()
+    appended_at = w.fh.tell()
+    for part in range(3):  # info-multiple messages, as hardfault_log writes them
+        text = b"[hardfault] R0 0x2001f3c8 R1 0x00000000 " * 8
+        key = f"char[{len(text)}] hardfault_plain".encode()
+        w._msg(b"M", bytes([part > 0, len(key)]) + key + text)
+    w.close()
+    data = bytearray(path.read_bytes())
+    data[16 + 3 + 8] = 1  # incompat flag 0: data appended
+    data[16 + 3 + 16:16 + 3 + 24] = struct.pack("<Q", appended_at)
+    path.write_bytes(bytes(data))
+    reader = ULogReader(path, GnssOptions())
+    tally = Tally()
+    fixes = list(reader.records(tally))
+    assert len(fixes) == 30 and dict(tally.counts.rejected) == {}
+    assert fixes[-1].utc_ns == UTC_NS + 29 * 200_000_000
