@@ -424,3 +424,41 @@ def test_ulog_with_appended_hardfault_data(tmp_path):
     fixes = list(reader.records(tally))
     assert len(fixes) == 30 and dict(tally.counts.rejected) == {}
     assert fixes[-1].utc_ns == UTC_NS + 29 * 200_000_000
+
+
+def test_ulog_other_gnss_streams_are_counted_as_other_records(tmp_path):
+    """As a DataFlash log's second receiver is: the GNSS streams not read (the other
+    multi_id, the other topic) are other records, so that a refusal names them."""
+    from estimator.importers import ImportOptions, ImportRefused, import_flight
+    from estimator.importers.ulog import Reader as ULogReader
+    from tests.estimator.importers.writers import SENSOR_GPS_V114, ULogWriter, _pack
+
+    path = tmp_path / "px4.ulg"
+    w = ULogWriter(path)
+    dtypes = {t: w.format(t, SENSOR_GPS_V114) for t in ("sensor_gps", "vehicle_gps_position")}
+    ids = {(t, m): w.add_logged(t, m) for t in dtypes for m in (0, 1)}
+    for k in range(30):
+        v = {"timestamp": 30_000_000 + 200_000 * k, "time_utc_usec": UTC_NS // 1000,
+             "latitude_deg": 36.7, "longitude_deg": -4.4, "altitude_ellipsoid_m": 182.0,
+             "eph": 0.9, "fix_type": 3}
+        for (t, m), msg_id in ids.items():
+            if m == 0 or k % 3 == 0:  # the second receivers at a third of the rate
+                # the blended vehicle_gps_position has no UTC here
+                w.data(msg_id, _pack(dtypes[t], dict(v, time_utc_usec=0) if
+                                     t == "vehicle_gps_position" else v))
+    w.close()
+
+    def others(topic):
+        tally = Tally()
+        list(ULogReader(path, GnssOptions(topic=topic)).records(tally))
+        return dict(tally.counts.unknown_types)
+
+    assert others(None) == {"vehicle_gps_position[1]": 10, "sensor_gps[0]": 30,
+                            "sensor_gps[1]": 10}
+    assert others("sensor_gps[1]") == {"sensor_gps[0]": 30}  # only that topic is loaded
+    rtt = tmp_path / "rtt.csv"
+    rtt.write_text("utc_ms,bssid,status,distance_mm,distance_std_dev_mm,rssi\n"
+                   f"{UTC_NS // 1_000_000 + 100},a4:77:33:0f:1e:02,0,50000,1500,-70\n")
+    with pytest.raises(ImportRefused, match=r"no usable fix \(vehicle_gps_position\[0\]; "
+                       r"skipped: no_utc=30; other records: .*sensor_gps\[0\]=30"):
+        import_flight(path, rtt, tmp_path / "c.jsonl", ImportOptions())
