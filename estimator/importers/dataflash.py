@@ -31,6 +31,7 @@ import os
 import re
 import struct
 import sys
+from collections import Counter
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -378,9 +379,25 @@ class Reader:
         """The GPS and GPA messages of a text log (values as written: already scaled)."""
         gps_name, gpa_name = self._check(df, path)
         rows: dict[str, list] = {gps_name: [], gpa_name: []}
+        self.text_skips: Counter = Counter()
         with quiet_output():
-            while (m := df.recv_match(type=[gps_name, gpa_name])) is not None:
-                rows[m.get_type()].append([getattr(m, c) for c in m.fmt.columns])
+            while True:
+                try:  # (pymavlink's index has moved past the line whatever happens)
+                    m = df.recv_match(type=[gps_name, gpa_name])
+                except UnicodeDecodeError:
+                    self.text_skips["not_utf8"] += 1
+                    continue
+                except ValueError:  # a line pymavlink cannot split into its fields
+                    self.text_skips["bad_type"] += 1
+                    continue
+                if m is None:
+                    break
+                try:
+                    values = [getattr(m, c) for c in m.fmt.columns]
+                except ValueError:  # text where a number belongs
+                    self.text_skips["bad_type"] += 1
+                    continue
+                rows[m.get_type()].append(values)
         cols = {}
         for name, found in rows.items():
             fmt = _format(df, name)
@@ -500,6 +517,9 @@ class Reader:
         return out
 
     def records(self, tally: Tally) -> Iterator[Stamped]:
+        for reason, n in getattr(self, "text_skips", {}).items():
+            tally.counts.lines += n
+            tally.counts.rejected[reason] += n
         if self.corrupt_bytes:
             tally.counts.rejected["corrupt_bytes"] += self.corrupt_bytes
         if self.truncated:

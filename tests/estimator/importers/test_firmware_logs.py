@@ -462,3 +462,20 @@ def test_ulog_other_gnss_streams_are_counted_as_other_records(tmp_path):
     with pytest.raises(ImportRefused, match=r"no usable fix \(vehicle_gps_position\[0\]; "
                        r"skipped: no_utc=30; other records: .*sensor_gps\[0\]=30"):
         import_flight(path, rtt, tmp_path / "c.jsonl", ImportOptions())
+
+
+def test_dataflash_text_log_bad_lines_are_counted(tmp_path):
+    """A text log's line with a byte that is not UTF-8, or text where a number belongs,
+    is skipped and counted; the file is read (it was refused whole)."""
+    rows = [(_gps(60_000_000 + 200_000 * k, 0, 13_196, ms=WEEK_MS + 200 * k),
+             _gpa(60_000_000 + 200_000 * k, 0, (-50.125, 0, 0))) for k in range(6)]
+    binary = ardupilot_log(tmp_path / "a.bin", GPA_UND, rows)
+    text = _as_text_log(binary, tmp_path / "a.log")
+    lines = text.read_bytes().split(b"\r\n")
+    gps = [k for k, line in enumerate(lines) if line.startswith(b"GPS, ")]
+    lines[gps[1]] = lines[gps[1]].replace(b"36.7136672", b"36.71\xb036672")  # Latin-1 degree
+    lines[gps[3]] = lines[gps[3]].replace(b", 20, ", b", n/a, ")  # NSats
+    text.write_bytes(b"\r\n".join(lines))
+    fixes, tally, _ = _fixes(text)
+    assert [f.utc_ns for f in fixes] == [UTC_NS + k * 200_000_000 for k in (0, 2, 4, 5)]
+    assert dict(tally.counts.rejected) == {"not_utf8": 1, "bad_type": 1}
