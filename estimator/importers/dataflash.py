@@ -212,10 +212,11 @@ def _fmt_fields(df) -> tuple[int, int, int]:
     return fmt.len, where["Type"], where["Length"]
 
 
-def _new_format(df, body: bytes):
+def _new_format(df, body: bytes, known: dict):
     """The ``DFFormat`` an ``FMT`` message's body defines, if it is sound: its length is
     its fields' (with the 3 header bytes), one column per field, and its type is new or
-    defined alike; else ``None``."""
+    defined alike in ``known`` (type: (name, format, length) of the log's FMTs so far);
+    else ``None``."""
     from pymavlink import DFReader
 
     try:
@@ -224,10 +225,9 @@ def _new_format(df, body: bytes):
         size = struct.calcsize("<" + "".join(DFReader.FORMAT_TO_STRUCT[c][0] for c in fmt))
         if size + 3 != length or len(columns.split(",")) != len(fmt):
             return None
-        old = df.formats.get(t)
-        if old is not None and (old.name, old.format, old.len) != (name, fmt, length):
+        if known.get(t, (name, fmt, length)) != (name, fmt, length):
             return None
-        return DFReader.DFFormat(t, name, length, fmt, columns, oldfmt=old)
+        return DFReader.DFFormat(t, name, length, fmt, columns)
     except Exception:  # bad bytes: pymavlink raises bare Exceptions
         return None
 
@@ -243,11 +243,18 @@ def _index_past_corruption(df, offset: int) -> int:
     header, from the last whole message at a chunk's end. The chunks grow from 64 KiB
     to 8 MiB while the index runs through them (memory stays bounded; a file with many
     corrupt stretches is not copied many times over)."""
-    from pymavlink import dfindexer
+    from pymavlink import DFReader, dfindexer
 
     fmt_len, type_at, length_at = _fmt_fields(df)
     data, n = df.data_map, df.data_len
     prefix = b"".join(data[o:o + fmt_len] for o in df.offsets[FMT_TYPE] if o + fmt_len <= n)
+    # the types the indexed FMT messages define (pymavlink's first look at the
+    # messages may have put FMTs from past its index's end in df.formats)
+    known = {}
+    for o in range(0, len(prefix), fmt_len):
+        t, length, name, fmt, _ = struct.unpack(df.formats[FMT_TYPE].msg_struct,
+                                                prefix[o + 3:o + fmt_len])
+        known[t] = (DFReader.null_term(name), DFReader.null_term(fmt), length)
     covered = 0
     pos, size = offset, CHUNK_MIN
     while pos + 3 <= n:
@@ -262,11 +269,12 @@ def _index_past_corruption(df, offset: int) -> int:
         for o in offs[FMT_TYPE]:
             if o < base or o + fmt_len > len(chunk):
                 continue
-            f = _new_format(df, chunk[o + 3:o + fmt_len])
+            f = _new_format(df, chunk[o + 3:o + fmt_len], known)
             if f is None:
                 limit = o
                 break
-            if f.type not in df.formats:
+            if f.type not in known:
+                known[f.type] = (f.name, f.format, f.len)
                 df.formats[f.type] = f
                 df.name_to_id[f.name] = f.type
                 df.id_to_name[f.type] = f.name
@@ -411,7 +419,6 @@ class Reader:
         self._select(cols[gps_name], cols[gpa_name], fmts, gps_name, gpa_name, older)
 
     def _load(self, df, path: Path) -> None:
-        gps_name, gpa_name = self._check(df, path)
         types = [t for t in df.formats if isinstance(t, int) and t < len(df.offsets)]
         covered = sum(len(df.offsets[t]) * df.formats[t].len for t in types)
         end = max((df.offsets[t][-1] + df.formats[t].len for t in types if df.offsets[t]),
@@ -421,6 +428,9 @@ class Reader:
             with quiet_output():  # the indexer prints about the bad bytes
                 covered += _index_past_corruption(df, end)
             end = df.data_len
+        # (after the re-indexing: ArduPilot writes the GPS FMT when the receiver is first
+        # detected, which may be after a corrupt stretch)
+        gps_name, gpa_name = self._check(df, path)
         self.truncated = 0
         gps = self._columns(df, gps_name)
         gpa = self._columns(df, gpa_name) if gpa_name in df.name_to_id else {}

@@ -479,3 +479,25 @@ def test_dataflash_text_log_bad_lines_are_counted(tmp_path):
     fixes, tally, _ = _fixes(text)
     assert [f.utc_ns for f in fixes] == [UTC_NS + k * 200_000_000 for k in (0, 2, 4, 5)]
     assert dict(tally.counts.rejected) == {"not_utf8": 1, "bad_type": 1}
+
+
+def test_dataflash_gps_defined_after_a_corrupt_stretch(tmp_path):
+    """ArduPilot writes the GPS FMT when the receiver is first detected, which can be
+    after a corrupt stretch near the start of the log: the fixes are read."""
+    from tests.estimator.importers.writers import DF_IMU
+
+    w = DataFlashWriter(tmp_path / "late.bin")
+    w.define(133, DF_IMU)
+    for k in range(5):
+        w.write("IMU", 1000 * k, 0, 0.01, 0.0, 0.0, 0.1, 0.0, -9.8, 0, 0, 35.0, 1, 1, 1000, 1000)
+    w.raw(b"\xa3\x95\x07 bad")
+    w.define(130, DF_GPS)
+    w.define(131, GPA_UND)
+    for k in range(4):
+        w.write("GPS", *_gps(60_000_000 + 200_000 * k, 0, 13_196, ms=WEEK_MS + 200 * k))
+        w.write("GPA", *_gpa(60_000_000 + 200_000 * k, 0, (-50.125, 0, 0)))
+    w.close()
+    fixes, tally, _ = _fixes(tmp_path / "late.bin")
+    assert [f.utc_ns for f in fixes] == [UTC_NS + k * 200_000_000 for k in range(4)]
+    assert {f.record.alt_m for f in fixes} == {182.085}
+    assert dict(tally.counts.rejected) == {"corrupt_bytes": 7}
