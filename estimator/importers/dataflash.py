@@ -343,8 +343,8 @@ class Reader:
             raise SourceError(f"{path}: not a readable DataFlash log ({brief(exc)})") from None
         try:
             if text:
-                self.source.label += " (text log)"
                 self._load_text(df, path)
+                self.source.label += " (text log)"
             else:
                 self._load(df, path)
         except SourceError:

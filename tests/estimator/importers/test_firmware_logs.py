@@ -384,7 +384,7 @@ def test_dataflash_text_log_reads_as_the_binary_log(tmp_path):
         assert [(f.record, f.utc_ns) for f in got] == [(f.record, f.utc_ns) for f in want]
         assert len(got) == 6
         assert tally.counts.unknown_types == want_tally.counts.unknown_types
-        assert source.label.endswith("(text log)")
+        assert source.label == f"{'GPS[0]' if topic is None else 'GPS[1]'} with GPA (text log)"
     assert got[0].record.alt_m == 185.085 and got[0].record.acc_m == 3.0
     from estimator.importers import detect_format
 
