@@ -207,6 +207,13 @@ class Reader:
         lon = self._degrees("lon", "longitude_deg")
         ell = self._metres("alt_ellipsoid", "altitude_ellipsoid_m")
         msl = self._metres("alt", "altitude_msl_m")
+        if (ell is not None and msl is not None and self.n
+                and np.array_equal(ell, msl) and np.any(ell != 0.0)):
+            # PX4's simulators, HIL_GPS and some MAVLink-fed drivers copy the MSL height
+            # into the ellipsoidal one: N is tens of metres almost everywhere
+            self.source.warn("the ellipsoidal heights equal the MSL heights in every fix: "
+                             "a driver without a geoid model; alt_m may be off by the "
+                             "local N")
         if lat is None or lon is None or (ell is None and msl is None):
             tally.counts.lines += self.n
             for _ in range(self.n):

@@ -501,3 +501,26 @@ def test_dataflash_gps_defined_after_a_corrupt_stretch(tmp_path):
     assert [f.utc_ns for f in fixes] == [UTC_NS + k * 200_000_000 for k in range(4)]
     assert {f.record.alt_m for f in fixes} == {182.085}
     assert dict(tally.counts.rejected) == {"corrupt_bytes": 7}
+
+
+def test_ulog_ellipsoidal_heights_that_are_msl_heights_are_warned_about(tmp_path):
+    """PX4's simulators and HIL_GPS write altitude_ellipsoid_m = altitude_msl_m: the
+    heights are read as the file gives them, with a warning that N is missing."""
+    from estimator.importers.ulog import Reader as ULogReader
+    from tests.estimator.importers.writers import SENSOR_GPS_V114, ULogWriter, _pack
+
+    for name, ellipsoid_m, warned in (("copied", 131.96, True), ("real", 182.085, False)):
+        path = tmp_path / f"{name}.ulg"
+        w = ULogWriter(path)
+        dtype = w.format("sensor_gps", SENSOR_GPS_V114)
+        msg_id = w.add_logged("sensor_gps", 0)
+        for k in range(5):
+            w.data(msg_id, _pack(dtype, {
+                "timestamp": 30_000_000 + 200_000 * k, "time_utc_usec": UTC_NS // 1000,
+                "latitude_deg": 36.7, "longitude_deg": -4.4, "altitude_msl_m": 131.96,
+                "altitude_ellipsoid_m": ellipsoid_m, "eph": 0.9, "fix_type": 3}))
+        w.close()
+        reader = ULogReader(path, GnssOptions())
+        fixes = list(reader.records(Tally()))
+        assert {f.record.alt_m for f in fixes} == {ellipsoid_m}
+        assert any("equal the MSL heights" in x for x in reader.source.warnings) == warned
