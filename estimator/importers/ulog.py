@@ -16,6 +16,9 @@ not with the file. Fields, as the file's own format declares them:
 - ``time_utc_usec``: UTC; fixes before the receiver had UTC (0) are skipped as
   ``no_utc``.
 
+The GNSS streams not read (another ``multi_id``, the other topic) are counted as
+other records (``vehicle_gps_position[1]``), as a DataFlash log's other receiver is.
+
 pyulog skips corrupt parts of a file itself (it resumes at the next sync message) and
 does not say how much it skipped: ``corrupt_data`` counts the GNSS messages lost,
 estimated from the gaps in the topic's timestamps (at least 1 for a corrupt file). A
@@ -144,6 +147,9 @@ class Reader:
             raise SourceError(f"{path}: no {name}[{mid}] (instances: {ids})")
         d = data[(name, mid)]
         self.source.label = f"{name}[{mid}]"
+        # the GNSS streams not read (another receiver, the other topic): other records
+        self.others = {f"{n}[{m}]": len(v.data["timestamp"]) for (n, m), v in data.items()
+                       if (n, m) != (name, mid) and "timestamp" in v.data}
         self.types = {f.field_name: f.type_str for f in d.field_data}
         self.data = d.data
         self.n = len(d.data["timestamp"]) if "timestamp" in d.data else 0
@@ -190,6 +196,8 @@ class Reader:
         return v.astype(np.float64)
 
     def records(self, tally: Tally) -> Iterator[Stamped]:
+        for stream, n in self.others.items():
+            tally.counts.unknown_types[stream] += n
         if self.corrupt:
             tally.counts.rejected["corrupt_data"] += self.lost
         if self.cut:
@@ -199,6 +207,13 @@ class Reader:
         lon = self._degrees("lon", "longitude_deg")
         ell = self._metres("alt_ellipsoid", "altitude_ellipsoid_m")
         msl = self._metres("alt", "altitude_msl_m")
+        if (ell is not None and msl is not None and self.n
+                and np.array_equal(ell, msl) and np.any(ell != 0.0)):
+            # PX4's simulators, HIL_GPS and some MAVLink-fed drivers copy the MSL height
+            # into the ellipsoidal one: N is tens of metres almost everywhere
+            self.source.warn("the ellipsoidal heights equal the MSL heights in every fix: "
+                             "a driver without a geoid model; alt_m may be off by the "
+                             "local N")
         if lat is None or lon is None or (ell is None and msl is None):
             tally.counts.lines += self.n
             for _ in range(self.n):

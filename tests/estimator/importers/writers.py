@@ -502,7 +502,9 @@ def write_dataflash(path: Path, flight: Flight, *, with_und: bool = True,
                     corrupt_after: int | None = None) -> Path:
     """An ArduCopter log: FMTs, PARM and MSG, IMU at 2x the GNSS rate, a second GPS
     instance (``I`` 1) and the GPS + GPA pairs of instance 0 (GPA with ``Und`` when
-    ``with_und``). The first ``no_time_first`` fixes have no GPS time yet (``GWk`` 0);
+    ``with_und``: ArduPilot's undulation, mean sea level above the ellipsoid, so
+    ``-undulation_m`` for a geoid ``undulation_m`` above it). The first
+    ``no_time_first`` fixes have no GPS time yet (``GWk`` 0);
     ``corrupt_after`` inserts garbage bytes after that many fixes."""
     w = DataFlashWriter(path)
     w.define(129, DF_PARM)
@@ -529,7 +531,7 @@ def write_dataflash(path: Path, flight: Flight, *, with_und: bool = True,
         hacc, vacc = round(g.acc_m * 100), round((g.vacc_m or 0.0) * 100)
         gpa = [t_us, 0, 110, hacc, vacc, 40, 0.0, 1, t_us // 1000, 100]
         if with_und:
-            gpa += [undulation_m, 0, 0]
+            gpa += [-undulation_m, 0, 0]
         w.write("GPA", *gpa)
         if corrupt_after is not None and k == corrupt_after:
             w.raw(b"\xa3\x95\xfe garbage \x00\x13\x37" * 3)
