@@ -84,3 +84,26 @@ def test_the_python_snippet_writes_a_readable_log(tmp_path, monkeypatch):
     exec(compile(snippet, str(DOC), "exec"), {})  # run the documented example
     log = read_log(tmp_path / "flight.jsonl.gz")
     assert log.counts.rejected == {} and len(log.gnss) == 1 and len(log.rtt) == 1
+
+
+def test_one_stream_after_the_other_is_a_clock_jump_as_the_doc_warns(tmp_path):
+    """Every fix, then every range (a writer that appends one stream after the other,
+    over more than 10 s): the reader sees a backward clock jump and associates no range.
+    The page warned 'order does not matter' before; now it says what happens."""
+    lines = (Path(__file__).resolve().parents[2] / "examples" / "example_flight.jsonl"
+             ).read_text(encoding="utf-8").splitlines()
+    head = [ln for ln in lines if '"type":"header"' in ln or '"type":"truth"' in ln]
+    gnss = [ln for ln in lines if '"type":"gnss"' in ln]
+    rtt = [ln for ln in lines if '"type":"rtt"' in ln]
+    assert len(head) == 2 and len(gnss) > 2000 and len(rtt) == 960
+    path = tmp_path / "blocks.jsonl"
+    path.write_text("\n".join(head + gnss + rtt) + "\n", encoding="utf-8")
+    with pytest.warns(logio.LogWarning, match="clock jumped back"):
+        rep = replay_logs([path], ReplayOptions(modes=("baseline",)))
+    js = rep.to_json()
+    assert js["flags"] == ["clock_jump"]
+    assert js["association"]["ok"] == 960 and js["association"]["associated"] == 0
+    assert [e["status"] for e in js["estimates"]] == ["no_data"]
+    text = " ".join(DOC.read_text(encoding="utf-8").split())
+    assert "order does not matter" not in text
+    assert text.count("one stream after the other") == 2
