@@ -666,18 +666,48 @@ def _key(rec: TimedRecord) -> int:
     return rec.t_ns
 
 
-# Clock jumps (docs/log-format.md, "Suspicious data"). Lines arrive a little out of
-# time order (late callbacks); a record older than the newest one read by more than
-# CLOCK_JUMP_BACK_S means the phone clock jumped back (a reboot resets it): the records
-# from there on are shifted so that the first of them comes CLOCK_JUMP_GAP_S after the
-# newest one before the jump (the true time across a jump is unknown; the gap keeps
-# even a late record of the new stretch after the old one), so no range is associated
-# across it; unless they repeat earlier records (a log concatenated with itself,
-# overlapping pieces): those keep their times and the association drops them as
-# duplicates.
+# Clock jumps (docs/log-format.md, "Suspicious data"). The contract lets lines come in
+# any order (readers order by t_ns), so an old record is a clock jump only when the
+# phone's clock, not the writer, explains it: a record more than CLOCK_JUMP_BACK_S older
+# than the newest of its own stream (the GNSS fixes, or the ranges to one responder: a
+# writer that puts one stream after the other is not a jump), followed in the file by
+# records in time order from it (a reboot's new stretch; shuffled or reversed lines are
+# not in order and are sorted as they are). The records from there on are shifted so that
+# the first of them comes CLOCK_JUMP_GAP_S after the newest one before the jump (the true
+# time across a jump is unknown; the gap keeps even a late record of the new stretch after
+# the old one), so no range is associated across it; unless they repeat earlier records
+# (a log concatenated with itself, overlapping pieces): those keep their times and the
+# association drops them as duplicates. A file found out of order in this way has no
+# backward jump from there on (its lines are sorted by t_ns, as the contract says).
 CLOCK_JUMP_BACK_S = 10.0
 CLOCK_JUMP_GAP_S = 2 * CLOCK_JUMP_BACK_S
 _RECENT_RECORDS = 4096  # a jump that repeats one of these (or of the first ones) is a copy
+_LOOKAHEAD_RECORDS = 50_000  # at most this many records are read ahead to judge a jump
+_MIN_AHEAD_RECORDS = 32  # ... and at least this many (or the rest of the file)
+
+
+def _stream_of(rec: TimedRecord) -> str:
+    """The stream a record belongs to: ``"gnss"``, or the BSSID of a range."""
+    return "gnss" if isinstance(rec, GnssFix) else rec.bssid
+
+
+def _goes_on_in_order(first: TimedRecord, ahead: Iterator[TimedRecord],
+                      read: list[TimedRecord], back_ns: int) -> bool:
+    """Whether the records after ``first`` (read from ``ahead`` into ``read``) go on in
+    time order from it (none more than ``back_ns`` older than the newest before it) for
+    at least :data:`_MIN_AHEAD_RECORDS` records and ``back_ns`` of time, or to the end
+    of the file (at most :data:`_LOOKAHEAD_RECORDS` are read): a new stretch of the
+    phone's clock, not shuffled or reversed lines."""
+    top = first.t_ns
+    for rec in ahead:
+        read.append(rec)
+        if rec.t_ns < top - back_ns:
+            return False
+        top = max(top, rec.t_ns)
+        if (len(read) >= _MIN_AHEAD_RECORDS and top >= first.t_ns + back_ns) \
+                or len(read) >= _LOOKAHEAD_RECORDS:
+            return True
+    return True
 
 
 def iter_log_sorted(
@@ -707,18 +737,39 @@ def iter_log_sorted(
     offset = 0  # added to t_ns after a backward jump
     newest = -1  # the newest (re-timed) t_ns read
     copy_until: int | None = None  # reading a repeat of earlier records, up to this time
+    newest_of: dict[str, int] = {}  # the newest (re-timed) t_ns of each stream
+    unordered = False  # lines found out of order: sorted, no backward jump any more
     earliest: list[TimedRecord] = []
     recent: deque[TimedRecord] = deque(maxlen=_RECENT_RECORDS)
+    pending: deque[TimedRecord] = deque()  # read ahead to judge a jump, not yet taken
+
+    def records() -> Iterator[TimedRecord]:
+        while True:
+            if pending:
+                yield pending.popleft()
+            else:
+                nxt = next(it, None)
+                if nxt is None:
+                    return
+                yield nxt
+
     try:
-        for rec in it:
+        for rec in records():
             t = rec.t_ns + offset
+            key = _stream_of(rec)
             if t < newest - back_ns and copy_until is None:
                 if rec in recent or rec in earliest:
                     copy_until = newest
-                else:
-                    st.counts.clock_jumps_back += 1
-                    offset = newest + gap_ns - rec.t_ns
-                    t = rec.t_ns + offset
+                elif not unordered and t < newest_of.get(key, t) - back_ns:
+                    ahead: list[TimedRecord] = []
+                    reboot = _goes_on_in_order(rec, records(), ahead, back_ns)
+                    pending.extend(ahead)
+                    if reboot:
+                        st.counts.clock_jumps_back += 1
+                        offset = newest + gap_ns - rec.t_ns
+                        t = rec.t_ns + offset
+                    else:
+                        unordered = True
             if copy_until is not None and t >= copy_until - back_ns:
                 copy_until = None
             if len(earliest) < 256:
@@ -727,6 +778,7 @@ def iter_log_sorted(
             if offset:
                 rec = dataclasses.replace(rec, t_ns=t)
             newest = max(newest, t)
+            newest_of[key] = max(newest_of.get(key, t), t)
             if t < last:
                 in_order = False
             last = t

@@ -373,3 +373,49 @@ def test_the_stream_after_a_backward_jump_is_retimed_after_the_one_before(tmp_pa
     st = LogStream(path="y")
     times = [r.t_ns // 10**9 for r in iter_log_sorted(_lines(tmp_path / "k.jsonl", lines), st)]
     assert times == [95, 100, 101, 102] and st.counts.clock_jumps_back == 0
+
+
+def _rtt_to(bssid: str, t_ns: int) -> str:
+    return RTT.replace("a4:77:33:0f:1e:02", bssid) % t_ns
+
+
+def test_a_stream_per_responder_after_another_is_no_jump(tmp_path) -> None:
+    """Fixes and the ranges to one responder in time order, then every range to a
+    second responder (a converter writing one topic after another): sorted, no jump."""
+    ms = 10**6
+    first = [x for k in range(1000) for x in (GNSS % (k * 100 * ms),
+                                             _rtt_to("a4:77:33:0f:1e:02", k * 100 * ms + 5))]
+    second = [_rtt_to("a4:77:33:0f:1e:03", k * 100 * ms + 7) for k in range(1000)]
+    st = LogStream(path="x")
+    times = [r.t_ns for r in iter_log_sorted(_lines(tmp_path / "s.jsonl",
+                                                    [HEADER, *first, *second]), st)]
+    assert st.counts.clock_jumps_back == 0
+    assert len(times) == 3000 and times == sorted(times) and times[-1] == 99_900 * ms + 7
+
+
+@pytest.mark.parametrize("how", ["reboot", "reversed"])
+def test_a_reboot_at_a_high_rate_is_a_jump_and_reversed_lines_are_not(tmp_path,
+                                                                      how) -> None:
+    """100 records a second (fixes and ranges to two responders) for 60 s. With the
+    clock reset to 5 s at 40 s (a reboot): one jump, the 2000 records after it re-timed
+    after the 4000 before. Without a reset, the 6000 lines reversed: sorted by t_ns, no
+    jump (before, every record 10 s older than the first was re-timed after it)."""
+    ms = 10**6
+    lines = []
+    for k in range(6000):
+        t = (k * 10 if k < 4000 or how == "reversed" else 5000 + (k - 4000) * 10) * ms
+        lines.append([GNSS % t, _rtt_to("a4:77:33:0f:1e:02", t),
+                      _rtt_to("a4:77:33:0f:1e:03", t)][k % 3])
+    if how == "reversed":
+        lines = lines[::-1]
+    st = LogStream(path="x")
+    times = [r.t_ns for r in iter_log_sorted(_lines(tmp_path / "r.jsonl", [HEADER, *lines]),
+                                             st)]
+    assert times == sorted(times) and len(times) == 6000
+    if how == "reboot":  # the new stretch starts CLOCK_JUMP_GAP_S after the old one's end
+        assert st.counts.clock_jumps_back == 1
+        gap = int(logio.CLOCK_JUMP_GAP_S * 1e9)
+        assert times[4000] == 39_990 * ms + gap and times[3999] == 39_990 * ms
+    else:
+        assert st.counts.clock_jumps_back == 0
+        assert times == [k * 10 * ms for k in range(6000)]
