@@ -49,6 +49,14 @@ _NEGATIVE_VALUE = re.compile(r"^-\.?\d")
 
 
 class _Parser(argparse.ArgumentParser):
+    """Options are spelled out in full: argparse's prefix matching would take
+    ``osa evaluate --seed 7`` for ``--seeds 7`` and ``--forc`` for ``--force``, and an
+    option added later would change what a script's prefix means."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
     def error(self, message: str) -> None:  # one clear line, exit status 2
         self.exit(2, f"osa: error: {message}\n")
 
