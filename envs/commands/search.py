@@ -188,7 +188,9 @@ def run(args: argparse.Namespace) -> int:
         if args.rerun:
             wrote.append(args.rerun)
         print("wrote " + ", ".join(wrote))
-    return 130 if result.ended == "interrupted" else 0
+    if result.ended != "interrupted":
+        return 0
+    return 143 if stop.signal == signal.SIGTERM else 130  # docs/cli.md, Conventions
 
 
 def _mavlink_vehicle(args: argparse.Namespace, scenario, realisation, log: Path):
