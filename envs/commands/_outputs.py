@@ -29,6 +29,9 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 MARKER = ".osa-output"  # in an output folder: the name of the command that wrote it
+# what the claims of the running command created: (the folders made, deepest first; the
+# marker written where there was none), so that a refusal leaves nothing behind
+_CLAIMED: list[tuple[list[Path], Path | None]] = []
 
 
 def _finite(obj: object) -> object:
@@ -102,10 +105,12 @@ def claim_output_file(path: str | os.PathLike, *, force: bool,
     blocker = next((a for a in (parent, *parent.parents) if a.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise OutputRefusedError(f"cannot write {p}: {blocker} is not a folder")
+    made = [a for a in (parent, *parent.parents) if not a.exists()]
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputRefusedError(f"cannot write {p}: {exc.strerror or exc}") from None
+    _CLAIMED.append((made, None))
     _check_writable_dir(parent, p)
     return p
 
@@ -135,10 +140,13 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     blocker = next((a for a in (p, *p.parents) if a.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise OutputRefusedError(f"cannot create {p}: {blocker} is not a folder")
+    made = [a for a in (p, *p.parents) if not a.exists()]
+    new_marker = not marker.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputRefusedError(f"cannot create {p}: {exc.strerror or exc}") from None
+    _CLAIMED.append((made, marker if new_marker else None))
     _check_writable_dir(p, p)
     try:
         marker.write_text(command + "\n")
@@ -147,6 +155,28 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     if entries and not quiet:  # said once the folder is known to be writable
         print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
     return p
+
+
+def release_claims() -> None:
+    """Undo what the claims of a refused command created (``osa`` calls it on exit
+    status 2: refused before any work): the markers they added to folders that hold
+    nothing else, and the folders they made, if still empty. Nothing else is touched."""
+    while _CLAIMED:
+        made, marker = _CLAIMED.pop()
+        if marker is not None:
+            with contextlib.suppress(OSError):
+                if [e.name for e in marker.parent.iterdir()] == [MARKER]:
+                    marker.unlink()
+        for folder in made:  # deepest first; stops at the first that is not empty
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def forget_claims() -> None:
+    """The command ended: what its claims created is its output now."""
+    _CLAIMED.clear()
 
 
 @contextlib.contextmanager

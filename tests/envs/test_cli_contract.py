@@ -27,3 +27,87 @@ def test_a_prefix_of_an_option_is_an_unknown_option(argv, unknown, tmp_path, cap
     assert status == 2
     assert one_line(capsys) == f"osa: error: unrecognized arguments: {unknown}"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_rerun_file_leaves_no_search_folder(tmp_path, capsys):
+    """`osa search -o DIR --rerun RRD` with RRD existing is refused before the flight,
+    and leaves nothing behind: not even DIR (docs/cli.md, "Checks come first")."""
+    rrd = tmp_path / "old.rrd"
+    rrd.write_bytes(b"mine")
+    out = tmp_path / "new" / "search"
+    status = status_of(["search", "search-random-los", "-o", str(out), "--rerun", str(rrd),
+                        "--no-figures", "--no-progress"])
+    assert status == 2
+    assert one_line(capsys) == f"osa search: {rrd} exists (use --force to replace it)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.rrd"]
+    assert rrd.read_bytes() == b"mine"
+
+
+def test_replay_figures_of_a_refused_log_leave_no_folder(tmp_path, capsys):
+    """A log that is not a flight log is refused (exit 2, one line naming it) and the
+    --figures folder the command had prepared for it is not left behind."""
+    log = tmp_path / "notes.jsonl"
+    log.write_text("hello\n")
+    figs = tmp_path / "figs"
+    assert status_of(["replay", str(log), "--figures", str(figs)]) == 2
+    assert one_line(capsys) == (f"osa replay: {log}: not a flight log (no valid record; "
+                                "1 line: 1 not_json)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.jsonl"]
+
+
+def test_replay_figures_of_a_missing_log_say_no_such_file(tmp_path, capsys):
+    """With --figures a missing log is 'no such file', as without: not 'not a regular
+    file (save it to a file first)', which is for pipes."""
+    missing = tmp_path / "flight.jsonl"
+    for extra in ([], ["--figures", str(tmp_path / "figs")]):
+        assert status_of(["replay", str(missing), *extra]) == 2
+        assert one_line(capsys) == f"osa replay: {missing}: no such file"
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["plan", "lawnmower", "--center", "36.7,-4.4", "-o", "{tmp}/new/a.plan",
+         "--geojson", "{tmp}/old.txt"],  # an existing --geojson
+        ["plan", "lawnmower", "--center", "36.7,-4.4", "-o", "{tmp}/new/a.plan",
+         "--radius", "100000"],  # a mission too long
+        ["import", "--gnss", "{tmp}/gnss.txt", "--ranges", "{tmp}/rtt.csv",
+         "-o", "{tmp}/new/deeper/x.jsonl"],  # missing inputs
+        ["vehicle", "paper-apab", "-c", "udpin:127.0.0.1:99999",
+         "--log", "{tmp}/new/v.jsonl"],  # a bad URL
+        ["evaluate", "search-random-los", "--policies", "lawnmower", "--seeds", "1",
+         "-o", "{tmp}/new/rows.csv", "--summary-json", "{tmp}/new/rows.csv"],
+        ["search", "search-random-los", "-o", "{tmp}/new/search", "--policy", "ppo:{tmp}/m"],
+    ],
+    ids=["plan-geojson", "plan-too-long", "import-missing", "vehicle-url",
+         "evaluate-same-file", "search-policy"],
+)
+def test_a_refused_command_leaves_no_output_folder(argv, tmp_path, capsys):
+    """Exit status 2 is a request refused before any work: the output folders the
+    command had made for it are gone again, other files are untouched."""
+    (tmp_path / "old.txt").write_text("mine")
+    assert status_of([a.format(tmp=tmp_path) for a in argv]) == 2
+    assert one_line(capsys).startswith(f"osa {argv[0]}: ")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.txt"]
+    assert (tmp_path / "old.txt").read_text() == "mine"
+
+
+def test_a_refusal_keeps_an_existing_output_folder_and_its_files(tmp_path, capsys):
+    """Undoing a refused command's claims never removes what was there before: an
+    existing empty folder stays, a reused folder keeps its files and marker."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    rrd = tmp_path / "x.rrd"
+    rrd.write_text("mine")
+    args = ["search", "search-random-los", "--rerun", str(rrd), "--no-figures"]
+    assert status_of([*args, "-o", str(empty)]) == 2
+    assert list(empty.iterdir()) == []
+    reused = tmp_path / "reused"
+    reused.mkdir()
+    (reused / ".osa-output").write_text("search\n")
+    (reused / "report.json").write_text("{}")
+    assert status_of([*args, "-o", str(reused)]) == 2
+    capsys.readouterr()
+    assert sorted(p.name for p in reused.iterdir()) == [".osa-output", "report.json"]
+    assert rrd.read_text() == "mine"
