@@ -963,6 +963,13 @@ def _check_work(scenario: Scenario, duration: float, length_m: float) -> None:
                                   f"{MAX_VEHICLE_SAMPLES}): widen it")
 
 
+def scenario_description(name_or_path: str | Path) -> str:
+    """The ``description`` of a preset or TOML file (following ``extends``), read
+    without building its world (a DEM preset's terrain takes seconds to load)."""
+    description = _read_toml(name_or_path)[0].get("description", "")
+    return description if isinstance(description, str) else ""
+
+
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load a packaged preset by name (see :func:`list_scenarios`) or a TOML file by path."""
     table, source, base_dir = _read_toml(name_or_path)

@@ -37,12 +37,13 @@ def _fail(message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from envs.commands._outputs import OutputRefusedError, claim_output_file, written_whole
-    from sim.scenario import ScenarioError, list_scenarios, load_scenario
+    from sim.scenario import ScenarioError, list_scenarios, load_scenario, scenario_description
 
     if args.list:
-        for name in list_scenarios():
-            description = load_scenario(name).description
-            print(f"{name:<16} {description}")
+        names = list_scenarios()
+        width = max((len(n) for n in names), default=0) + 2  # `name  description`
+        for name in names:
+            print(f"{name:<{width}}{scenario_description(name)}")
         return 0
     if not args.scenario:
         return _fail("a SCENARIO is required (see osa simulate --list)")

@@ -111,3 +111,21 @@ def test_a_refusal_keeps_an_existing_output_folder_and_its_files(tmp_path, capsy
     capsys.readouterr()
     assert sorted(p.name for p in reused.iterdir()) == [".osa-output", "report.json"]
     assert rrd.read_text() == "mine"
+
+
+def test_simulate_list_separates_every_name_from_its_description(capsys):
+    """`osa simulate --list`: one preset a line, `name  description` (two spaces at
+    least), the descriptions in one column whatever the length of the names."""
+    from sim.scenario import list_scenarios, load_scenario
+
+    assert status_of(["simulate", "--list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    names = list_scenarios()
+    assert [line.split("  ", 1)[0] for line in lines] == names
+    width = max(map(len, names)) + 2
+    assert any(len(n) >= 16 for n in names)  # the names this was wrong for
+    assert [line[:width].rstrip() for line in lines] == names
+    assert all(line[width - 2:width] == "  " and line[width] != " " for line in lines)
+    for name, line in zip(names, lines, strict=True):
+        if not name.startswith("site-"):  # a DEM's world takes seconds to build
+            assert line[width:] == load_scenario(name).description
