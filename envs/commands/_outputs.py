@@ -157,6 +157,27 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     return p
 
 
+def written_by(path: str | os.PathLike, command: str) -> bool:
+    """Whether the folder ``path`` is one that ``osa COMMAND`` wrote (its marker)."""
+    marker = Path(path) / MARKER
+    try:
+        return marker.is_file() and marker.read_text(errors="replace").strip() == command
+    except OSError:
+        return False
+
+
+def remove_stale(folder: Path, names: Iterable[str]) -> None:
+    """Remove the files ``names`` that a command wrote into its own ``folder`` in an
+    earlier run and does not write this time (a second agent's log, figures not drawn),
+    so that the reused folder holds one run's files. Call it once every output is
+    claimed (a refused command removes nothing)."""
+    for name in names:
+        old = folder / Path(name).name
+        if old.is_file() or old.is_symlink():
+            with contextlib.suppress(OSError):
+                old.unlink()
+
+
 def release_claims() -> None:
     """Undo what the claims of a refused command created (``osa`` calls it on exit
     status 2: refused before any work): the markers they added to folders that hold

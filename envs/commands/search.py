@@ -103,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
         OutputRefusedError,
         claim_output_dir,
         claim_output_file,
+        remove_stale,
+        written_by,
     )
     from envs.commands._progress import QuantityProgress
     from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig, fly
@@ -131,15 +133,19 @@ def run(args: argparse.Namespace) -> int:
             return _fail(problem)
     # every output is checked before the flight (docs/cli.md, "Outputs")
     inputs = [p for p in (args.scenario, args.vehicle_log) if p and Path(p).is_file()]
+    names = ["flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl"
+             for i, a in enumerate(scenario.agents)]
+    reused = written_by(args.out, "search")
     try:
         out = claim_output_dir(args.out, command="search", force=args.force, inputs=inputs)
         if args.rerun:
             claim_output_file(args.rerun, force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         return _fail(exc)
-    agents = scenario.agents
-    logs = [out / ("flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl")
-            for i, a in enumerate(agents)]
+    if reused:  # the previous search's files that this one does not write go
+        remove_stale(out, [f.name for f in out.glob("flight-*.jsonl") if f.name not in names]
+                     + (["trajectory.png", "errors.png"] if args.no_figures else []))
+    logs = [out / name for name in names]
     budget = scenario.search.budget_s
     bar = QuantityProgress(f"osa search {policy.name}", budget, "s",
                            enabled=not args.no_progress, every=60.0)

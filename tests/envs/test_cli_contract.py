@@ -129,3 +129,35 @@ def test_simulate_list_separates_every_name_from_its_description(capsys):
     for name, line in zip(names, lines, strict=True):
         if not name.startswith("site-"):  # a DEM's world takes seconds to build
             assert line[width:] == load_scenario(name).description
+
+
+def test_search_reusing_its_folder_leaves_no_file_of_the_previous_search(tmp_path, capsys):
+    """A folder osa search wrote before is reused with its files replaced: a second
+    agent's log of the previous (two-UAV) search and figures not drawn this time
+    (--no-figures) are removed, not left for `osa replay out/flight*.jsonl` to fuse
+    with this flight; files osa search does not write stay."""
+    sc = tmp_path / "short.toml"
+    sc.write_text('extends = "search-random-los-rtk"\n[search]\nbudget_s = 10.0\n')
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / ".osa-output").write_text("search\n")
+    for name in ("flight.jsonl", "flight-uav-2.jsonl", "report.json", "trajectory.png",
+                 "errors.png", "notes.txt"):
+        (out / name).write_text("previous")
+    argv = ["search", str(sc), "--policy", "lawnmower", "-o", str(out), "--no-figures",
+            "--no-progress", "--json"]
+    assert status_of(argv) == 0
+    assert capsys.readouterr().err == f"osa search: replacing the files in {out}\n"
+    assert sorted(p.name for p in out.iterdir()) == [
+        ".osa-output", "flight.jsonl", "notes.txt", "report.json"]
+    assert (out / "notes.txt").read_text() == "previous"
+    # a refused search removes nothing; with --force into another command's folder
+    # nothing of that command's is removed
+    (out / "flight-uav-2.jsonl").write_text("previous")
+    rrd = tmp_path / "x.rrd"
+    rrd.write_text("mine")
+    assert status_of([*argv, "--rerun", str(rrd)]) == 2
+    assert (out / "flight-uav-2.jsonl").read_text() == "previous"
+    (out / ".osa-output").write_text("run\n")
+    assert status_of([*argv, "--force"]) == 0
+    assert (out / "flight-uav-2.jsonl").read_text() == "previous"
