@@ -105,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         claim_output_file,
         remove_stale,
         written_by,
+        written_whole,
     )
     from envs.commands._progress import QuantityProgress
     from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig, fly
@@ -174,7 +175,8 @@ def run(args: argparse.Namespace) -> int:
         return 130
     bar.close("interrupted" if result.ended == "interrupted" else "done")
     report = result.to_json()
-    (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False))
+    with written_whole(out / "report.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=1, allow_nan=False))
     figures: list[Path] = []
     if not args.no_figures:
         from envs.search_plots import plot_search

@@ -161,3 +161,48 @@ def test_search_reusing_its_folder_leaves_no_file_of_the_previous_search(tmp_pat
     (out / ".osa-output").write_text("run\n")
     assert status_of([*argv, "--force"]) == 0
     assert (out / "flight-uav-2.jsonl").read_text() == "previous"
+
+
+@pytest.mark.parametrize("where", ["log", "figure"])
+def test_an_interrupted_run_leaves_the_previous_files_whole(where, tmp_path, capsys,
+                                                            monkeypatch):
+    """`osa run` into its own folder, interrupted while it writes the flight log or a
+    figure: the previous file stays as it was (docs/cli.md: files are written to a
+    temporary name, then renamed), no temporary file is left."""
+    from estimator.logio import LogWriter
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / ".osa-output").write_text("run\n")
+    for name in ("flight.jsonl", "report.json", "trajectory.png", "convergence.png"):
+        (out / name).write_text("previous")
+    if where == "log":
+        real_write = LogWriter.write
+
+        def write(self, rec):
+            if self.n_lines == 100:
+                raise KeyboardInterrupt
+            real_write(self, rec)
+
+        monkeypatch.setattr(LogWriter, "write", write)
+    else:
+        import matplotlib.figure
+
+        def savefig(self, fname, **kwargs):
+            with open(fname, "wb") as fh:
+                fh.write(b"\x89PNG half")
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    status = status_of(["run", "paper-apab", "-o", str(out), "--no-progress", "--mode",
+                        "baseline"])
+    assert status == 130
+    assert capsys.readouterr().err.splitlines()[-1] == "osa run: interrupted"
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [".osa-output", "convergence.png", "flight.jsonl", "report.json",
+                     "trajectory.png"]
+    if where == "log":
+        assert (out / "flight.jsonl").read_text() == "previous"
+    else:  # the log and the report were complete: replaced; the figure was not
+        assert (out / "flight.jsonl").read_text().count("\n") > 300
+        assert (out / "trajectory.png").read_text() == "previous"
