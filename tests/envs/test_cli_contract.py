@@ -206,3 +206,36 @@ def test_an_interrupted_run_leaves_the_previous_files_whole(where, tmp_path, cap
     else:  # the log and the report were complete: replaced; the figure was not
         assert (out / "flight.jsonl").read_text().count("\n") > 300
         assert (out / "trajectory.png").read_text() == "previous"
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_a_vehicle_stopped_while_it_starts_closes_its_log_and_exits_0(signame, tmp_path,
+                                                                     capsys, monkeypatch):
+    """`osa vehicle ... & kill $!` on a busy machine: the signal comes while the
+    vehicle is still loading. It runs until SIGINT or SIGTERM, then closes the log and
+    exits 0 (docs/cli.md) whenever the signal comes: here at once, with a whole log."""
+    import json
+    import os
+    import signal
+
+    import envs.vehicle
+    from tests.envs.vehicle.helpers import SEARCH_SCENARIO
+    from tests.net import free_udp_port
+
+    real_init = envs.vehicle.VirtualVehicle.__init__
+
+    def init(self, *args, **kwargs):  # the signal arrives while the vehicle is built
+        os.kill(os.getpid(), getattr(signal, signame))
+        real_init(self, *args, **kwargs)
+
+    monkeypatch.setattr(envs.vehicle.VirtualVehicle, "__init__", init)
+    log = tmp_path / "phone.jsonl"
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    status = status_of(["vehicle", SEARCH_SCENARIO, "--connection",
+                        f"udpin:127.0.0.1:{free_udp_port()}", "--log", str(log)])
+    out, err = capsys.readouterr()
+    assert (status, err) == (0, "")
+    assert out.splitlines()[-1].startswith("osa vehicle: stopped at 0.0 s simulated")
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    records = [json.loads(x) for x in log.read_text().splitlines()]
+    assert records[0]["type"] == "header" and log.read_text().endswith("\n")
