@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         written_whole,
     )
 
-    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    inputs = [args.scenario] if Path(args.scenario).is_file() else []  # a preset: none
     if args.rerun and (problem := writable_file_problem(args.rerun)):
         return _fail(problem)  # its folder must exist: a typo creates no folder tree
     try:  # the one output rule (docs/cli.md "Outputs"), before anything is simulated

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     if len(scenario.agents) > 1:  # one log: said, not silently one agent of several
         print(f"osa simulate: {scenario.name} has {len(scenario.agents)} agents; the first, "
               f"{scenario.agents[0].name}, flies the flight (one log)", file=sys.stderr)
-    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    inputs = [args.scenario] if Path(args.scenario).is_file() else []  # a preset: none
     try:  # before the simulation: a refused output costs nothing
         out = claim_output_file(args.output, force=args.force, inputs=inputs)
     except OutputRefusedError as exc:

@@ -239,3 +239,21 @@ def test_a_vehicle_stopped_while_it_starts_closes_its_log_and_exits_0(signame, t
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
     records = [json.loads(x) for x in log.read_text().splitlines()]
     assert records[0]["type"] == "header" and log.read_text().endswith("\n")
+
+
+def test_run_reuses_an_output_folder_named_after_its_preset(tmp_path, capsys, monkeypatch):
+    """`osa run paper-apab -o paper-apab`, a second time: the folder osa run wrote is
+    reused (docs/cli.md), not taken for the preset's scenario file ('holds an input')."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "paper-apab"
+    out.mkdir()
+    (out / ".osa-output").write_text("run\n")  # as the first run left it
+    (out / "report.json").write_text("{}")
+    status = status_of(["run", "paper-apab", "-o", "paper-apab", "--mode", "baseline",
+                        "--no-progress"])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert captured.err == "osa run: replacing the files in paper-apab\n"
+    assert captured.out.splitlines()[-1] == (
+        "wrote paper-apab/flight.jsonl, paper-apab/report.json, paper-apab/trajectory.png, "
+        "paper-apab/convergence.png")
