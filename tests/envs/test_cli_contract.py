@@ -257,3 +257,17 @@ def test_run_reuses_an_output_folder_named_after_its_preset(tmp_path, capsys, mo
     assert captured.out.splitlines()[-1] == (
         "wrote paper-apab/flight.jsonl, paper-apab/report.json, paper-apab/trajectory.png, "
         "paper-apab/convergence.png")
+
+
+def test_a_file_named_like_a_preset_is_said_to_hide_it(tmp_path, capsys, monkeypatch):
+    """`osa simulate paper-apab -o paper-apab` (no ending) writes a log named like the
+    preset; every later `osa ... paper-apab` in that folder reads the log as the
+    scenario. The one line says so, not only 'invalid TOML'."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "paper-apab").write_text('{"type": "header", "format": "osa-log"}\n')
+    assert status_of(["simulate", "paper-apab", "-o", "x.jsonl"]) == 2
+    assert one_line(capsys) == (
+        "osa simulate: paper-apab: invalid TOML: Invalid statement (at line 1, column 1); "
+        "the file paper-apab in this folder hides the preset paper-apab (rename the file, "
+        "or run osa from another folder)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["paper-apab"]
