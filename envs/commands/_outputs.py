@@ -132,7 +132,7 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     entries = []
     if p.is_dir():
         entries = [e for e in p.iterdir() if e.name != MARKER]
-        owner = marker.read_text(errors="replace").strip() if marker.is_file() else None
+        owner = _marker_lines(p)[0] if marker.is_file() else None
         if entries and owner != command and not force:
             who = f"osa {owner}" if owner else "something else"
             raise OutputRefusedError(f"{p} is not empty and was written by {who} "
@@ -157,20 +157,35 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     return p
 
 
-def written_by(path: str | os.PathLike, command: str) -> bool:
-    """Whether the folder ``path`` is one that ``osa COMMAND`` wrote (its marker)."""
-    marker = Path(path) / MARKER
+def _marker_lines(folder: Path) -> list[str]:
+    """The marker's lines: the command's name, then the files it wrote (if listed)."""
     try:
-        return marker.is_file() and marker.read_text(errors="replace").strip() == command
+        lines = (folder / MARKER).read_text(errors="replace").splitlines()
     except OSError:
-        return False
+        return [""]
+    return [x.strip() for x in lines if x.strip()] or [""]
+
+
+def files_written_before(path: str | os.PathLike, command: str) -> list[str]:
+    """The files ``osa COMMAND`` listed in the marker of the folder ``path`` as its own
+    (:func:`record_files`); none for a folder of another command, or no list."""
+    lines = _marker_lines(Path(path))
+    return lines[1:] if lines[0] == command else []
+
+
+def record_files(folder: Path, command: str, names: Iterable[str]) -> None:
+    """List ``names`` in the marker as the files ``osa COMMAND`` wrote into ``folder``:
+    the next run into the folder removes those it does not write again."""
+    with contextlib.suppress(OSError):
+        (folder / MARKER).write_text("\n".join([command, *(Path(n).name for n in names)])
+                                     + "\n")
 
 
 def remove_stale(folder: Path, names: Iterable[str]) -> None:
     """Remove the files ``names`` that a command wrote into its own ``folder`` in an
-    earlier run and does not write this time (a second agent's log, figures not drawn),
-    so that the reused folder holds one run's files. Call it once every output is
-    claimed (a refused command removes nothing)."""
+    earlier run (:func:`files_written_before`) and does not write this time (a second
+    agent's log, figures not drawn), so that the reused folder holds one run's files.
+    Call it once every output is claimed (a refused command removes nothing)."""
     for name in names:
         old = folder / Path(name).name
         if old.is_file() or old.is_symlink():

@@ -103,8 +103,9 @@ def run(args: argparse.Namespace) -> int:
         OutputRefusedError,
         claim_output_dir,
         claim_output_file,
+        files_written_before,
+        record_files,
         remove_stale,
-        written_by,
         written_whole,
     )
     from envs.commands._progress import QuantityProgress
@@ -136,16 +137,18 @@ def run(args: argparse.Namespace) -> int:
     inputs = [p for p in (args.scenario, args.vehicle_log) if p and Path(p).is_file()]
     names = ["flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl"
              for i, a in enumerate(scenario.agents)]
-    reused = written_by(args.out, "search")
+    previous = files_written_before(args.out, "search")
     try:
         out = claim_output_dir(args.out, command="search", force=args.force, inputs=inputs)
         if args.rerun:
             claim_output_file(args.rerun, force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         return _fail(exc)
-    if reused:  # the previous search's files that this one does not write go
-        remove_stale(out, [f.name for f in out.glob("flight-*.jsonl") if f.name not in names]
-                     + (["trajectory.png", "errors.png"] if args.no_figures else []))
+    figure_names = [] if args.no_figures else ["trajectory.png", "errors.png"]
+    # the previous search's files that this one does not write go (only those)
+    remove_stale(out, [n for n in previous
+                       if n not in (*names, "report.json", *figure_names)])
+    record_files(out, "search", [*names, "report.json", *figure_names])
     logs = [out / name for name in names]
     budget = scenario.search.budget_s
     bar = QuantityProgress(f"osa search {policy.name}", budget, "s",

@@ -135,30 +135,33 @@ def test_search_reusing_its_folder_leaves_no_file_of_the_previous_search(tmp_pat
     """A folder osa search wrote before is reused with its files replaced: a second
     agent's log of the previous (two-UAV) search and figures not drawn this time
     (--no-figures) are removed, not left for `osa replay out/flight*.jsonl` to fuse
-    with this flight; files osa search does not write stay."""
+    with this flight; only the files its marker lists as the previous search's go."""
     sc = tmp_path / "short.toml"
     sc.write_text('extends = "search-random-los-rtk"\n[search]\nbudget_s = 10.0\n')
     out = tmp_path / "out"
-    out.mkdir()
-    (out / ".osa-output").write_text("search\n")
+    out.mkdir()  # as a two-UAV search left it, and a file of the user's own
+    (out / ".osa-output").write_text("search\nflight.jsonl\nflight-uav-2.jsonl\nreport.json"
+                                     "\ntrajectory.png\nerrors.png\n")
     for name in ("flight.jsonl", "flight-uav-2.jsonl", "report.json", "trajectory.png",
-                 "errors.png", "notes.txt"):
+                 "errors.png", "flight-uav-3.jsonl"):
         (out / name).write_text("previous")
     argv = ["search", str(sc), "--policy", "lawnmower", "-o", str(out), "--no-figures",
             "--no-progress", "--json"]
     assert status_of(argv) == 0
     assert capsys.readouterr().err == f"osa search: replacing the files in {out}\n"
     assert sorted(p.name for p in out.iterdir()) == [
-        ".osa-output", "flight.jsonl", "notes.txt", "report.json"]
-    assert (out / "notes.txt").read_text() == "previous"
+        ".osa-output", "flight-uav-3.jsonl", "flight.jsonl", "report.json"]
+    assert (out / "flight-uav-3.jsonl").read_text() == "previous"  # not listed: not ours
+    assert (out / ".osa-output").read_text() == "search\nflight.jsonl\nreport.json\n"
     # a refused search removes nothing; with --force into another command's folder
     # nothing of that command's is removed
     (out / "flight-uav-2.jsonl").write_text("previous")
+    (out / ".osa-output").write_text("search\nflight-uav-2.jsonl\n")
     rrd = tmp_path / "x.rrd"
     rrd.write_text("mine")
     assert status_of([*argv, "--rerun", str(rrd)]) == 2
     assert (out / "flight-uav-2.jsonl").read_text() == "previous"
-    (out / ".osa-output").write_text("run\n")
+    (out / ".osa-output").write_text("run\nflight-uav-2.jsonl\n")
     assert status_of([*argv, "--force"]) == 0
     assert (out / "flight-uav-2.jsonl").read_text() == "previous"
 
