@@ -93,6 +93,9 @@ def claim_output_file(path: str | os.PathLike, *, force: bool,
     """Check that ``path`` may be written now (see the module docstring); its parent
     folders are created. Returns it as a :class:`Path`."""
     p = Path(path)
+    if str(path).endswith(("/", os.sep)):  # pathlib drops the slash: 'x/' would be file x
+        raise OutputRefusedError(f"cannot write {path}: the name ends with '/', a folder's "
+                                 "(give a file name)")
     _check_not_input(p, inputs)
     if p.is_dir():
         raise OutputRefusedError(f"cannot write {p}: is a directory")

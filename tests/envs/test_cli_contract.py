@@ -274,3 +274,16 @@ def test_a_file_named_like_a_preset_is_said_to_hide_it(tmp_path, capsys, monkeyp
         "the file paper-apab in this folder hides the preset paper-apab (rename the file, "
         "or run osa from another folder)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["paper-apab"]
+
+
+@pytest.mark.parametrize("name", ["new/", "old.jsonl/"])
+def test_an_output_file_named_with_a_trailing_slash_is_refused(name, tmp_path, capsys):
+    """`-o DIR/` names a folder (POSIX: `echo > x/` is an error): osa simulate wrote a
+    log file called DIR, or replaced the file old.jsonl with --force."""
+    (tmp_path / "old.jsonl").write_text("previous")
+    out = f"{tmp_path}/{name}"
+    assert status_of(["simulate", "paper-apab", "-o", out, "--force"]) == 2
+    assert one_line(capsys) == (f"osa simulate: cannot write {out}: the name ends with '/', "
+                                "a folder's (give a file name)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.jsonl"]
+    assert (tmp_path / "old.jsonl").read_text() == "previous"
