@@ -21,7 +21,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="preset name or .toml path")
-    p.add_argument("-o", "--output", metavar="LOG", help="log file to write (.jsonl, .jsonl.gz)")
+    p.add_argument("-o", "--output", "--out", metavar="LOG",
+                   help="log file to write (.jsonl, .jsonl.gz)")
     p.add_argument("--seed", type=seed_arg, default=0, metavar="N",
                    help="random seed, 0 .. 2^63 - 1 (default 0)")
     p.add_argument("--list", action="store_true", help="list the scenario presets and exit")

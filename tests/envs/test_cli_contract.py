@@ -287,3 +287,14 @@ def test_an_output_file_named_with_a_trailing_slash_is_refused(name, tmp_path, c
                                 "a folder's (give a file name)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.jsonl"]
     assert (tmp_path / "old.jsonl").read_text() == "previous"
+
+
+@pytest.mark.parametrize("command", ["simulate", "import", "plan"])
+def test_output_is_also_spelled_out_as_osa_run_spells_it(command):
+    """`--out` worked as a prefix of `--output`; with prefixes refused it stays, as the
+    spelling `osa run`, `osa search`, `osa evaluate` and `osa train` use."""
+    from envs.cli import build_parser, subcommand_parsers
+
+    parser = subcommand_parsers(build_parser())[command]
+    outs = [a for a in parser._actions if "--output" in a.option_strings]
+    assert [a.option_strings for a in outs] == [["-o", "--output", "--out"]]
