@@ -49,6 +49,14 @@ _NEGATIVE_VALUE = re.compile(r"^-\.?\d")
 
 
 class _Parser(argparse.ArgumentParser):
+    """Options are spelled out in full: argparse's prefix matching would take
+    ``osa evaluate --seed 7`` for ``--seeds 7`` and ``--forc`` for ``--force``, and an
+    option added later would change what a script's prefix means."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
     def error(self, message: str) -> None:  # one clear line, exit status 2
         self.exit(2, f"osa: error: {message}\n")
 
@@ -172,6 +180,8 @@ def _internal_error(command: str, exc: BaseException, argv: Sequence[str]) -> in
 
 
 def _main(argv: Sequence[str] | None) -> int:
+    from envs.commands._outputs import forget_claims, release_claims
+
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if a in COMMANDS), "")
     try:
@@ -186,7 +196,10 @@ def _main(argv: Sequence[str] | None) -> int:
             # input) are not for the user: results are checked to be finite where used
             warnings.filterwarnings("ignore", category=RuntimeWarning,
                                     message=FLOAT_NOTES)
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+        if status == 2:  # refused before any work: the output folders it made go
+            release_claims()
+        return status
     except KeyboardInterrupt:
         print(f"osa{' ' + command if command else ''}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -197,6 +210,8 @@ def _main(argv: Sequence[str] | None) -> int:
         raise  # main() stops quietly
     except Exception as exc:
         return _internal_error(command or "", exc, argv)
+    finally:
+        forget_claims()
 
 
 def _on_sigterm(signum: int, frame: object) -> None:

@@ -540,9 +540,14 @@ def plot_trajectory(
 
 def save_figure(fig, path: str | Path) -> Path:
     """Write ``fig`` as PNG (130 dpi) and close it."""
+    from envs.commands._outputs import written_whole
+
     out = Path(path)
-    fig.savefig(out, dpi=130)
-    pyplot().close(fig)
+    try:  # a temporary name, then renamed: an interrupted drawing keeps the previous file
+        with written_whole(out) as tmp:
+            fig.savefig(tmp, dpi=130)  # the format from the ending, kept by tmp
+    finally:
+        pyplot().close(fig)
     return out
 
 

@@ -365,6 +365,9 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
     p = Path(name_or_path)
     as_path = isinstance(name_or_path, Path) or p.suffix == ".toml" or "/" in str(name_or_path)
     if as_path or p.is_file():
+        hides = "" if as_path or not _scenario_dir().joinpath(f"{p}.toml").is_file() else (
+            f"; the file {p} in this folder hides the preset {p} (rename the file, or run "
+            "osa from another folder)")
         if p.is_dir():
             raise ScenarioError(f"scenario {p} is a folder, not a scenario file")
         if not p.is_file():
@@ -378,7 +381,7 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
             utf16 = " (it is UTF-16: save it as UTF-8)" if data[:2] in (
                 b"\xff\xfe", b"\xfe\xff") else ""
             raise ScenarioError(f"cannot read scenario file {p}: a TOML file is UTF-8 text, "
-                                f"{exc.reason} at byte {exc.start}{utf16}") from None
+                                f"{exc.reason} at byte {exc.start}{utf16}{hides}") from None
         source, base_dir, stem = str(p), p.resolve().parent, p.stem
     else:
         name = str(name_or_path)
@@ -388,12 +391,13 @@ def _read_toml(name_or_path: str | Path, chain: tuple[str, ...] = ()) -> tuple[d
             raise ScenarioError(f"unknown scenario {name!r} (presets: {known})")
         text = res.read_text(encoding="utf-8")
         source, base_dir, stem = f"preset {name}", Path(str(_scenario_dir())), name
+        hides = ""
     if source in chain:
         raise ScenarioError(f"{source}: 'extends' loops back on itself")
     try:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{source}: invalid TOML: {exc}") from exc
+        raise ScenarioError(f"{source}: invalid TOML: {exc}{hides}") from exc
     parent = table.pop("extends", None)
     if parent is not None:
         if not isinstance(parent, str):
@@ -966,6 +970,13 @@ def _check_work(scenario: Scenario, duration: float, length_m: float) -> None:
                 raise ConfigError(f"vehicle.{what} would need {n:.3g} vehicle samples over "
                                   f"{duration:g} s and {length_m:g} m of flight (more than "
                                   f"{MAX_VEHICLE_SAMPLES}): widen it")
+
+
+def scenario_description(name_or_path: str | Path) -> str:
+    """The ``description`` of a preset or TOML file (following ``extends``), read
+    without building its world (a DEM preset's terrain takes seconds to load)."""
+    description = _read_toml(name_or_path)[0].get("description", "")
+    return description if isinstance(description, str) else ""
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:

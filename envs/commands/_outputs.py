@@ -29,6 +29,9 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 MARKER = ".osa-output"  # in an output folder: the name of the command that wrote it
+# what the claims of the running command created: (the folders made, deepest first; the
+# marker written where there was none), so that a refusal leaves nothing behind
+_CLAIMED: list[tuple[list[Path], Path | None]] = []
 
 
 def _finite(obj: object) -> object:
@@ -90,6 +93,9 @@ def claim_output_file(path: str | os.PathLike, *, force: bool,
     """Check that ``path`` may be written now (see the module docstring); its parent
     folders are created. Returns it as a :class:`Path`."""
     p = Path(path)
+    if str(path).endswith(("/", os.sep)):  # pathlib drops the slash: 'x/' would be file x
+        raise OutputRefusedError(f"cannot write {path}: the name ends with '/', a folder's "
+                                 "(give a file name)")
     _check_not_input(p, inputs)
     if p.is_dir():
         raise OutputRefusedError(f"cannot write {p}: is a directory")
@@ -102,10 +108,12 @@ def claim_output_file(path: str | os.PathLike, *, force: bool,
     blocker = next((a for a in (parent, *parent.parents) if a.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise OutputRefusedError(f"cannot write {p}: {blocker} is not a folder")
+    made = [a for a in (parent, *parent.parents) if not a.exists()]
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputRefusedError(f"cannot write {p}: {exc.strerror or exc}") from None
+    _CLAIMED.append((made, None))
     _check_writable_dir(parent, p)
     return p
 
@@ -127,7 +135,7 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     entries = []
     if p.is_dir():
         entries = [e for e in p.iterdir() if e.name != MARKER]
-        owner = marker.read_text(errors="replace").strip() if marker.is_file() else None
+        owner = _marker_lines(p)[0] if marker.is_file() else None
         if entries and owner != command and not force:
             who = f"osa {owner}" if owner else "something else"
             raise OutputRefusedError(f"{p} is not empty and was written by {who} "
@@ -135,10 +143,13 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     blocker = next((a for a in (p, *p.parents) if a.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise OutputRefusedError(f"cannot create {p}: {blocker} is not a folder")
+    made = [a for a in (p, *p.parents) if not a.exists()]
+    new_marker = not marker.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputRefusedError(f"cannot create {p}: {exc.strerror or exc}") from None
+    _CLAIMED.append((made, marker if new_marker else None))
     _check_writable_dir(p, p)
     try:
         marker.write_text(command + "\n")
@@ -147,6 +158,64 @@ def claim_output_dir(path: str | os.PathLike, *, command: str, force: bool,
     if entries and not quiet:  # said once the folder is known to be writable
         print(f"osa {command}: replacing the files in {p}", file=sys.stderr)
     return p
+
+
+def _marker_lines(folder: Path) -> list[str]:
+    """The marker's lines: the command's name, then the files it wrote (if listed)."""
+    try:
+        lines = (folder / MARKER).read_text(errors="replace").splitlines()
+    except OSError:
+        return [""]
+    return [x.strip() for x in lines if x.strip()] or [""]
+
+
+def files_written_before(path: str | os.PathLike, command: str) -> list[str]:
+    """The files ``osa COMMAND`` listed in the marker of the folder ``path`` as its own
+    (:func:`record_files`); none for a folder of another command, or no list."""
+    lines = _marker_lines(Path(path))
+    return lines[1:] if lines[0] == command else []
+
+
+def record_files(folder: Path, command: str, names: Iterable[str]) -> None:
+    """List ``names`` in the marker as the files ``osa COMMAND`` wrote into ``folder``:
+    the next run into the folder removes those it does not write again."""
+    with contextlib.suppress(OSError):
+        (folder / MARKER).write_text("\n".join([command, *(Path(n).name for n in names)])
+                                     + "\n")
+
+
+def remove_stale(folder: Path, names: Iterable[str]) -> None:
+    """Remove the files ``names`` that a command wrote into its own ``folder`` in an
+    earlier run (:func:`files_written_before`) and does not write this time (a second
+    agent's log, figures not drawn), so that the reused folder holds one run's files.
+    Call it once every output is claimed (a refused command removes nothing)."""
+    for name in names:
+        old = folder / Path(name).name
+        if old.is_file() or old.is_symlink():
+            with contextlib.suppress(OSError):
+                old.unlink()
+
+
+def release_claims() -> None:
+    """Undo what the claims of a refused command created (``osa`` calls it on exit
+    status 2: refused before any work): the markers they added to folders that hold
+    nothing else, and the folders they made, if still empty. Nothing else is touched."""
+    while _CLAIMED:
+        made, marker = _CLAIMED.pop()
+        if marker is not None:
+            with contextlib.suppress(OSError):
+                if [e.name for e in marker.parent.iterdir()] == [MARKER]:
+                    marker.unlink()
+        for folder in made:  # deepest first; stops at the first that is not empty
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def forget_claims() -> None:
+    """The command ended: what its claims created is its output now."""
+    _CLAIMED.clear()
 
 
 @contextlib.contextmanager

@@ -226,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--mode: {exc}")
     out = Path(args.out)
     fig_dir = Path(args.figures) if args.figures else out.parent
-    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    inputs = [args.scenario] if Path(args.scenario).is_file() else []  # a preset: none
     try:
         claim_outputs(args, out, fig_dir, inputs)
     except ValueError as exc:  # OutputRefusedError too

@@ -46,7 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(directory, .db3 or .mcap) or NMEA text")
     p.add_argument("--ranges", required=True, metavar="FILE",
                    help="ranging file: Android RangingResult CSV or SensorReadout log")
-    p.add_argument("-o", "--output", required=True, metavar="LOG",
+    p.add_argument("-o", "--output", "--out", required=True, metavar="LOG",
                    help="flight log to write (.jsonl or .jsonl.gz)")
     p.add_argument("--agent", default="unknown", metavar="NAME",
                    help="the agent named in the log header (default: unknown)")

@@ -109,7 +109,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     p.add_argument("pattern", metavar="PATTERN", choices=PATTERNS, help=" | ".join(PATTERNS))
-    p.add_argument("-o", "--output", required=True, metavar="FILE", help=".plan or .waypoints")
+    p.add_argument("-o", "--output", "--out", required=True, metavar="FILE",
+                   help=".plan or .waypoints")
     p.add_argument(
         "--center", type=_latlon, metavar="LAT,LON",
         help="centre of the search area / prior AP estimate (degrees); required unless "

@@ -88,7 +88,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     figures = None
     if args.figures is not None:
-        streams = [p for p in args.logs if p == "-" or not os.path.isfile(p)]
+        # a missing file or a folder is said by the reader, as without --figures
+        streams = [p for p in args.logs if p == "-" or (os.path.exists(p)
+                                                          and not os.path.isdir(p)
+                                                          and not os.path.isfile(p))]
         if streams:  # the figures read the logs again: a pipe would be empty then
             print(f"osa replay: --figures reads the logs a second time: {streams[0]} is "
                   "not a regular file (save it to a file first)", file=sys.stderr)

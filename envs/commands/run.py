@@ -122,9 +122,10 @@ def run(args: argparse.Namespace) -> int:
         claim_output_dir,
         claim_output_file,
         json_text,
+        written_whole,
     )
 
-    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    inputs = [args.scenario] if Path(args.scenario).is_file() else []  # a preset: none
     if args.rerun and (problem := writable_file_problem(args.rerun)):
         return _fail(problem)  # its folder must exist: a typo creates no folder tree
     try:  # the one output rule (docs/cli.md "Outputs"), before anything is simulated
@@ -137,16 +138,20 @@ def run(args: argparse.Namespace) -> int:
     steps = 3 + bool(args.rerun)
     progress = StepProgress("osa run", steps, enabled=not args.no_progress)
     progress.step(f"simulating {args.scenario} (seed {args.seed})")
+    from sim.simulate import write_log
     from sim.vehicle import FlightError
 
     try:
-        sim.simulate(scenario, args.seed, log_path)
+        result = sim.simulate(scenario, args.seed)
     except FlightError as exc:  # the scenario's path cannot be flown (below the ground...)
         progress.close()
         return _fail(f"{args.scenario}: {exc}")
+    with written_whole(log_path) as tmp:  # an interrupted write keeps the previous log
+        write_log(result, tmp)
     progress.step(f"replaying {len(modes)} modes")
     report = replay_logs([log_path], ReplayOptions(modes=modes))
-    (out / "report.json").write_text(json_text(report.to_json(), indent=1))
+    with written_whole(out / "report.json") as tmp:
+        tmp.write_text(json_text(report.to_json(), indent=1))
     progress.step("drawing figures")
     title = f"{args.scenario}, seed {args.seed}"
     world = sim.realise(scenario, args.seed).world  # the ground under the map

@@ -103,6 +103,10 @@ def run(args: argparse.Namespace) -> int:
         OutputRefusedError,
         claim_output_dir,
         claim_output_file,
+        files_written_before,
+        record_files,
+        remove_stale,
+        written_whole,
     )
     from envs.commands._progress import QuantityProgress
     from envs.loop import DEFAULT_MODE, ClosedLoop, LoopConfig, fly
@@ -131,15 +135,21 @@ def run(args: argparse.Namespace) -> int:
             return _fail(problem)
     # every output is checked before the flight (docs/cli.md, "Outputs")
     inputs = [p for p in (args.scenario, args.vehicle_log) if p and Path(p).is_file()]
+    names = ["flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl"
+             for i, a in enumerate(scenario.agents)]
+    previous = files_written_before(args.out, "search")
     try:
         out = claim_output_dir(args.out, command="search", force=args.force, inputs=inputs)
         if args.rerun:
             claim_output_file(args.rerun, force=args.force, inputs=inputs)
     except OutputRefusedError as exc:
         return _fail(exc)
-    agents = scenario.agents
-    logs = [out / ("flight.jsonl" if i == 0 else f"flight-{a.name}.jsonl")
-            for i, a in enumerate(agents)]
+    figure_names = [] if args.no_figures else ["trajectory.png", "errors.png"]
+    # the previous search's files that this one does not write go (only those)
+    remove_stale(out, [n for n in previous
+                       if n not in (*names, "report.json", *figure_names)])
+    record_files(out, "search", [*names, "report.json", *figure_names])
+    logs = [out / name for name in names]
     budget = scenario.search.budget_s
     bar = QuantityProgress(f"osa search {policy.name}", budget, "s",
                            enabled=not args.no_progress, every=60.0)
@@ -168,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
         return 130
     bar.close("interrupted" if result.ended == "interrupted" else "done")
     report = result.to_json()
-    (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False))
+    with written_whole(out / "report.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=1, allow_nan=False))
     figures: list[Path] = []
     if not args.no_figures:
         from envs.search_plots import plot_search
@@ -188,7 +199,9 @@ def run(args: argparse.Namespace) -> int:
         if args.rerun:
             wrote.append(args.rerun)
         print("wrote " + ", ".join(wrote))
-    return 130 if result.ended == "interrupted" else 0
+    if result.ended != "interrupted":
+        return 0
+    return 143 if stop.signal == signal.SIGTERM else 130  # docs/cli.md, Conventions
 
 
 def _mavlink_vehicle(args: argparse.Namespace, scenario, realisation, log: Path):

@@ -21,7 +21,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="preset name or .toml path")
-    p.add_argument("-o", "--output", metavar="LOG", help="log file to write (.jsonl, .jsonl.gz)")
+    p.add_argument("-o", "--output", "--out", metavar="LOG",
+                   help="log file to write (.jsonl, .jsonl.gz)")
     p.add_argument("--seed", type=seed_arg, default=0, metavar="N",
                    help="random seed, 0 .. 2^63 - 1 (default 0)")
     p.add_argument("--list", action="store_true", help="list the scenario presets and exit")
@@ -37,12 +38,13 @@ def _fail(message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from envs.commands._outputs import OutputRefusedError, claim_output_file, written_whole
-    from sim.scenario import ScenarioError, list_scenarios, load_scenario
+    from sim.scenario import ScenarioError, list_scenarios, load_scenario, scenario_description
 
     if args.list:
-        for name in list_scenarios():
-            description = load_scenario(name).description
-            print(f"{name:<16} {description}")
+        names = list_scenarios()
+        width = max((len(n) for n in names), default=0) + 2  # `name  description`
+        for name in names:
+            print(f"{name:<{width}}{scenario_description(name)}")
         return 0
     if not args.scenario:
         return _fail("a SCENARIO is required (see osa simulate --list)")
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     if len(scenario.agents) > 1:  # one log: said, not silently one agent of several
         print(f"osa simulate: {scenario.name} has {len(scenario.agents)} agents; the first, "
               f"{scenario.agents[0].name}, flies the flight (one log)", file=sys.stderr)
-    inputs = [args.scenario] if Path(args.scenario).exists() else []
+    inputs = [args.scenario] if Path(args.scenario).is_file() else []  # a preset: none
     try:  # before the simulation: a refused output costs nothing
         out = claim_output_file(args.output, force=args.force, inputs=inputs)
     except OutputRefusedError as exc:

@@ -378,7 +378,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(problem)
     from envs.commands._outputs import OutputRefusedError, claim_output_dir
 
-    inputs = [args.scenario] if args.scenario and Path(args.scenario).exists() else []
+    inputs = [args.scenario] if args.scenario and Path(args.scenario).is_file() else []
     if settings.init is not None:
         inputs.append(str(settings.init))
     try:  # the one output rule (docs/cli.md "Outputs"), before any training

@@ -14,6 +14,7 @@ import argparse
 import math
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from envs.commands._args import seed_arg
@@ -95,6 +96,23 @@ def _inputs(scenario: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """SIGINT and SIGTERM stop the vehicle from the moment the command starts: one that
+    comes while the scenario loads (a script's ``osa vehicle ... & kill $!`` on a busy
+    machine) stops it as soon as it is up, its log closed, exit status 0."""
+    stop: dict[str, int | None] = {"signal": None}
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop["signal"] = signum
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(args, lambda: stop["signal"] is not None)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _run(args: argparse.Namespace, stopped: Callable[[], bool]) -> int:
     from sim.scenario import ScenarioError, load_scenario
 
     if not 1 <= args.sysid <= 254:
@@ -129,12 +147,6 @@ def run(args: argparse.Namespace) -> int:
         return _fail(EXIT_USAGE, str(exc))
     except OSError as exc:
         return _fail(EXIT_USAGE, f"cannot write {args.log}: {exc.strerror or exc}")
-    stop = {"signal": None}
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop["signal"] = signum
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     home = vehicle.autopilot.home
     speed = "max" if math.isinf(args.speedup) else f"{args.speedup:g}x"
     print(f"osa vehicle: {scenario.name} seed {args.seed}: PX4 quadrotor, system "
@@ -143,11 +155,9 @@ def run(args: argparse.Namespace) -> int:
           + (f"; lockstep {args.lockstep:g} s" if args.lockstep else "")
           + (f"; log {args.log}" if args.log else ""), flush=True)
     try:
-        vehicle.run(lambda: stop["signal"] is not None)
+        vehicle.run(stopped)
     finally:
         vehicle.close()
-        for s, h in previous.items():
-            signal.signal(s, h)
     print(f"osa vehicle: stopped at {vehicle.t_s:.1f} s simulated "
           f"({vehicle.stats.ratio:.1f}x real time)", flush=True)
     if vehicle.error is not None:
