@@ -26,7 +26,9 @@ Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_IT
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
 float MISSION_ITEM, as PX4 does, an unset x or y as NaN); the mission's current item
 carries ``current=1``.
-MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
+MISSION_CLEAR_ALL (255: all lists) empties lists at once (MAV_MISSION_DENIED while
+another ground station uploads one of them, as PX4 refuses a clear during a transfer).
+A count of 0 clears too.
 Partial lists (MISSION_WRITE_PARTIAL_LIST, MISSION_REQUEST_PARTIAL_LIST) are refused
 with MAV_MISSION_UNSUPPORTED.
 """
@@ -311,6 +313,12 @@ class MissionServer:
             else (mission_type,)
         if any(t not in self.held for t in types):
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
+            return
+        now = self.clock()
+        if any(rx.peer[1:] != peer[1:] and now - rx.activity_s < self.timeout_s
+               for t, rx in self._rx.items() if t in types):
+            # another ground station's upload of one of these lists runs (PX4: busy)
+            self._ack(peer, MAV_MISSION_DENIED, mission_type)
             return
         for t in types:
             self._rx.pop(t, None)

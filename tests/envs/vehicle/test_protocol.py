@@ -294,3 +294,46 @@ def test_refusals_kept_are_bounded() -> None:
     assert link.server.refused[-1] == (0, MISSION_UNSUPPORTED)
     assert link.server.refused[-2] == (0, MISSION_NO_SPACE)
     assert len(link.acks()) == 3 * REFUSALS_KEPT  # every one answered
+
+
+@pytest.mark.parametrize("cleared", [MAV_MISSION_TYPE_MISSION, 255])
+def test_a_clear_from_another_ground_station_does_not_drop_an_upload(cleared: int) -> None:
+    """Two ground stations: while one uploads a mission, the other's MISSION_CLEAR_ALL
+    (of the mission, or 255: all lists) is MAV_MISSION_DENIED, as a second upload is,
+    and nothing held changes (PX4 refuses a clear while a transfer runs); the upload goes
+    on to its ACK. It used to be ACCEPTED and to drop the upload silently: the uploader's
+    next items were ignored as late duplicates and it waited for the answer until its
+    own timeout."""
+    link = Link()
+    old = [wp(k) for k in range(2)]
+    upload(link, old)
+    new = [wp(k, z=40.0) for k in range(3)]
+    link.take()
+    link.server.on_count(GCS, 3, MAV_MISSION_TYPE_MISSION)
+    link.server.on_item(GCS, new[0])
+    link.take()
+    link.server.on_clear_all(OTHER, cleared)
+    assert link.take() == [(OTHER, "mission_ack", (MISSION_DENIED, cleared))]
+    assert link.server.held[MAV_MISSION_TYPE_MISSION] == old
+    for w in new[1:]:
+        link.server.on_item(GCS, w)
+    assert link.take() == [(GCS, "mission_request_int", (2, 0)),
+                           (GCS, "mission_ack", (MISSION_ACCEPTED, 0))]
+    assert link.server.held[MAV_MISSION_TYPE_MISSION] == new
+    # a stalled upload (no progress for the timeout) no longer blocks a clear
+    link.server.on_count(GCS, 3, MAV_MISSION_TYPE_MISSION)
+    link.now += link.server.timeout_s + 0.1
+    link.take()
+    link.server.on_clear_all(OTHER, cleared)
+    assert link.acks() == [MISSION_ACCEPTED] and link.server.held[0] == []
+
+
+def test_a_ground_station_clearing_during_its_own_upload_ends_it() -> None:
+    """The uploader's own MISSION_CLEAR_ALL ends its upload and clears (it changed its
+    mind): ACCEPTED."""
+    link = Link()
+    link.server.on_count(GCS, 3, MAV_MISSION_TYPE_MISSION)
+    link.server.on_item(GCS, wp(0))
+    link.take()
+    link.server.on_clear_all(GCS, MAV_MISSION_TYPE_MISSION)
+    assert link.acks() == [MISSION_ACCEPTED] and not link.server.uploading
