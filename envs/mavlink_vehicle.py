@@ -178,7 +178,7 @@ class MavlinkVehicle:
         self.t_s = 0.0
         self._boot0_s: float | None = None
         self._boot_s: float | None = None
-        self._last_rx = time.monotonic()
+        self._last_rx = self._last_look = time.monotonic()
         self._last_hb = 0.0
         self._acked_ms = -1
         self.position: tuple[float, float, float] | None = None
@@ -344,16 +344,22 @@ class MavlinkVehicle:
 
     def _pump(self, timeout_s: float) -> int:
         """Read what the vehicle sent (waiting up to ``timeout_s`` for the first); the
-        hook :meth:`_on_message` takes each message."""
+        hook :meth:`_on_message` takes each message. Silence is counted while the loop
+        listens: after the loop was busy longer than the telemetry timeout (a long plan,
+        which may also starve the vehicle's process of the CPU), it counts from now."""
+        now = time.monotonic()
+        if now - self._last_look > self.link_config.telemetry_timeout_s:
+            self._last_rx = max(self._last_rx, now)
         self._heartbeat()
         n = 0
         msg = self.conn.recv_match(blocking=timeout_s > 0, timeout=max(timeout_s, 0.0))
         while msg is not None:
             n += 1
             msg = self.conn.recv_match(blocking=False)
+        self._last_look = time.monotonic()
         if n:
-            self._last_rx = time.monotonic()
-        elif time.monotonic() - self._last_rx > self.link_config.telemetry_timeout_s:
+            self._last_rx = self._last_look
+        elif self._last_look - self._last_rx > self.link_config.telemetry_timeout_s:
             raise VehicleLinkError(f"no telemetry from the vehicle for "
                                    f"{self.link_config.telemetry_timeout_s:g} s")
         return n

@@ -837,3 +837,40 @@ def test_a_vehicle_that_disarmed_while_the_first_plan_was_made_is_armed_again() 
         assert res.stalls == []
         assert res.path_length_m > 60.0  # towards the 50 m orbit (it used to stand still)
         assert ap.vehicle.track().enu_m[:, 2].max() - ap.home.enu[2] > 30.0  # at 40 m
+
+
+def test_a_loop_busy_longer_than_the_telemetry_timeout_does_not_call_the_vehicle_lost(
+) -> None:
+    """After a decision that took the loop longer than the telemetry timeout (a first
+    plan over a DEM, which on 2 cores also starves the vehicle's process, so its
+    telemetry has not arrived yet), a first read that finds nothing is no lost vehicle:
+    silence counts while the loop listens. It used to end the search at once (site-valley
+    seed 1: 'VehicleLinkError: no telemetry from the vehicle for 5 s', the next read
+    10 ms later held 6 messages). A vehicle that says nothing while the loop listens is
+    still lost after the timeout."""
+    sc = load_scenario(SHORT)
+    with running_vehicle(SHORT, speedup=20.0) as rv:
+        v = MavlinkVehicle(sc, sim.realise(sc, 0), rv.pymavlink_url,
+                           link=LinkConfig(telemetry_timeout_s=1.0))
+        try:
+            assert v._pump(2.0) > 0
+            real = v.conn.recv_match
+            calls = []
+
+            def late(*a, **k):  # the vehicle's telemetry not here yet at the first read
+                calls.append(1)
+                return None if len(calls) == 1 else real(*a, **k)
+
+            v.conn.recv_match = late
+            v._last_look = v._last_rx = time.monotonic() - 10.0  # the loop was busy
+            assert v._pump(0.0) == 0  # nothing yet: no error
+            assert v._pump(2.0) > 0  # and there it is
+            v.conn.recv_match = lambda *a, **k: None  # a vehicle that says nothing
+            with pytest.raises(VehicleLinkError, match="no telemetry from the vehicle"):
+                deadline = time.monotonic() + 30.0
+                while time.monotonic() < deadline:
+                    v._pump(0.05)
+        finally:
+            v.conn.recv_match = real
+            v.link_config = LinkConfig(telemetry_timeout_s=0.2, return_at_end=False)
+            v.close()
