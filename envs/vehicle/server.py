@@ -111,6 +111,9 @@ from sim.vehicle import FlightError
 
 mavlink = mavutil.mavlink
 MAX_PEERS = 1024  # ground stations remembered (to greet a new one with a HEARTBEAT)
+# MAVLink FTP (FILE_TRANSFER_PROTOCOL payload): header bytes, response opcodes, the
+# error of an operation a server does not support
+FTP_HEADER_BYTES, FTP_RSP_ACK, FTP_RSP_NAK, FTP_ERR_UNKNOWN_COMMAND = 12, 128, 129, 7
 
 
 @dataclass
@@ -554,6 +557,20 @@ class VirtualVehicle:
         """The autopilot keeps no logs (the phone's log is ``--log``): one LOG_ENTRY with
         ``num_logs`` 0, as the log protocol answers an empty list."""
         self._send_msg(peer, mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0))
+
+    def _on_file_transfer_protocol(self, peer: Peer, msg: Any) -> None:
+        """MAVLink FTP (no files here; AUTOPILOT_VERSION does not claim it): every request
+        is answered with a NAK, error UnknownCommand, as the FTP protocol answers an
+        operation a server does not support (MAVSDK's Ftp: UNSUPPORTED at once, not a
+        TIMEOUT after 32 s). Responses (opcodes 128, 129) are not answered."""
+        req = bytes(msg.payload)
+        if len(req) < FTP_HEADER_BYTES or req[3] >= FTP_RSP_ACK:
+            return
+        seq, session, opcode = struct.unpack_from("<HBB", req)
+        nak = struct.pack("<HBBBBBBI", (seq + 1) & 0xFFFF, session, FTP_RSP_NAK, 1, opcode,
+                          0, 0, 0) + bytes([FTP_ERR_UNKNOWN_COMMAND])
+        self._send_msg(peer, mavlink.MAVLink_file_transfer_protocol_message(
+            0, peer[1], peer[2], list(nak.ljust(251, b"\0"))))
 
     def _on_ping(self, peer: Peer, msg: Any) -> None:
         """A PING request (targets 0) is answered to its sender with its time and

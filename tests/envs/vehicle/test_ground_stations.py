@@ -30,6 +30,7 @@ failed before its fix.
   MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
 - MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported");
   DO_SET_MISSION_CURRENT to no item is FAILED, as MAVLink and PX4 answer it.
+- MAVLink FTP requests get a NAK (UnknownCommand) at once: MAVSDK's Ftp says UNSUPPORTED.
 - Garbage and odd frames on the port (random bytes, cut frames, MAVLink 1, non-UTF-8
   names, extreme values) stop nothing.
 """
@@ -950,3 +951,33 @@ def test_garbage_and_odd_frames_on_the_port_stop_nothing() -> None:
         v = rv.vehicle
         assert v.error is None and v._thread.is_alive() and v._bad_kinds == set()
         assert not rv.autopilot.armed and rv.held() == [] and rv.upload_count() == 0
+
+
+def test_mavlink_ftp_is_refused_at_once() -> None:
+    """MAVLink FTP (FILE_TRANSFER_PROTOCOL; the vehicle has no files and does not claim
+    the capability): every request gets a NAK with the error UnknownCommand (7), its
+    opcode echoed and the sequence number plus one, as the FTP protocol answers what a
+    server does not support, so MAVSDK's Ftp says UNSUPPORTED at once. It went
+    unanswered: MAVSDK waited 32 s per call for its TIMEOUT (docs/vehicle.md said FTP
+    was answered UNSUPPORTED)."""
+    from tests.envs.vehicle.test_mavsdk import mavsdk_gcs
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            for seq, opcode in ((7, 3), (0xFFFF, 8)):  # ListDirectory, RemoveFile
+                req = struct.pack("<HBBBBBBI", seq, 2, opcode, 1, 0, 0, 0, 0) + b"/"
+                gcs.conn.mav.file_transfer_protocol_send(0, 1, 1, list(req.ljust(251, b"\0")))
+                m = gcs.wait("FILE_TRANSFER_PROTOCOL", 3.0, where=lambda m: m.get_srcSystem() == 1)
+                got = bytes(m.payload)
+                assert struct.unpack_from("<HBBBB", got) == ((seq + 1) & 0xFFFF, 2, 129, 1,
+                                                             opcode)
+                assert got[12] == 7 and (m.target_system, m.target_component) == (255, 190)
+        finally:
+            gcs.close()
+        from mavsdk.plugins.ftp import Ftp, FtpError, FtpResult
+
+        with mavsdk_gcs(rv.mavsdk_url) as system:
+            with pytest.raises(FtpError) as err:
+                Ftp(system).list_directory("/")
+            assert err.value.result == FtpResult.UNSUPPORTED
