@@ -802,15 +802,17 @@ class _SlowFirstPlan(TwoOrbits):
     has disarmed itself (COM_DISARM_PRFLT: a first plan on a DEM took longer than that
     on a loaded machine). A wait for an event, bounded: no timing is asserted."""
 
-    def __init__(self, center: tuple[float, float], armed) -> None:
+    def __init__(self, center: tuple[float, float], autopilot) -> None:
         super().__init__(center, end_s=25.0)
-        self.armed = armed
+        self.autopilot = autopilot
 
     def decide(self, obs) -> Decision:
         if self.sent == 0:
             deadline = time.monotonic() + 30.0
-            while self.armed() and time.monotonic() < deadline:
+            while self.autopilot.armed and time.monotonic() < deadline:
                 time.sleep(0.02)
+            # once is the case: however slow the machine, no second auto-disarm
+            assert self.autopilot.params.set("COM_DISARM_PRFLT", -1.0) is None
         return super().decide(obs)
 
 
@@ -829,7 +831,7 @@ def test_a_vehicle_that_disarmed_while_the_first_plan_was_made_is_armed_again() 
         ap = rv.autopilot
         say = ap.text
         ap.text = lambda severity, text: (texts.append(text), say(severity, text))[1]
-        policy = _SlowFirstPlan((ap1f.e_m, ap1f.n_m), lambda: rv.autopilot.armed)
+        policy = _SlowFirstPlan((ap1f.e_m, ap1f.n_m), ap)
         v = MavlinkVehicle(sc, sim.realise(sc, 0), rv.pymavlink_url, seed=0)
         res = fly(ClosedLoop(sc, 0, vehicle=v, realisation=sim.realise(sc, 0)), policy)
         assert "auto-disarmed: no take-off" in texts
