@@ -61,6 +61,7 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_REQUEST_PROTOCOL_VERSION,
     MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_COMP_ID_MISSIONPLANNER,
     MAV_MODE_FLAG_AUTO_ENABLED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_GUIDED_ENABLED,
@@ -431,7 +432,10 @@ class VirtualVehicle:
         if target not in (0, self.sysid):
             return
         tcomp = getattr(msg, "target_component", 0)
-        if kind not in ("SET_MODE",) and tcomp not in (0, self.compid):
+        if kind not in ("SET_MODE",) and tcomp not in (0, self.compid) and not (
+                tcomp == MAV_COMP_ID_MISSIONPLANNER and kind.startswith("MISSION_")):
+            # (the mission protocol addressed to the mission planner component, as
+            # older ground stations send it, is the autopilot's: PX4 takes it too)
             return
         peer = (link, src[0], src[1])
         handler = getattr(self, f"_on_{kind.lower()}", None)

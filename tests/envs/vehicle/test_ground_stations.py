@@ -30,6 +30,7 @@ failed before its fix.
   MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
 - MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported");
   DO_SET_MISSION_CURRENT to no item is FAILED, as MAVLink and PX4 answer it.
+- The mission protocol addressed to component 190 (older ground stations) is answered.
 - MAVLink FTP requests get a NAK (UnknownCommand) at once: MAVSDK's Ftp says UNSUPPORTED.
 - Garbage and odd frames on the port (random bytes, cut frames, MAVLink 1, non-UTF-8
   names, extreme values) stop nothing.
@@ -981,3 +982,31 @@ def test_mavlink_ftp_is_refused_at_once() -> None:
             with pytest.raises(FtpError) as err:
                 Ftp(system).list_directory("/")
             assert err.value.result == FtpResult.UNSUPPORTED
+
+
+def test_the_mission_protocol_addressed_to_the_mission_planner_component() -> None:
+    """Older ground stations (QGroundControl 2.x's waypoint manager, scripts after it)
+    address the mission protocol to component 190 (MAV_COMP_ID_MISSIONPLANNER); PX4
+    takes it as its own. A download and an upload so addressed are answered (they
+    went unanswered: the ground station waited for its timeout); other messages to
+    component 190 are still not the autopilot's."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        mav = gcs.conn.mav
+        try:
+            lat, lon = rv.autopilot.home.lat_deg, rv.autopilot.home.lon_deg
+            mav.mission_count_send(1, 190, 1, 0)
+            req = gcs.wait("MISSION_REQUEST_INT", 3.0)
+            assert req.seq == 0
+            mav.mission_item_int_send(1, 190, 0, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                      MAV_CMD_NAV_WAYPOINT, 1, 1, 0, 0, 0, math.nan,
+                                      int(lat * 1e7), int(lon * 1e7), 20.0, 0)
+            ack = gcs.wait("MISSION_ACK", 3.0)
+            assert ack.type == MAV_MISSION_ACCEPTED and len(rv.held()) == 1
+            mav.mission_request_list_send(1, 190, 0)
+            assert gcs.wait("MISSION_COUNT", 3.0).count == 1
+            mav.command_long_send(1, 190, MAV_CMD_REQUEST_MESSAGE, 0, 148, 0, 0, 0, 0, 0, 0)
+            with pytest.raises(TimeoutError):
+                gcs.wait("COMMAND_ACK", 1.0)
+        finally:
+            gcs.close()
