@@ -7,7 +7,9 @@ is refused, cancelled or abandoned half way leaves the previous list in force an
 is never flown. The vehicle re-requests an unanswered item every ``retry_s`` and
 drops a transfer that makes no progress for ``timeout_s`` (wall clock; PX4: 250 ms
 and 5 s). A resent last item after the final ACK is acknowledged again (the ACK was
-lost), a resent earlier item is answered with a request for the one expected, an
+lost), a resent earlier item is answered with a request for the one expected (unless
+the last request is younger than ``retry_s``: over a slow link the copies answering our
+own re-requests would multiply the requests), an
 item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE, an item of another
 list answering the pending request ends it with MAV_MISSION_ERROR
 (:meth:`MissionServer._wrong_type`). One upload per
@@ -185,7 +187,10 @@ class MissionServer:
             return  # else a late duplicate: ignored
         n = len(rx.items)
         if w.seq < n:
-            self._request(rx)  # a resend of an item we hold: ask for the next one
+            # a resend of an item we hold: ask for the next one, unless we just did (a
+            # slow link's answers to our own re-requests would multiply the requests)
+            if self.clock() - rx.requested_s > self.retry_s:
+                self._request(rx)
             return
         if w.seq > n:
             self._refuse(peer, MAV_MISSION_INVALID_SEQUENCE, rx.mission_type)

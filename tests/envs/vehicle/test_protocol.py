@@ -163,7 +163,9 @@ def test_duplicates_busy_and_other_types() -> None:
     link.server.on_count(GCS, 4, 0)  # our request was lost: asked again
     assert [a for _, n, a in link.take()] == [(0, 0), (0, 0)]
     link.server.on_item(GCS, items[0])
-    link.server.on_item(GCS, items[0])  # a resend: ask for the next one again
+    link.server.on_item(GCS, items[0])  # a copy at once: our request is on its way
+    link.now += link.server.retry_s + 0.01
+    link.server.on_item(GCS, items[0])  # a resend later: ask for the next one again
     assert [a for _, n, a in link.take()] == [(1, 0), (1, 0)]
     # another ground station while this upload runs
     link.server.on_count(OTHER, 2, 0)
@@ -337,3 +339,50 @@ def test_a_ground_station_clearing_during_its_own_upload_ends_it() -> None:
     link.take()
     link.server.on_clear_all(GCS, MAV_MISSION_TYPE_MISSION)
     assert link.acks() == [MISSION_ACCEPTED] and not link.server.uploading
+
+
+def test_a_slow_link_does_not_multiply_the_requests() -> None:
+    """A ground station answering every request over a link with a 0.3 s round trip
+    (a telemetry radio carrying telemetry too; longer than the 0.25 s re-request): the
+    vehicle re-requests before each answer arrives, and a copy of an item it holds is
+    answered with a new request only if its last one is older than that. 100 items
+    take 200 requests, PX4's retry alone (it ignores copies); each copy used to be
+    answered with a request, and the copies multiplied: 1680 requests and 1658 items
+    on the link for 100."""
+    import heapq
+
+    link = Link()
+    rtt = 0.3
+    items = [wp(k) for k in range(100)]
+    events: list[tuple[float, int, str, int]] = []
+    n_req = n_items = 0
+    acks: list[tuple[float, int]] = []
+
+    def send(peer, name, args) -> None:
+        nonlocal n_req
+        if name == "mission_request_int":
+            n_req += 1
+            heapq.heappush(events, (link.now + rtt / 2, len(events) + 7 * n_req, "req",
+                                    args[0]))
+        elif name == "mission_ack":
+            acks.append((link.now, args[0]))
+
+    link.server.send = send
+    link.server.on_count(GCS, 100, 0)
+    t = 0.0
+    while not acks and t < 300.0:
+        t = round(t + 0.02, 6)
+        while events and events[0][0] <= t:
+            at, k, kind, seq = heapq.heappop(events)
+            if kind == "req":  # the ground station's answer, half a round trip later
+                heapq.heappush(events, (at + rtt / 2, k, "item", seq))
+            else:
+                link.now = at
+                n_items += 1
+                link.server.on_item(GCS, items[seq])
+        link.now = t
+        link.server.tick()
+    assert acks and acks[0][1] == MISSION_ACCEPTED
+    assert acks[0][0] == pytest.approx(100 * rtt, abs=1.0)  # one round trip per item
+    assert link.server.held[0] == items
+    assert n_req <= 210 and n_items <= 210, (n_req, n_items)
