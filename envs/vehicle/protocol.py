@@ -74,12 +74,15 @@ class _Upload:
     requested_s: float
     float_form: bool = False  # ask with the legacy MISSION_REQUEST
     legacy_guess: bool = False  # float form from what the peer did before
+    last_asked: int = 0  # requests sent for the last item
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Commit:
     peer: Peer
     count: int
+    asked: int = 0  # requests sent for the last item: as many copies of it answer them
+    copies: int = 1  # copies of the last item received
 
 
 class MissionServer:
@@ -117,6 +120,7 @@ class MissionServer:
 
     def _request(self, rx: _Upload) -> None:
         rx.requested_s = self.clock()
+        rx.last_asked += len(rx.items) == rx.count - 1
         name = "mission_request" if rx.float_form else "mission_request_int"
         self.send(rx.peer, name, (len(rx.items), rx.mission_type))
 
@@ -129,14 +133,15 @@ class MissionServer:
         else:
             self._float_peers.discard(peer)
 
-    def _commit(self, peer: Peer, mission_type: int, items: list[WireItem]) -> None:
+    def _commit(self, peer: Peer, mission_type: int, items: list[WireItem],
+                asked: int = 0) -> None:
         current = 0
         if mission_type == MAV_MISSION_TYPE_MISSION:
             flagged = [w.seq for w in items if w.current]
             current = flagged[0] if flagged else 0
         self.held[mission_type] = items
         self.commits[mission_type] += 1
-        self._last[mission_type] = _Commit(peer, len(items))
+        self._last[mission_type] = _Commit(peer, len(items), asked)
         self.on_commit(mission_type, list(items), current)
 
     @property
@@ -183,7 +188,11 @@ class MissionServer:
                 return
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
-                self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
+                # a copy beyond those answering our own re-requests: our ACK was lost
+                # (one ACK per upload else: MAVSDK takes a second for its next upload's)
+                last.copies += 1
+                if last.copies > last.asked:
+                    self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)
             return  # else a late duplicate: ignored
         n = len(rx.items)
         if w.seq < n:
@@ -209,7 +218,7 @@ class MissionServer:
             self._refuse(peer, result, rx.mission_type)
             return
         del self._rx[rx.mission_type]
-        self._commit(peer, rx.mission_type, rx.items)
+        self._commit(peer, rx.mission_type, rx.items, rx.last_asked)
         self._ack(peer, MAV_MISSION_ACCEPTED, rx.mission_type)
 
     def _wrong_type(self, peer: Peer, w: WireItem) -> bool:

@@ -370,7 +370,7 @@ def test_a_slow_link_does_not_multiply_the_requests() -> None:
     link.server.send = send
     link.server.on_count(GCS, 100, 0)
     t = 0.0
-    while not acks and t < 300.0:
+    while (not acks or t < acks[0][0] + 2 * rtt) and t < 300.0:
         t = round(t + 0.02, 6)
         while events and events[0][0] <= t:
             at, k, kind, seq = heapq.heappop(events)
@@ -386,3 +386,9 @@ def test_a_slow_link_does_not_multiply_the_requests() -> None:
     assert acks[0][0] == pytest.approx(100 * rtt, abs=1.0)  # one round trip per item
     assert link.server.held[0] == items
     assert n_req <= 210 and n_items <= 210, (n_req, n_items)
+    # the copy of the last item answering the re-request is not ACKed again: MAVSDK
+    # takes a second ACK for the end of its next upload (docs/vehicle.md, its traps)
+    assert len(acks) == 1, acks
+    link.now += link.server.retry_s + 0.01
+    link.server.on_item(GCS, items[-1])  # later: the ground station lost our ACK
+    assert len(acks) == 2
