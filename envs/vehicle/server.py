@@ -81,6 +81,7 @@ from pymavlink.dialects.v20.common import (
     MAVLINK_MSG_ID_MISSION_CURRENT,
 )
 
+from envs.phone import PAYLOAD_PACE, PAYLOAD_RESEND
 from envs.vehicle.autopilot import Autopilot
 from envs.vehicle.links import ConnectionURLError, Links, is_mavlink1
 from envs.vehicle.mission import (
@@ -189,8 +190,9 @@ class VirtualVehicle:
             if why is not None:
                 raise ValueError(why)
         self.telemetry = Telemetry(self.autopilot)
-        # the phone's records to the ground stations (TUNNEL), lockstep pacing
-        self.relay = RecordRelay(self._broadcast, self.stepper.agents[0].header,
+        # the phone's records to the ground stations that ask (TUNNEL), lockstep pacing
+        self._relay_links: set[int] = set()
+        self.relay = RecordRelay(self._relay_send, self.stepper.agents[0].header,
                                  lockstep_s=lockstep_s, tick_s=self.autopilot.dt)
         self.protocol = MissionServer(self._send_to, self._on_commit,
                                       lambda: self.autopilot.mission.seq,
@@ -405,6 +407,7 @@ class VirtualVehicle:
         for link in self.links.take_gone():
             self.protocol.forget_link(link)
             self.telemetry.forget(link)
+            self._relay_links.discard(link)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -451,7 +454,16 @@ class VirtualVehicle:
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
 
     def _on_tunnel(self, peer: Peer, msg: Any) -> None:
+        if msg.payload_type in (PAYLOAD_PACE, PAYLOAD_RESEND):  # it asks for the records
+            self._relay_links.add(peer[0])
         self.relay.on_tunnel(msg, self.t_s)
+
+    def _relay_send(self, msg: Any) -> None:
+        """The relay's TUNNELs to the links of the ground stations that asked for them
+        (several a second: not to a ground station on a telemetry radio that did not)."""
+        for link in list(self._relay_links):
+            self.links.send_on(link, msg)
+        self.stats.sent = self.links.sent
 
     # mission protocol
     def _on_mission_count(self, peer: Peer, msg: Any) -> None:

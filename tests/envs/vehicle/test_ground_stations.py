@@ -1010,3 +1010,33 @@ def test_the_mission_protocol_addressed_to_the_mission_planner_component() -> No
                 gcs.wait("COMMAND_ACK", 1.0)
         finally:
             gcs.close()
+
+
+def test_the_phone_records_go_to_the_ground_station_that_asked() -> None:
+    """The phone's records (TUNNEL, several a second: more than a 57600-baud telemetry
+    radio carries) and the pacing go to the links of the ground stations that asked for
+    them (a TUNNEL acknowledgement, as ``osa search --connection`` sends), not to a
+    QGroundControl listening on another address of the port: it used to get them all."""
+    from envs.phone import PAYLOAD_PACE, pace_payload
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=20.0) as rv:
+        qgc = Gcs(rv.pymavlink_url, source_system=254)
+        loop = Gcs(rv.pymavlink_url)
+        try:
+            p = pace_payload(0)
+            loop.conn.mav.tunnel_send(1, 1, PAYLOAD_PACE, len(p), p.ljust(128, b"\0"))
+            got = []
+            deadline = time.monotonic() + 30.0
+            while sum(m.get_type() == "TUNNEL" for m in got) < 20 \
+                    and time.monotonic() < deadline:
+                m = loop.recv(0.05)
+                if m is not None:
+                    got.append(m)
+            assert sum(m.get_type() == "TUNNEL" for m in got) >= 20  # the loop gets them
+            kinds = set()  # what reached the other one meanwhile: telemetry only
+            while (m := qgc.conn.recv_match(blocking=False)) is not None:
+                kinds.add(m.get_type())
+            assert "GLOBAL_POSITION_INT" in kinds and "TUNNEL" not in kinds, kinds
+        finally:
+            qgc.close()
+            loop.close()
