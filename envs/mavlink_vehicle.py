@@ -178,7 +178,7 @@ class MavlinkVehicle:
         self.t_s = 0.0
         self._boot0_s: float | None = None
         self._boot_s: float | None = None
-        self._last_rx = time.monotonic()
+        self._last_rx = self._last_look = time.monotonic()
         self._last_hb = 0.0
         self._acked_ms = -1
         self.position: tuple[float, float, float] | None = None
@@ -246,8 +246,13 @@ class MavlinkVehicle:
         p = self.tunnel.pacing
         if ours and p is not None and p.lockstep:  # where it waits, to the millisecond
             self._boot0_s = p.now_ms / 1000.0  # (its telemetry's clock may be 1 ms short)
+        self._arm()
+        self.started = True
+
+    def _arm(self) -> None:
+        """Arm (a vehicle already armed stays as it is), and wait for its home (arming
+        sets it where the vehicle stands): plans are flown relative to that one."""
         self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, what="arm")
-        # arming sets home where the vehicle is: plans are flown relative to that one
         self.home = None
         deadline = time.monotonic() + self.link_config.connect_timeout_s
         asked = -math.inf
@@ -258,7 +263,7 @@ class MavlinkVehicle:
                 asked = time.monotonic()
                 self._send_command(mavlink.MAV_CMD_GET_HOME_POSITION)
             self._pump(0.05)
-        self.started = True
+        self.armed = True
 
     def _drain_before(self) -> None:
         """A source without marks (a file, a phone app) may still hold records of before
@@ -339,16 +344,22 @@ class MavlinkVehicle:
 
     def _pump(self, timeout_s: float) -> int:
         """Read what the vehicle sent (waiting up to ``timeout_s`` for the first); the
-        hook :meth:`_on_message` takes each message."""
+        hook :meth:`_on_message` takes each message. Silence is counted while the loop
+        listens: after the loop was busy longer than the telemetry timeout (a long plan,
+        which may also starve the vehicle's process of the CPU), it counts from now."""
+        now = time.monotonic()
+        if now - self._last_look > self.link_config.telemetry_timeout_s:
+            self._last_rx = max(self._last_rx, now)
         self._heartbeat()
         n = 0
         msg = self.conn.recv_match(blocking=timeout_s > 0, timeout=max(timeout_s, 0.0))
         while msg is not None:
             n += 1
             msg = self.conn.recv_match(blocking=False)
+        self._last_look = time.monotonic()
         if n:
-            self._last_rx = time.monotonic()
-        elif time.monotonic() - self._last_rx > self.link_config.telemetry_timeout_s:
+            self._last_rx = self._last_look
+        elif self._last_look - self._last_rx > self.link_config.telemetry_timeout_s:
             raise VehicleLinkError(f"no telemetry from the vehicle for "
                                    f"{self.link_config.telemetry_timeout_s:g} s")
         return n
@@ -473,7 +484,14 @@ class MavlinkVehicle:
                                f"times: {last}")
 
     def fly(self, agent: int, traj: Trajectory) -> None:
-        """Upload ``traj`` as a mission and fly it from where the vehicle is."""
+        """Upload ``traj`` as a mission and fly it from where the vehicle is. Before a
+        mission is started (the vehicle not flying one) it is armed (idempotent): one that
+        disarmed itself on the ground while the loop planned (COM_DISARM_PRFLT runs on the
+        wall clock, also while a lockstep vehicle waits) is armed again, and the mission
+        made relative to the home that sets."""
+        self._pump(0.0)
+        if not (self.armed and self.custom_mode == Mode.MISSION.custom_mode):
+            self._arm()
         mission = self.mission_for(traj)
         self._upload(mission)
         self._plan_items = len(mission.items)

@@ -727,12 +727,26 @@ class MavsdkLink:
         }
 
     def clear(self, mission_type: int) -> None:
-        """Clear the vehicle's mission (MissionRaw can clear the mission only)."""
-        if mission_type != MAV_MISSION_TYPE_MISSION:
-            raise ValueError("MAVSDK can only clear the mission, not the fence or rally points")
-        p = self._plugin
-        self._wait(lambda cb: p.clear_mission_async(lambda r, ud: cb(r)), 0,
-                   "mission clear", mission_type, None)
+        """Clear the vehicle's mission (MissionRaw) or fence (the Geofence plugin);
+        MAVSDK cannot clear rally points: if the vehicle holds some, an
+        :class:`UploadError` says so."""
+        if mission_type == MAV_MISSION_TYPE_MISSION:
+            p = self._plugin
+            self._wait(lambda cb: p.clear_mission_async(lambda r, ud: cb(r)), 0,
+                       "mission clear", mission_type, None)
+        elif mission_type == MAV_MISSION_TYPE_FENCE:
+            from mavsdk.plugins.geofence import Geofence
+
+            g = Geofence(self._system)
+            self._wait(lambda cb: g.clear_geofence_async(lambda r, ud: cb(r)), 0,
+                       "fence clear", mission_type, None)
+        else:
+            held = len(self.download(mission_type, expected_items=16))
+            if held:
+                raise UploadError(
+                    f"the vehicle holds {held} rally point{'s' * (held != 1)} and the file "
+                    "none; MAVSDK cannot clear rally points: upload with a pymavlink URL "
+                    "(udpout:HOST:PORT) or clear them from the ground station")
 
     def download(self, mission_type: int, expected_items: int = 100) -> list[WireItem]:
         """The vehicle's items; ``expected_items`` only sizes the time bound."""
@@ -788,17 +802,19 @@ class _Plan:
     skip_seq0: bool = False  # ArduPilot's home item: sent, counted, not compared
 
 
-def _plans(mission: Mission, fence: bool, numbering: str = "px4") -> list[_Plan]:
+def _plans(mission: Mission, fence: bool, numbering: str = "px4",
+           replace_fence: bool = False) -> list[_Plan]:
     """What to send, in order: fence and rally first (a vehicle may check the mission
     against its fence on upload), then the mission (with ArduPilot's home item in seq
-    0 for ``numbering="ardupilot"``; fence and rally never have one)."""
+    0 for ``numbering="ardupilot"``; fence and rally never have one). An empty fence or
+    rally list is sent (a clear) only with ``replace_fence``."""
     plans = []
     if fence:
         fence_items = fence_to_wire(mission)
-        if fence_items:
+        if fence_items or replace_fence:
             plans.append(_Plan(MAV_MISSION_TYPE_FENCE, fence_items))
         rally_items = rally_to_wire(mission)
-        if rally_items:
+        if rally_items or replace_fence:
             plans.append(_Plan(MAV_MISSION_TYPE_RALLY, rally_items))
     plans.append(_Plan(MAV_MISSION_TYPE_MISSION, mission_to_wire(mission, autopilot=numbering),
                        skip_seq0=numbering == "ardupilot"))
@@ -824,17 +840,20 @@ def _verify_error(plan: _Plan, held: Sequence[WireItem], diffs: list[str],
 
 
 def upload_on_link(link: MissionLink, mission: Mission, *, fence: bool = True,
-                   verify: bool = True, autopilot: str | None = None) -> tuple[int, int, int]:
+                   verify: bool = True, autopilot: str | None = None,
+                   replace_fence: bool = False) -> tuple[int, int, int]:
     """Upload (and read back) ``mission`` on an open link; item counts on success.
 
     ``autopilot`` ("auto", "px4", "ardupilot"; None = the link's
     ``config.autopilot``, else "auto") picks the mission numbering (see
-    :func:`resolve_autopilot`); the mission count never includes ArduPilot's home."""
+    :func:`resolve_autopilot`); the mission count never includes ArduPilot's home.
+    ``replace_fence``: the mission's fence and rally points replace the vehicle's also
+    when empty (a ``.plan`` always says what they are), else an empty one is not sent."""
     if autopilot is None:
         autopilot = getattr(getattr(link, "config", None), "autopilot", "auto")
     numbering = resolve_autopilot(autopilot, link)
     try:
-        plans = _plans(mission, fence, numbering)
+        plans = _plans(mission, fence, numbering, replace_fence)
     except ValueError as exc:
         raise UploadError(f"mission cannot be sent: {exc}") from None
     for plan in plans:  # an empty mission to ArduPilot is its home item alone (count 1)
@@ -852,9 +871,10 @@ def upload_on_link(link: MissionLink, mission: Mission, *, fence: bool = True,
 
 def upload_mission(mission: Mission, url: str, *, config: TransferConfig | None = None,
                    fence: bool = True, verify: bool = True,
-                   autopilot: str | None = None) -> UploadReport:
-    """Upload ``mission`` (+ fence and rally points unless ``fence=False``) to the
-    vehicle at ``url``, read everything back and compare.
+                   autopilot: str | None = None, replace_fence: bool = False) -> UploadReport:
+    """Upload ``mission`` (+ fence and rally points unless ``fence=False``; empty ones
+    clear the vehicle's with ``replace_fence``) to the vehicle at ``url``, read
+    everything back and compare.
 
     ``autopilot`` ("auto", "px4", "ardupilot"; None = ``config.autopilot``, default
     "auto": from the vehicle's HEARTBEAT) picks the mission numbering: ArduPilot gets
@@ -869,7 +889,8 @@ def upload_mission(mission: Mission, url: str, *, config: TransferConfig | None 
     with contextlib.closing(open_link(url, config)) as link:
         numbering = resolve_autopilot(choice, link)
         n_items, n_fence, n_rally = upload_on_link(link, mission, fence=fence, verify=verify,
-                                                   autopilot=numbering)
+                                                   autopilot=numbering,
+                                                   replace_fence=replace_fence)
         return UploadReport(items=n_items, fence_items=n_fence, rally_items=n_rally,
                             elapsed_s=time.perf_counter() - t0, backend=link.backend,
                             vehicle=link.vehicle, autopilot=numbering)

@@ -53,7 +53,7 @@ def _fail(status: int, message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from planner.files import MissionFileError, read_mission
+    from planner.files import PLAN_SUFFIXES, MissionFileError, _suffix, read_mission
     from planner.mavlink import TransferConfig, upload_mission
     from planner.mavlink_wire import InvalidConnectionError, UploadError
 
@@ -65,8 +65,10 @@ def run(args: argparse.Namespace) -> int:
                             message_timeout_s=args.message_timeout, retries=args.retries,
                             autopilot=args.autopilot)
     try:
+        # a .plan says what the fence and rally points are (empty: none), a WPL cannot
         report = upload_mission(mission, args.connection, config=config,
-                                fence=not args.no_fence)
+                                fence=not args.no_fence,
+                                replace_fence=_suffix(args.file) in PLAN_SUFFIXES)
     except InvalidConnectionError as exc:
         return _fail(EXIT_USAGE, str(exc))
     except UploadError as exc:

@@ -7,7 +7,9 @@ is refused, cancelled or abandoned half way leaves the previous list in force an
 is never flown. The vehicle re-requests an unanswered item every ``retry_s`` and
 drops a transfer that makes no progress for ``timeout_s`` (wall clock; PX4: 250 ms
 and 5 s). A resent last item after the final ACK is acknowledged again (the ACK was
-lost), a resent earlier item is answered with a request for the one expected, an
+lost), a resent earlier item is answered with a request for the one expected (unless
+the last request is younger than ``retry_s``: over a slow link the copies answering our
+own re-requests would multiply the requests), an
 item beyond it ends the transfer with MAV_MISSION_INVALID_SEQUENCE, an item of another
 list answering the pending request ends it with MAV_MISSION_ERROR
 (:meth:`MissionServer._wrong_type`). One upload per
@@ -26,7 +28,9 @@ Download (MISSION_REQUEST_LIST, MISSION_COUNT, MISSION_REQUEST_INT -> MISSION_IT
 is stateless: any request for a held item is answered (legacy MISSION_REQUEST with a
 float MISSION_ITEM, as PX4 does, an unset x or y as NaN); the mission's current item
 carries ``current=1``.
-MISSION_CLEAR_ALL (255: all lists) empties lists at once. A count of 0 clears too.
+MISSION_CLEAR_ALL (255: all lists) empties lists at once (MAV_MISSION_DENIED while
+another ground station uploads one of them, as PX4 refuses a clear during a transfer).
+A count of 0 clears too.
 Partial lists (MISSION_WRITE_PARTIAL_LIST, MISSION_REQUEST_PARTIAL_LIST) are refused
 with MAV_MISSION_UNSUPPORTED.
 """
@@ -70,12 +74,15 @@ class _Upload:
     requested_s: float
     float_form: bool = False  # ask with the legacy MISSION_REQUEST
     legacy_guess: bool = False  # float form from what the peer did before
+    last_asked: int = 0  # requests sent for the last item
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Commit:
     peer: Peer
     count: int
+    asked: int = 0  # requests sent for the last item: as many copies of it answer them
+    copies: int = 1  # copies of the last item received
 
 
 class MissionServer:
@@ -113,6 +120,7 @@ class MissionServer:
 
     def _request(self, rx: _Upload) -> None:
         rx.requested_s = self.clock()
+        rx.last_asked += len(rx.items) == rx.count - 1
         name = "mission_request" if rx.float_form else "mission_request_int"
         self.send(rx.peer, name, (len(rx.items), rx.mission_type))
 
@@ -125,14 +133,15 @@ class MissionServer:
         else:
             self._float_peers.discard(peer)
 
-    def _commit(self, peer: Peer, mission_type: int, items: list[WireItem]) -> None:
+    def _commit(self, peer: Peer, mission_type: int, items: list[WireItem],
+                asked: int = 0) -> None:
         current = 0
         if mission_type == MAV_MISSION_TYPE_MISSION:
             flagged = [w.seq for w in items if w.current]
             current = flagged[0] if flagged else 0
         self.held[mission_type] = items
         self.commits[mission_type] += 1
-        self._last[mission_type] = _Commit(peer, len(items))
+        self._last[mission_type] = _Commit(peer, len(items), asked)
         self.on_commit(mission_type, list(items), current)
 
     @property
@@ -179,11 +188,18 @@ class MissionServer:
                 return
             last = self._last.get(w.mission_type)
             if last is not None and last.peer == peer and w.seq == last.count - 1:
-                self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)  # our ACK was lost
+                # a copy beyond those answering our own re-requests: our ACK was lost
+                # (one ACK per upload else: MAVSDK takes a second for its next upload's)
+                last.copies += 1
+                if last.copies > last.asked:
+                    self._ack(peer, MAV_MISSION_ACCEPTED, w.mission_type)
             return  # else a late duplicate: ignored
         n = len(rx.items)
         if w.seq < n:
-            self._request(rx)  # a resend of an item we hold: ask for the next one
+            # a resend of an item we hold: ask for the next one, unless we just did (a
+            # slow link's answers to our own re-requests would multiply the requests)
+            if self.clock() - rx.requested_s > self.retry_s:
+                self._request(rx)
             return
         if w.seq > n:
             self._refuse(peer, MAV_MISSION_INVALID_SEQUENCE, rx.mission_type)
@@ -202,7 +218,7 @@ class MissionServer:
             self._refuse(peer, result, rx.mission_type)
             return
         del self._rx[rx.mission_type]
-        self._commit(peer, rx.mission_type, rx.items)
+        self._commit(peer, rx.mission_type, rx.items, rx.last_asked)
         self._ack(peer, MAV_MISSION_ACCEPTED, rx.mission_type)
 
     def _wrong_type(self, peer: Peer, w: WireItem) -> bool:
@@ -311,6 +327,12 @@ class MissionServer:
             else (mission_type,)
         if any(t not in self.held for t in types):
             self._ack(peer, MAV_MISSION_UNSUPPORTED, mission_type)
+            return
+        now = self.clock()
+        if any(rx.peer[1:] != peer[1:] and now - rx.activity_s < self.timeout_s
+               for t, rx in self._rx.items() if t in types):
+            # another ground station's upload of one of these lists runs (PX4: busy)
+            self._ack(peer, MAV_MISSION_DENIED, mission_type)
             return
         for t in types:
             self._rx.pop(t, None)

@@ -61,6 +61,7 @@ from pymavlink.dialects.v20.common import (
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_REQUEST_PROTOCOL_VERSION,
     MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_COMP_ID_MISSIONPLANNER,
     MAV_MODE_FLAG_AUTO_ENABLED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_GUIDED_ENABLED,
@@ -80,6 +81,7 @@ from pymavlink.dialects.v20.common import (
     MAVLINK_MSG_ID_MISSION_CURRENT,
 )
 
+from envs.phone import PAYLOAD_PACE, PAYLOAD_RESEND
 from envs.vehicle.autopilot import Autopilot
 from envs.vehicle.links import ConnectionURLError, Links, is_mavlink1
 from envs.vehicle.mission import (
@@ -111,6 +113,9 @@ from sim.vehicle import FlightError
 
 mavlink = mavutil.mavlink
 MAX_PEERS = 1024  # ground stations remembered (to greet a new one with a HEARTBEAT)
+# MAVLink FTP (FILE_TRANSFER_PROTOCOL payload): header bytes, response opcodes, the
+# error of an operation a server does not support
+FTP_HEADER_BYTES, FTP_RSP_ACK, FTP_RSP_NAK, FTP_ERR_UNKNOWN_COMMAND = 12, 128, 129, 7
 
 
 @dataclass
@@ -185,8 +190,9 @@ class VirtualVehicle:
             if why is not None:
                 raise ValueError(why)
         self.telemetry = Telemetry(self.autopilot)
-        # the phone's records to the ground stations (TUNNEL), lockstep pacing
-        self.relay = RecordRelay(self._broadcast, self.stepper.agents[0].header,
+        # the phone's records to the ground stations that ask (TUNNEL), lockstep pacing
+        self._relay_links: set[int] = set()
+        self.relay = RecordRelay(self._relay_send, self.stepper.agents[0].header,
                                  lockstep_s=lockstep_s, tick_s=self.autopilot.dt)
         self.protocol = MissionServer(self._send_to, self._on_commit,
                                       lambda: self.autopilot.mission.seq,
@@ -401,6 +407,7 @@ class VirtualVehicle:
         for link in self.links.take_gone():
             self.protocol.forget_link(link)
             self.telemetry.forget(link)
+            self._relay_links.discard(link)
 
     def _dispatch(self, link: int, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -428,7 +435,10 @@ class VirtualVehicle:
         if target not in (0, self.sysid):
             return
         tcomp = getattr(msg, "target_component", 0)
-        if kind not in ("SET_MODE",) and tcomp not in (0, self.compid):
+        if kind not in ("SET_MODE",) and tcomp not in (0, self.compid) and not (
+                tcomp == MAV_COMP_ID_MISSIONPLANNER and kind.startswith("MISSION_")):
+            # (the mission protocol addressed to the mission planner component, as
+            # older ground stations send it, is the autopilot's: PX4 takes it too)
             return
         peer = (link, src[0], src[1])
         handler = getattr(self, f"_on_{kind.lower()}", None)
@@ -444,7 +454,16 @@ class VirtualVehicle:
                 self.status(f"ignored a {kind} from {peer[1]}/{peer[2]}: {exc}")
 
     def _on_tunnel(self, peer: Peer, msg: Any) -> None:
+        if msg.payload_type in (PAYLOAD_PACE, PAYLOAD_RESEND):  # it asks for the records
+            self._relay_links.add(peer[0])
         self.relay.on_tunnel(msg, self.t_s)
+
+    def _relay_send(self, msg: Any) -> None:
+        """The relay's TUNNELs to the links of the ground stations that asked for them
+        (several a second: not to a ground station on a telemetry radio that did not)."""
+        for link in list(self._relay_links):
+            self.links.send_on(link, msg)
+        self.stats.sent = self.links.sent
 
     # mission protocol
     def _on_mission_count(self, peer: Peer, msg: Any) -> None:
@@ -554,6 +573,20 @@ class VirtualVehicle:
         """The autopilot keeps no logs (the phone's log is ``--log``): one LOG_ENTRY with
         ``num_logs`` 0, as the log protocol answers an empty list."""
         self._send_msg(peer, mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0))
+
+    def _on_file_transfer_protocol(self, peer: Peer, msg: Any) -> None:
+        """MAVLink FTP (no files here; AUTOPILOT_VERSION does not claim it): every request
+        is answered with a NAK, error UnknownCommand, as the FTP protocol answers an
+        operation a server does not support (MAVSDK's Ftp: UNSUPPORTED at once, not a
+        TIMEOUT after 32 s). Responses (opcodes 128, 129) are not answered."""
+        req = bytes(msg.payload)
+        if len(req) < FTP_HEADER_BYTES or req[3] >= FTP_RSP_ACK:
+            return
+        seq, session, opcode = struct.unpack_from("<HBB", req)
+        nak = struct.pack("<HBBBBBBI", (seq + 1) & 0xFFFF, session, FTP_RSP_NAK, 1, opcode,
+                          0, 0, 0) + bytes([FTP_ERR_UNKNOWN_COMMAND])
+        self._send_msg(peer, mavlink.MAVLink_file_transfer_protocol_message(
+            0, peer[1], peer[2], list(nak.ljust(251, b"\0"))))
 
     def _on_ping(self, peer: Peer, msg: Any) -> None:
         """A PING request (targets 0) is answered to its sender with its time and

@@ -795,3 +795,84 @@ def test_the_flight_log_of_the_vehicle_and_the_loop_hold_the_same_records(
     assert len(mine) > 500 and res.phone["lost"] == 0
     assert all(dumps_record(r) in theirs for r in mine)
     assert os.path.getsize(own) > 0
+
+
+class _SlowFirstPlan(TwoOrbits):
+    """TwoOrbits whose first decision ends only once the vehicle, armed on the ground,
+    has disarmed itself (COM_DISARM_PRFLT: a first plan on a DEM took longer than that
+    on a loaded machine). A wait for an event, bounded: no timing is asserted."""
+
+    def __init__(self, center: tuple[float, float], autopilot) -> None:
+        super().__init__(center, end_s=25.0)
+        self.autopilot = autopilot
+
+    def decide(self, obs) -> Decision:
+        if self.sent == 0:
+            deadline = time.monotonic() + 30.0
+            while self.autopilot.armed and time.monotonic() < deadline:
+                time.sleep(0.02)
+            # once is the case: however slow the machine, no second auto-disarm
+            assert self.autopilot.params.set("COM_DISARM_PRFLT", -1.0) is None
+        return super().decide(obs)
+
+
+def test_a_vehicle_that_disarmed_while_the_first_plan_was_made_is_armed_again() -> None:
+    """The loop arms, then makes its first plan; a vehicle left armed on the ground
+    that long disarms itself (COM_DISARM_PRFLT, wall clock: 10 s, here 0.5 s). The loop
+    arms it again before starting the mission, and it flies the plan. It used to start
+    the mission disarmed (MISSION_START is accepted on the ground): the vehicle never
+    took off, and the search stalled where it stood for the whole budget (site-valley
+    seed 1 over MAVLink on a loaded machine: 36 stalls, 1500 s, nothing detected)."""
+    sc = load_scenario(SHORT)
+    ap1f = sc.world.responder("AP_1F")
+    with running_vehicle(SHORT, speedup=math.inf, lockstep_s=LOCKSTEP_S,
+                         params={"COM_DISARM_PRFLT": 0.5}) as rv:
+        texts: list[str] = []
+        ap = rv.autopilot
+        say = ap.text
+        ap.text = lambda severity, text: (texts.append(text), say(severity, text))[1]
+        policy = _SlowFirstPlan((ap1f.e_m, ap1f.n_m), ap)
+        v = MavlinkVehicle(sc, sim.realise(sc, 0), rv.pymavlink_url, seed=0)
+        res = fly(ClosedLoop(sc, 0, vehicle=v, realisation=sim.realise(sc, 0)), policy)
+        assert "auto-disarmed: no take-off" in texts
+        assert texts.count("armed") == 2
+        assert res.stalls == []
+        assert res.path_length_m > 60.0  # towards the 50 m orbit (it used to stand still)
+        assert ap.vehicle.track().enu_m[:, 2].max() - ap.home.enu[2] > 30.0  # at 40 m
+
+
+def test_a_loop_busy_longer_than_the_telemetry_timeout_does_not_call_the_vehicle_lost(
+) -> None:
+    """After a decision that took the loop longer than the telemetry timeout (a first
+    plan over a DEM, which on 2 cores also starves the vehicle's process, so its
+    telemetry has not arrived yet), a first read that finds nothing is no lost vehicle:
+    silence counts while the loop listens. It used to end the search at once (site-valley
+    seed 1: 'VehicleLinkError: no telemetry from the vehicle for 5 s', the next read
+    10 ms later held 6 messages). A vehicle that says nothing while the loop listens is
+    still lost after the timeout."""
+    sc = load_scenario(SHORT)
+    with running_vehicle(SHORT, speedup=20.0) as rv:
+        v = MavlinkVehicle(sc, sim.realise(sc, 0), rv.pymavlink_url,
+                           link=LinkConfig(telemetry_timeout_s=1.0))
+        try:
+            assert v._pump(10.0) > 0
+            real = v.conn.recv_match
+            calls = []
+
+            def late(*a, **k):  # the vehicle's telemetry not here yet at the first read
+                calls.append(1)
+                return None if len(calls) == 1 else real(*a, **k)
+
+            v.conn.recv_match = late
+            v._last_look = v._last_rx = time.monotonic() - 10.0  # the loop was busy
+            assert v._pump(0.0) == 0  # nothing yet: no error
+            assert v._pump(10.0) > 0  # and there it is
+            v.conn.recv_match = lambda *a, **k: None  # a vehicle that says nothing
+            with pytest.raises(VehicleLinkError, match="no telemetry from the vehicle"):
+                deadline = time.monotonic() + 30.0
+                while time.monotonic() < deadline:
+                    v._pump(0.05)
+        finally:
+            v.conn.recv_match = real
+            v.link_config = LinkConfig(telemetry_timeout_s=0.2, return_at_end=False)
+            v.close()

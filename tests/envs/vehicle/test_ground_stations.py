@@ -30,6 +30,8 @@ failed before its fix.
   MISSION_ITEM_INT can carry is refused instead of stopping the vehicle.
 - MISSION_CURRENT's ``total`` is UINT16_MAX without a mission (0 means "not supported");
   DO_SET_MISSION_CURRENT to no item is FAILED, as MAVLink and PX4 answer it.
+- The mission protocol addressed to component 190 (older ground stations) is answered.
+- MAVLink FTP requests get a NAK (UnknownCommand) at once: MAVSDK's Ftp says UNSUPPORTED.
 - Garbage and odd frames on the port (random bytes, cut frames, MAVLink 1, non-UTF-8
   names, extreme values) stop nothing.
 """
@@ -950,3 +952,91 @@ def test_garbage_and_odd_frames_on_the_port_stop_nothing() -> None:
         v = rv.vehicle
         assert v.error is None and v._thread.is_alive() and v._bad_kinds == set()
         assert not rv.autopilot.armed and rv.held() == [] and rv.upload_count() == 0
+
+
+def test_mavlink_ftp_is_refused_at_once() -> None:
+    """MAVLink FTP (FILE_TRANSFER_PROTOCOL; the vehicle has no files and does not claim
+    the capability): every request gets a NAK with the error UnknownCommand (7), its
+    opcode echoed and the sequence number plus one, as the FTP protocol answers what a
+    server does not support, so MAVSDK's Ftp says UNSUPPORTED at once. It went
+    unanswered: MAVSDK waited 32 s per call for its TIMEOUT (docs/vehicle.md said FTP
+    was answered UNSUPPORTED)."""
+    from tests.envs.vehicle.test_mavsdk import mavsdk_gcs
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        try:
+            for seq, opcode in ((7, 3), (0xFFFF, 8)):  # ListDirectory, RemoveFile
+                req = struct.pack("<HBBBBBBI", seq, 2, opcode, 1, 0, 0, 0, 0) + b"/"
+                gcs.conn.mav.file_transfer_protocol_send(0, 1, 1, list(req.ljust(251, b"\0")))
+                m = gcs.wait("FILE_TRANSFER_PROTOCOL", 3.0, where=lambda m: m.get_srcSystem() == 1)
+                got = bytes(m.payload)
+                assert struct.unpack_from("<HBBBB", got) == ((seq + 1) & 0xFFFF, 2, 129, 1,
+                                                             opcode)
+                assert got[12] == 7 and (m.target_system, m.target_component) == (255, 190)
+        finally:
+            gcs.close()
+        from mavsdk.plugins.ftp import Ftp, FtpError, FtpResult
+
+        with mavsdk_gcs(rv.mavsdk_url) as system:
+            with pytest.raises(FtpError) as err:
+                Ftp(system).list_directory("/")
+            assert err.value.result == FtpResult.UNSUPPORTED
+
+
+def test_the_mission_protocol_addressed_to_the_mission_planner_component() -> None:
+    """Older ground stations (QGroundControl 2.x's waypoint manager, scripts after it)
+    address the mission protocol to component 190 (MAV_COMP_ID_MISSIONPLANNER); PX4
+    takes it as its own. A download and an upload so addressed are answered (they
+    went unanswered: the ground station waited for its timeout); other messages to
+    component 190 are still not the autopilot's."""
+    with running_vehicle(SEARCH_SCENARIO, speedup=2.0) as rv:
+        gcs = Gcs(rv.pymavlink_url)
+        mav = gcs.conn.mav
+        try:
+            lat, lon = rv.autopilot.home.lat_deg, rv.autopilot.home.lon_deg
+            mav.mission_count_send(1, 190, 1, 0)
+            req = gcs.wait("MISSION_REQUEST_INT", 3.0)
+            assert req.seq == 0
+            mav.mission_item_int_send(1, 190, 0, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                      MAV_CMD_NAV_WAYPOINT, 1, 1, 0, 0, 0, math.nan,
+                                      int(lat * 1e7), int(lon * 1e7), 20.0, 0)
+            ack = gcs.wait("MISSION_ACK", 3.0)
+            assert ack.type == MAV_MISSION_ACCEPTED and len(rv.held()) == 1
+            mav.mission_request_list_send(1, 190, 0)
+            assert gcs.wait("MISSION_COUNT", 3.0).count == 1
+            mav.command_long_send(1, 190, MAV_CMD_REQUEST_MESSAGE, 0, 148, 0, 0, 0, 0, 0, 0)
+            with pytest.raises(TimeoutError):
+                gcs.wait("COMMAND_ACK", 1.0)
+        finally:
+            gcs.close()
+
+
+def test_the_phone_records_go_to_the_ground_station_that_asked() -> None:
+    """The phone's records (TUNNEL, several a second: more than a 57600-baud telemetry
+    radio carries) and the pacing go to the links of the ground stations that asked for
+    them (a TUNNEL acknowledgement, as ``osa search --connection`` sends), not to a
+    QGroundControl listening on another address of the port: it used to get them all."""
+    from envs.phone import PAYLOAD_PACE, pace_payload
+
+    with running_vehicle(SEARCH_SCENARIO, speedup=20.0) as rv:
+        qgc = Gcs(rv.pymavlink_url, source_system=254)
+        loop = Gcs(rv.pymavlink_url)
+        try:
+            p = pace_payload(0)
+            loop.conn.mav.tunnel_send(1, 1, PAYLOAD_PACE, len(p), p.ljust(128, b"\0"))
+            got = []
+            deadline = time.monotonic() + 30.0
+            while sum(m.get_type() == "TUNNEL" for m in got) < 20 \
+                    and time.monotonic() < deadline:
+                m = loop.recv(0.05)
+                if m is not None:
+                    got.append(m)
+            assert sum(m.get_type() == "TUNNEL" for m in got) >= 20  # the loop gets them
+            kinds = set()  # what reached the other one meanwhile: telemetry only
+            while (m := qgc.conn.recv_match(blocking=False)) is not None:
+                kinds.add(m.get_type())
+            assert "GLOBAL_POSITION_INT" in kinds and "TUNNEL" not in kinds, kinds
+        finally:
+            qgc.close()
+            loop.close()

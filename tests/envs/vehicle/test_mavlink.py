@@ -283,3 +283,51 @@ def test_gps_raw_int_says_accuracy_and_dop_apart() -> None:
                 assert 0 < gps.h_acc < 20_000 and gps.h_acc < gps.v_acc < 40_000  # mm
         finally:
             gcs.close()
+
+
+def test_a_plan_without_fence_or_rally_clears_the_vehicles(tmp_path: Path, capsys) -> None:
+    """``osa upload`` of a ``.plan`` makes the vehicle hold exactly the file: a plan
+    whose geoFence and rallyPoints are empty clears the fence and rally points a
+    previous plan left (they used to stay, under a line saying 'fence items 0, rally
+    points 0', exit 0: a return flew to the old site's rally point). A ``.waypoints``
+    file cannot hold a fence: it leaves the vehicle's as they are. With a MAVSDK URL
+    (MissionRaw cannot clear rally points) rally points held are one line, exit 1."""
+    import json
+
+    with running_vehicle(SEARCH_SCENARIO) as rv:
+        home = rv.autopilot.home
+        lat, lon = home.lat_deg, home.lon_deg
+        old = tmp_path / "old.plan"
+        assert osa_main(["plan", "helix", "--center", f"{lat:.6f},{lon:.6f}", "--radius",
+                         "40", "--alt", "40", "-o", str(old),
+                         "--keep-out", f"{lat + 0.002:.6f},{lon:.6f},15"]) == 0
+        data = json.loads(old.read_text())
+        data["rallyPoints"]["points"] = [[lat + 0.001, lon, 30.0]]
+        old.write_text(json.dumps(data))
+        new = tmp_path / "new.plan"
+        data["geoFence"]["circles"], data["rallyPoints"]["points"] = [], []
+        new.write_text(json.dumps(data))
+        wpl = tmp_path / "new.waypoints"
+        assert osa_main(["plan", "helix", "--center", f"{lat:.6f},{lon:.6f}", "--radius",
+                         "30", "--alt", "40", "-o", str(wpl)]) == 0
+        url = ["--connection", rv.pymavlink_url, "--timeout", "3", "--message-timeout", "0.2"]
+
+        def upload(path: Path, link: list[str] = url) -> tuple[int, str, str]:
+            capsys.readouterr()
+            status = osa_main(["upload", str(path), *link])
+            out, err = capsys.readouterr()
+            return status, out, err
+
+        assert upload(old)[0] == 0
+        assert (len(rv.held(1)), len(rv.held(2))) == (1, 1)
+        status, out, err = upload(new)
+        assert (status, err) == (0, "") and "fence items 0, rally points 0" in out
+        assert (len(rv.held(1)), len(rv.held(2))) == (0, 0)
+        assert upload(old)[0] == 0
+        status, out, err = upload(wpl)
+        assert (status, err) == (0, "")
+        assert (len(rv.held(1)), len(rv.held(2))) == (1, 1)  # WPL: no fence to replace
+        mavsdk = ["--connection", rv.mavsdk_url, "--timeout", "10", "--message-timeout", "0.5"]
+        status, out, err = upload(new, mavsdk)
+        assert status == 1 and err.count("\n") == 1 and "1 rally point" in err, err
+        assert len(rv.held(1)) == 0  # the fence cleared (MAVSDK's Geofence plugin)

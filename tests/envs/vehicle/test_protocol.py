@@ -163,7 +163,9 @@ def test_duplicates_busy_and_other_types() -> None:
     link.server.on_count(GCS, 4, 0)  # our request was lost: asked again
     assert [a for _, n, a in link.take()] == [(0, 0), (0, 0)]
     link.server.on_item(GCS, items[0])
-    link.server.on_item(GCS, items[0])  # a resend: ask for the next one again
+    link.server.on_item(GCS, items[0])  # a copy at once: our request is on its way
+    link.now += link.server.retry_s + 0.01
+    link.server.on_item(GCS, items[0])  # a resend later: ask for the next one again
     assert [a for _, n, a in link.take()] == [(1, 0), (1, 0)]
     # another ground station while this upload runs
     link.server.on_count(OTHER, 2, 0)
@@ -294,3 +296,99 @@ def test_refusals_kept_are_bounded() -> None:
     assert link.server.refused[-1] == (0, MISSION_UNSUPPORTED)
     assert link.server.refused[-2] == (0, MISSION_NO_SPACE)
     assert len(link.acks()) == 3 * REFUSALS_KEPT  # every one answered
+
+
+@pytest.mark.parametrize("cleared", [MAV_MISSION_TYPE_MISSION, 255])
+def test_a_clear_from_another_ground_station_does_not_drop_an_upload(cleared: int) -> None:
+    """Two ground stations: while one uploads a mission, the other's MISSION_CLEAR_ALL
+    (of the mission, or 255: all lists) is MAV_MISSION_DENIED, as a second upload is,
+    and nothing held changes (PX4 refuses a clear while a transfer runs); the upload goes
+    on to its ACK. It used to be ACCEPTED and to drop the upload silently: the uploader's
+    next items were ignored as late duplicates and it waited for the answer until its
+    own timeout."""
+    link = Link()
+    old = [wp(k) for k in range(2)]
+    upload(link, old)
+    new = [wp(k, z=40.0) for k in range(3)]
+    link.take()
+    link.server.on_count(GCS, 3, MAV_MISSION_TYPE_MISSION)
+    link.server.on_item(GCS, new[0])
+    link.take()
+    link.server.on_clear_all(OTHER, cleared)
+    assert link.take() == [(OTHER, "mission_ack", (MISSION_DENIED, cleared))]
+    assert link.server.held[MAV_MISSION_TYPE_MISSION] == old
+    for w in new[1:]:
+        link.server.on_item(GCS, w)
+    assert link.take() == [(GCS, "mission_request_int", (2, 0)),
+                           (GCS, "mission_ack", (MISSION_ACCEPTED, 0))]
+    assert link.server.held[MAV_MISSION_TYPE_MISSION] == new
+    # a stalled upload (no progress for the timeout) no longer blocks a clear
+    link.server.on_count(GCS, 3, MAV_MISSION_TYPE_MISSION)
+    link.now += link.server.timeout_s + 0.1
+    link.take()
+    link.server.on_clear_all(OTHER, cleared)
+    assert link.acks() == [MISSION_ACCEPTED] and link.server.held[0] == []
+
+
+def test_a_ground_station_clearing_during_its_own_upload_ends_it() -> None:
+    """The uploader's own MISSION_CLEAR_ALL ends its upload and clears (it changed its
+    mind): ACCEPTED."""
+    link = Link()
+    link.server.on_count(GCS, 3, MAV_MISSION_TYPE_MISSION)
+    link.server.on_item(GCS, wp(0))
+    link.take()
+    link.server.on_clear_all(GCS, MAV_MISSION_TYPE_MISSION)
+    assert link.acks() == [MISSION_ACCEPTED] and not link.server.uploading
+
+
+def test_a_slow_link_does_not_multiply_the_requests() -> None:
+    """A ground station answering every request over a link with a 0.3 s round trip
+    (a telemetry radio carrying telemetry too; longer than the 0.25 s re-request): the
+    vehicle re-requests before each answer arrives, and a copy of an item it holds is
+    answered with a new request only if its last one is older than that. 100 items
+    take 200 requests, PX4's retry alone (it ignores copies); each copy used to be
+    answered with a request, and the copies multiplied: 1680 requests and 1658 items
+    on the link for 100."""
+    import heapq
+
+    link = Link()
+    rtt = 0.3
+    items = [wp(k) for k in range(100)]
+    events: list[tuple[float, int, str, int]] = []
+    n_req = n_items = 0
+    acks: list[tuple[float, int]] = []
+
+    def send(peer, name, args) -> None:
+        nonlocal n_req
+        if name == "mission_request_int":
+            n_req += 1
+            heapq.heappush(events, (link.now + rtt / 2, len(events) + 7 * n_req, "req",
+                                    args[0]))
+        elif name == "mission_ack":
+            acks.append((link.now, args[0]))
+
+    link.server.send = send
+    link.server.on_count(GCS, 100, 0)
+    t = 0.0
+    while (not acks or t < acks[0][0] + 2 * rtt) and t < 300.0:
+        t = round(t + 0.02, 6)
+        while events and events[0][0] <= t:
+            at, k, kind, seq = heapq.heappop(events)
+            if kind == "req":  # the ground station's answer, half a round trip later
+                heapq.heappush(events, (at + rtt / 2, k, "item", seq))
+            else:
+                link.now = at
+                n_items += 1
+                link.server.on_item(GCS, items[seq])
+        link.now = t
+        link.server.tick()
+    assert acks and acks[0][1] == MISSION_ACCEPTED
+    assert acks[0][0] == pytest.approx(100 * rtt, abs=1.0)  # one round trip per item
+    assert link.server.held[0] == items
+    assert n_req <= 210 and n_items <= 210, (n_req, n_items)
+    # the copy of the last item answering the re-request is not ACKed again: MAVSDK
+    # takes a second ACK for the end of its next upload (docs/vehicle.md, its traps)
+    assert len(acks) == 1, acks
+    link.now += link.server.retry_s + 0.01
+    link.server.on_item(GCS, items[-1])  # later: the ground station lost our ACK
+    assert len(acks) == 2
