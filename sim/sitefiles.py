@@ -479,6 +479,18 @@ def _geojson_geometry(g: Any, props: dict, where: str, name: str, pos: _Position
 # ----------------------------------------------------------------------------- .plan
 
 
+def _plan_vertices(verts: object, where: str) -> list[tuple[float, float]]:
+    """The ``[[lat, lon], ...]`` vertices of a QGroundControl ``.plan`` polygon."""
+    if not isinstance(verts, list) or len(verts) > MAX_VERTICES:
+        raise SiteFileError(f"{where}: expected a polygon of [lat, lon] vertices")
+    pts = []
+    for v in verts:
+        if not isinstance(v, list) or len(v) != 2:
+            raise SiteFileError(f"{where}: a vertex is [lat, lon]")
+        pts.append(_latlon(v[0], v[1], where))
+    return pts
+
+
 def _plan_shapes(obj: Any, source: str) -> list[GeoShape]:
     if not isinstance(obj, dict) or obj.get("fileType") != "Plan":
         raise SiteFileError(f"{source}: not a QGroundControl plan (fileType 'Plan')")
@@ -494,24 +506,12 @@ def _plan_shapes(obj: Any, source: str) -> list[GeoShape]:
             continue
         where = f"{source}: mission.items[{k}] (Survey)"
         verts = item.get("polygon")
-        if not isinstance(verts, list) or len(verts) > MAX_VERTICES:
-            raise SiteFileError(f"{where}: expected a polygon of [lat, lon] vertices")
-        pts = []
-        for v in verts:
-            if not isinstance(v, list) or len(v) != 2:
-                raise SiteFileError(f"{where}: a vertex is [lat, lon]")
-            pts.append(_latlon(v[0], v[1], where))
+        pts = _plan_vertices(verts, where)
         out.append(GeoShape(vertices_deg=_ring(pts, where), survey=True, name=f"survey {k}"))
     for k, p in enumerate(fence.get("polygons") or []):
         where = f"{source}: geoFence.polygons[{k}]"
         verts = p.get("polygon") if isinstance(p, dict) else None
-        if not isinstance(verts, list) or len(verts) > MAX_VERTICES:
-            raise SiteFileError(f"{where}: expected a polygon of [lat, lon] vertices")
-        pts = []
-        for v in verts:
-            if not isinstance(v, list) or len(v) != 2:
-                raise SiteFileError(f"{where}: a vertex is [lat, lon]")
-            pts.append(_latlon(v[0], v[1], where))
+        pts = _plan_vertices(verts, where)
         out.append(GeoShape(vertices_deg=_ring(pts, where), inclusion=bool(p.get("inclusion")),
                             name=f"fence polygon {k}"))
     for k, c in enumerate(fence.get("circles") or []):
