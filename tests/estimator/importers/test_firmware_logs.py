@@ -8,7 +8,11 @@ import pytest
 
 from estimator.importers.common import GnssOptions, Tally
 from estimator.importers.dataflash import Reader as DataFlashReader
-from tests.estimator.importers.writers import DF_GPS, DataFlashWriter
+from tests.estimator.importers.writers import (
+    DF_GPS,
+    VEHICLE_GPS_POSITION_V113,
+    DataFlashWriter,
+)
 
 # 2025-06-12T10:12:00Z is GPS week 2370 + 382,338,000 ms (GPS time is 18 s ahead)
 WEEK, WEEK_MS, UTC_NS = 2370, 382_338_000, 1_749_723_120 * 1_000_000_000
@@ -248,17 +252,9 @@ def test_dataflash_alt_in_metres_keeps_its_millimetres(tmp_path):
 # PX4's GNSS message across releases (ULog formats as its logger writes them): v1.11-1.12
 # vehicle_gps_position and v1.13 sensor_gps in 1e-7 degree / mm integers; v1.15
 # sensor_gps in doubles, fix_type moved up, more fields (v1.14's is in writers.py)
-_INT_FIELDS = (
-    ("uint64_t", "timestamp"), ("uint64_t", "time_utc_usec"), ("int32_t", "lat"),
-    ("int32_t", "lon"), ("int32_t", "alt"), ("int32_t", "alt_ellipsoid"),
-    ("float", "s_variance_m_s"), ("float", "c_variance_rad"), ("float", "eph"),
-    ("float", "epv"), ("float", "hdop"), ("float", "vdop"), ("int32_t", "noise_per_ms"),
-    ("int32_t", "jamming_indicator"), ("float", "vel_m_s"), ("float", "vel_n_m_s"),
-    ("float", "vel_e_m_s"), ("float", "vel_d_m_s"), ("float", "cog_rad"),
-    ("int32_t", "timestamp_time_relative"), ("float", "heading"),
-    ("float", "heading_offset"), ("uint8_t", "fix_type"), ("uint8_t", "jamming_state"),
-    ("bool", "vel_ned_valid"), ("uint8_t", "satellites_used"), ("uint8_t", "selected"),
-    ("uint8_t[3]", "_padding0"))
+# v1.11-1.12: v1.13's vehicle_gps_position with a `selected` receiver byte
+_INT_FIELDS = (*VEHICLE_GPS_POSITION_V113[:-1], ("uint8_t", "selected"),
+               ("uint8_t[3]", "_padding0"))
 _V113_SENSOR_GPS = (("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"),
                     ("uint32_t", "device_id"), *_INT_FIELDS[1:])
 _V115_SENSOR_GPS = (
