@@ -24,6 +24,12 @@ same policies, estimator and bookkeeping as the in-process simulator:
   --lockstep S`` then never runs more than S seconds ahead, and a run is reproducible
   whatever the machine's load.
 
+While the loop decides (a plan, a trained policy) it does not read the link: a daemon
+thread (:meth:`MavlinkVehicle._keep_alive`) goes on sending the ground station's
+HEARTBEAT at 1 Hz, so a long decision never looks like a lost ground station to the
+autopilot (PX4's COM_DL_LOSS_T, ArduPilot's FS_GCS_TIMEOUT); every send goes through
+one lock.
+
 Every wait is bounded: uploads are retried ``upload_attempts`` times, commands
 ``command_attempts`` times, and no telemetry for ``telemetry_timeout_s`` ends the run
 with :class:`VehicleLinkError` (one line). At the end the vehicle is sent home (RTL).
@@ -35,6 +41,7 @@ import contextlib
 import math
 import os
 import socket
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -76,6 +83,8 @@ RESEND_WAIT_S = 1.0  # records missing at a mark are asked again for this long (
 RESEND_EVERY_S = 0.25
 QUIET_S = 0.3  # at the start: a source without marks quiet this long holds no backlog
 DRAIN_MAX_S = 2.0
+HEARTBEAT_PERIOD_S = 1.0  # the ground station's HEARTBEAT (MAVLink: 1 Hz)
+KEEPALIVE_POLL_S = 0.2  # the keep-alive thread looks this often whether one is due
 RCVBUF_BYTES = 4 << 20  # a lockstep vehicle sends a decision period's records at once
 
 
@@ -170,6 +179,15 @@ class MavlinkVehicle:
             raise
         self.conn = self.link.connection
         self.vehicle = self.link.vehicle
+        # one sender at a time: the loop's thread and the keep-alive thread
+        self._send_lock = threading.RLock()
+        raw_send = self.conn.mav.send
+
+        def send(*args: Any, **kwargs: Any) -> Any:
+            with self._send_lock:
+                return raw_send(*args, **kwargs)
+
+        self.conn.mav.send = send
         self.conn.message_hooks.append(self._on_message)  # every message, also in uploads
         sock = getattr(self.conn, "port", None)
         if isinstance(sock, socket.socket):  # room for a decision period's records
@@ -199,6 +217,11 @@ class MavlinkVehicle:
         self.started = False
         self.finished = False
         self.closed = False
+        self.keepalive_heartbeats = 0  # sent by the keep-alive thread
+        self._stop_keepalive = threading.Event()
+        self._keepalive = threading.Thread(target=self._keep_alive, daemon=True,
+                                           name="osa-gcs-heartbeat")
+        self._keepalive.start()
 
     # ------------------------------------------------------------------ setup
     def header(self, agent: int = 0) -> LogHeader:
@@ -334,13 +357,24 @@ class MavlinkVehicle:
         return str(self.seed_label)
 
     # ------------------------------------------------------------------ MAVLink in
-    def _heartbeat(self) -> None:
-        now = time.monotonic()
-        if now - self._last_hb >= 1.0:
+    def _heartbeat(self) -> bool:
+        """The ground station's HEARTBEAT if one is due (True if sent)."""
+        with self._send_lock:
+            now = time.monotonic()
+            if now - self._last_hb < HEARTBEAT_PERIOD_S:
+                return False
             self._last_hb = now
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, ValueError):  # ValueError: a closed socket
                 self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS,
                                              mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            return True
+
+    def _keep_alive(self) -> None:
+        """The keep-alive thread: a HEARTBEAT whenever one is due, until :meth:`close`
+        (the loop's own reads send them too; this one covers its decisions)."""
+        while not self._stop_keepalive.wait(KEEPALIVE_POLL_S):
+            if self._heartbeat():
+                self.keepalive_heartbeats += 1
 
     def _pump(self, timeout_s: float) -> int:
         """Read what the vehicle sent (waiting up to ``timeout_s`` for the first); the
@@ -629,6 +663,9 @@ class MavlinkVehicle:
         if self.closed:
             return
         self.closed = True
+        self._stop_keepalive.set()
+        if self._keepalive is not threading.current_thread():
+            self._keepalive.join()
         if self._writer is not None:
             self._writer.close()
             self._writer = None

@@ -843,6 +843,44 @@ def test_a_vehicle_that_disarmed_while_the_first_plan_was_made_is_armed_again() 
         assert ap.vehicle.track().enu_m[:, 2].max() - ap.home.enu[2] > 10.0
 
 
+class _LongDecision(TwoOrbits):
+    """TwoOrbits with one decision in flight (at 30 s) that keeps the loop away from
+    the link for ``busy_s`` wall seconds (a plan over a big DEM, a slow policy)."""
+
+    def __init__(self, center: tuple[float, float], busy_s: float) -> None:
+        super().__init__(center, end_s=45.0)
+        self.busy_s, self.waited = busy_s, False
+
+    def decide(self, obs) -> Decision:
+        if not self.waited and obs.t_s >= 30.0:
+            self.waited = True
+            time.sleep(self.busy_s)
+        return super().decide(obs)
+
+
+def test_a_long_decision_is_no_lost_ground_station() -> None:
+    """While the loop decides it reads nothing and used to send nothing: a decision
+    longer than the autopilot's link-loss time (PX4 COM_DL_LOSS_T, here 2.5 s, the
+    mission not exempt) put a real vehicle into its link-loss failsafe mid-search (the
+    virtual one said 'ground station lost: failsafe' and flew home). The loop's
+    keep-alive thread sends the ground station's HEARTBEAT meanwhile."""
+    sc = load_scenario(SHORT)
+    ap1f = sc.world.responder("AP_1F")
+    with running_vehicle(SHORT, speedup=math.inf, lockstep_s=LOCKSTEP_S,
+                         params={"COM_DL_LOSS_T": 2.5, "COM_DLL_EXCEPT": 0.0}) as rv:
+        texts: list[str] = []
+        ap = rv.autopilot
+        say = ap.text
+        ap.text = lambda severity, text: (texts.append(text), say(severity, text))[1]
+        policy = _LongDecision((ap1f.e_m, ap1f.n_m), busy_s=6.0)
+        v = MavlinkVehicle(sc, sim.realise(sc, 0), rv.pymavlink_url, seed=0)
+        res = fly(ClosedLoop(sc, 0, vehicle=v, realisation=sim.realise(sc, 0)), policy)
+        assert policy.waited and res.flight_time_s >= 45.0
+        assert not [t for t in texts if "ground station lost" in t], texts
+        assert v.keepalive_heartbeats >= 2  # 6 s away from the link, 1 Hz
+        assert v.closed and not v._keepalive.is_alive()
+
+
 def test_a_loop_busy_longer_than_the_telemetry_timeout_does_not_call_the_vehicle_lost(
 ) -> None:
     """After a decision that took the loop longer than the telemetry timeout (a first
