@@ -162,7 +162,8 @@ def run(args: argparse.Namespace) -> int:
         from envs.viz import record_replay
 
         progress.step("writing rerun recording")
-        record_replay(report, [log_path], args.rerun)
+        with written_whole(args.rerun) as tmp:  # never half a recording over the last
+            record_replay(report, [log_path], tmp)
     progress.close()
     print(f"scenario {args.scenario}, seed {args.seed}\n")
     print(format_table(report))

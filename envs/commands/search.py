@@ -190,7 +190,8 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun:
         from envs.viz import record_search
 
-        record_search(result, args.rerun)
+        with written_whole(args.rerun) as tmp:  # never half a recording over the last
+            record_search(result, tmp)
     if args.json:
         print(json.dumps(report, allow_nan=False))
     else:

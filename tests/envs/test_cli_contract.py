@@ -166,12 +166,12 @@ def test_search_reusing_its_folder_leaves_no_file_of_the_previous_search(tmp_pat
     assert (out / "flight-uav-2.jsonl").read_text() == "previous"
 
 
-@pytest.mark.parametrize("where", ["log", "figure"])
+@pytest.mark.parametrize("where", ["log", "figure", "rerun"])
 def test_an_interrupted_run_leaves_the_previous_files_whole(where, tmp_path, capsys,
                                                             monkeypatch):
-    """`osa run` into its own folder, interrupted while it writes the flight log or a
-    figure: the previous file stays as it was (docs/cli.md: files are written to a
-    temporary name, then renamed), no temporary file is left."""
+    """`osa run` into its own folder, interrupted while it writes the flight log, a
+    figure or the rerun recording: the previous file stays as it was (docs/cli.md: files
+    are written to a temporary name, then renamed), no temporary file is left."""
     from estimator.logio import LogWriter
 
     out = tmp_path / "out"
@@ -188,6 +188,16 @@ def test_an_interrupted_run_leaves_the_previous_files_whole(where, tmp_path, cap
             real_write(self, rec)
 
         monkeypatch.setattr(LogWriter, "write", write)
+    elif where == "rerun":
+        import envs.viz
+
+        def record_replay(report, logs, path):
+            with open(path, "wb") as fh:
+                fh.write(b"RRF2 half")
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(envs.viz, "record_replay", record_replay)
+        (tmp_path / "r.rrd").write_text("previous")
     else:
         import matplotlib.figure
 
@@ -197,8 +207,9 @@ def test_an_interrupted_run_leaves_the_previous_files_whole(where, tmp_path, cap
             raise KeyboardInterrupt
 
         monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    rerun = ["--rerun", str(tmp_path / "r.rrd"), "--force"] if where == "rerun" else []
     status = status_of(["run", "paper-apab", "-o", str(out), "--no-progress", "--mode",
-                        "baseline"])
+                        "baseline", *rerun])
     assert status == 130
     assert capsys.readouterr().err.splitlines()[-1] == "osa run: interrupted"
     names = sorted(p.name for p in out.iterdir())
@@ -206,6 +217,10 @@ def test_an_interrupted_run_leaves_the_previous_files_whole(where, tmp_path, cap
                      "trajectory.png"]
     if where == "log":
         assert (out / "flight.jsonl").read_text() == "previous"
+    elif where == "rerun":  # the log, report and figures were complete: replaced
+        assert (out / "trajectory.png").read_bytes().startswith(b"\x89PNG")
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "r.rrd"]
+        assert (tmp_path / "r.rrd").read_text() == "previous"
     else:  # the log and the report were complete: replaced; the figure was not
         assert (out / "flight.jsonl").read_text().count("\n") > 300
         assert (out / "trajectory.png").read_text() == "previous"
