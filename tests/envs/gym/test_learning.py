@@ -28,6 +28,9 @@ import re
 import numpy as np
 import pytest
 
+# one worker runs this file (pytest-xdist --dist loadgroup): its trained model is
+# built once
+pytestmark = pytest.mark.xdist_group("learning")
 pytest.importorskip("stable_baselines3")
 
 from envs.gym.trained import TrainedPolicy

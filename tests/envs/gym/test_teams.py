@@ -19,6 +19,9 @@ import json
 import numpy as np
 import pytest
 
+# one worker runs this file (pytest-xdist --dist loadgroup): its trained model is
+# built once
+pytestmark = pytest.mark.xdist_group("teams")
 pytest.importorskip("stable_baselines3")
 pytest.importorskip("supersuit")
 
