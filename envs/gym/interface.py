@@ -349,6 +349,33 @@ def responder_manoeuvre(man, adaptive, name: str, target: str, obs: Observation,
     return man.goto(center, a, goto_note)
 
 
+def discrete_action(action, n: int) -> int:
+    """The index of a ``Discrete(n)`` action (an integer, NumPy's integer or a one-value
+    array of one); anything else, e.g. -1, ``n``, 2.5, ``"1"`` or NaN, is a
+    ``ValueError`` (not another action flown)."""
+    a = np.asarray(action) if not isinstance(action, str) else None
+    if a is not None and a.size == 1 and a.dtype.kind in "biuf":
+        v = a.item()
+        if math.isfinite(v) and float(v).is_integer() and 0 <= v < n:
+            return int(v)
+    raise ValueError(f"action {action!r} is not one of Discrete({n})'s: an integer "
+                     f"from 0 to {n - 1}")
+
+
+def waypoint_action(action) -> tuple[float, float, float]:
+    """A ``Box(-1, 1, (3,))`` waypoint action clipped to the bounds (inf too); not three
+    numbers, or a NaN among them, is a ``ValueError`` (not a waypoint flown)."""
+    try:
+        a = np.asarray(action, dtype=float)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.size != 3 or np.isnan(a).any():
+        raise ValueError(f"action {action!r} is not a waypoint: three numbers (east, "
+                         "north, up) in [-1, 1], none NaN")
+    ax, ay, az = (min(max(v, -1.0), 1.0) for v in a.reshape(3).tolist())
+    return ax, ay, az
+
+
 class ManoeuvreActions:
     """``osa/Search-v0``: a choice of manoeuvre per decision (:data:`MANOEUVRES`).
 
@@ -391,9 +418,9 @@ class ManoeuvreActions:
         self.enc.target = max(pending, key=lambda r: r.detected_at_s).bssid if pending else None
 
     def decide(self, action, obs: Observation) -> Decision:
+        name = MANOEUVRES[discrete_action(action, len(MANOEUVRES))]
         loc = self.enc.tracker.frozen()
         a = obs.agents[self.enc.agent]
-        name = MANOEUVRES[int(action)]
         self._pick_target(obs)
         if name == "next-responder":
             loc_set = self.enc.tracker.localised
@@ -487,11 +514,10 @@ class WaypointActions:
         return q
 
     def decide(self, action, obs: Observation) -> Decision:
+        ax, ay, az = waypoint_action(action)
         m = self.mission
         area = m.area
         loc = self.enc.tracker.frozen()
-        ax, ay, az = (min(max(v, -1.0), 1.0)  # np.clip's values, NaN kept
-                      for v in np.asarray(action, dtype=float).reshape(3).tolist())
         a = obs.agents[self.enc.agent]
         here = np.asarray(a.position_enu_m, dtype=float)
         he, hn, hz = here.tolist()

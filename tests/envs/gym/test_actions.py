@@ -1,0 +1,83 @@
+"""Actions outside an env's action space are refused in one line, not flown as another.
+
+A ``Discrete(n)`` action of -1 was flown as the last action (Python's negative index:
+``return`` in ``osa/Search-v0``, ``done`` in v1), 2.5 and ``"1"`` as 2 and 1, and n
+raised an ``IndexError`` ("tuple index out of range"); a NaN waypoint was flown (as a
+request outside the area, charged the whole ``leave_penalty``). Each is now a
+``ValueError`` naming the action, raised before anything moves, so the env goes on as
+if it had not been asked.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the envs)
+import sim
+from envs.gym.batched import BatchedSearchEnv
+from tests.envs.gym.test_batched import assert_same
+
+DISCRETE = {"osa/Search-v0": 7, "osa/Search-v1": 17, "osa/Search-v3": 18}
+
+
+def short(budget_s: float = 60.0):
+    sc = sim.load_scenario("search-three-mixed")
+    return dataclasses.replace(sc, search=dataclasses.replace(sc.search, budget_s=budget_s))
+
+
+def made(env_id: str):
+    env = gymnasium.make(env_id, scenario=short()).unwrapped
+    env.reset(seed=1)
+    return env
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+@pytest.mark.parametrize("env_id", list(DISCRETE))
+def test_a_discrete_action_outside_the_space_is_refused(env_id):
+    n = DISCRETE[env_id]
+    env = made(env_id)
+    for bad in (-1, n, 2.5, "1", float("nan"), None, np.array([1, 2])):
+        with pytest.raises(ValueError, match=rf"action .* not one of Discrete\({n}\)"):
+            env.step(bad)
+    # nothing moved: the next valid step is the first step of a fresh env
+    ref = made(env_id)
+    assert env.loop.t_s == 0.0
+    assert_same(env.step(3), ref.step(3), "after the refusals")
+    # the integer forms Gymnasium, SB3 and NumPy give are one action
+    for same in (np.int64(4), np.array(4), np.array([4]), 4.0):
+        a, b = made(env_id), made(env_id)
+        assert_same(a.step(same), b.step(4), repr(same))
+
+
+def test_a_waypoint_that_is_not_three_finite_numbers_is_refused():
+    env = made("osa/Waypoint-v0")
+    for bad in (np.array([np.nan, 0.0, 0.0], np.float32), [0.1, 0.2], [0.1, 0.2, 0.3, 0.4],
+                np.array([0.0, -np.nan, 1.0])):
+        with pytest.raises(ValueError, match=r"action .* not a waypoint"):
+            env.step(bad)
+    ref = made("osa/Waypoint-v0")
+    assert env.loop.t_s == 0.0
+    # beyond the bounds (infinite too) is clipped to them, as before
+    assert_same(env.step(np.array([np.inf, -5.0, 0.5], np.float32)),
+                ref.step(np.array([1.0, -1.0, 0.5], np.float32)), "clipped")
+
+
+def test_the_batched_and_team_envs_refuse_a_nan_waypoint():
+    vec = BatchedSearchEnv(2, env_class="envs.gym.waypoint:WaypointEnv", scenario=short())
+    vec.reset(seed=0)
+    acts = np.zeros((2, 3), np.float32)
+    acts[1, 0] = np.nan
+    with pytest.raises(ValueError, match="not a waypoint"):
+        vec.step(acts)
+    pytest.importorskip("pettingzoo")
+    from envs.gym.multi import SearchParallelEnv
+
+    team = SearchParallelEnv(short(), uavs=2)
+    team.reset(seed=0)
+    with pytest.raises(ValueError, match="not a waypoint"):
+        team.step({"uav-1": np.zeros(3, np.float32),
+                   "uav-2": np.array([0.0, np.nan, 0.0], np.float32)})
