@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TypeVar
@@ -66,6 +67,11 @@ T = TypeVar("T")
 _THIRDS = np.array([1 / 6, 1 / 2, 5 / 6])[:, None, None]  # three points along a step
 
 
+# the reward weights of every env (osa train --reward, besides v1's localised_bonus)
+REWARD_WEIGHTS = ("information_weight", "detection_bonus", "coverage_bonus",
+                  "time_cost_per_s", "leave_penalty")
+
+
 @dataclass(frozen=True, kw_only=True)
 class EnvConfig:
     """The environments' settings (documented in docs/rl.md, Arguments)."""
@@ -87,10 +93,19 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.decision_period_s) and 0.5 <= self.decision_period_s <= 600):
             raise ValueError("decision_period_s must be in [0.5, 600] s")
-        if not 1 <= self.max_responders <= 32:
-            raise ValueError("max_responders must be in [1, 32]")
-        if not 2 <= self.coverage_cells <= 32:
-            raise ValueError("coverage_cells must be in [2, 32]")
+        for name, lo in (("max_responders", 1), ("coverage_cells", 2)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+                raise ValueError(f"{name} must be an integer, not {v!r}")
+            if not lo <= v <= 32:
+                raise ValueError(f"{name} must be in [{lo}, 32]")
+            object.__setattr__(self, name, int(v))
+        # as osa train's --reward: a NaN weight made every reward NaN
+        for name in REWARD_WEIGHTS:
+            v = getattr(self, name)
+            if (isinstance(v, bool) or not isinstance(v, numbers.Real)
+                    or not (math.isfinite(v) and v >= 0)):
+                raise ValueError(f"{name} must be a number >= 0, not {v!r}")
 
     def to_json(self) -> dict:
         """The settings a trained model needs to meet the same observation and actions."""

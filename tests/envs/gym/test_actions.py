@@ -81,3 +81,27 @@ def test_the_batched_and_team_envs_refuse_a_nan_waypoint():
     with pytest.raises(ValueError, match="not a waypoint"):
         team.step({"uav-1": np.zeros(3, np.float32),
                    "uav-2": np.array([0.0, np.nan, 0.0], np.float32)})
+
+
+WEIGHTS = ("information_weight", "detection_bonus", "coverage_bonus", "time_cost_per_s",
+           "leave_penalty")
+
+
+@pytest.mark.parametrize("env_id", ["osa/Search-v0", "osa/Waypoint-v0"])
+def test_a_reward_weight_that_is_not_a_number_at_least_0_is_refused_when_made(env_id):
+    """Before: ``time_cost_per_s=nan`` was taken and every reward of the episode was NaN
+    (``--reward`` and v1's ``localised_bonus`` refused it already); ``max_responders=2.5``
+    was Gymnasium's TypeError about Box shapes."""
+    for name in WEIGHTS:
+        for bad in (float("nan"), float("inf"), -1.0, "1"):
+            with pytest.raises(ValueError, match=rf"^{name} must be a number >= 0"):
+                gymnasium.make(env_id, scenario=short(), **{name: bad})
+    for name, bad in (("max_responders", 2.5), ("coverage_cells", 4.0),
+                      ("max_responders", True)):
+        with pytest.raises(ValueError, match=rf"^{name} must be an integer"):
+            gymnasium.make(env_id, scenario=short(), **{name: bad})
+    env = gymnasium.make(env_id, scenario=short(), information_weight=0, max_responders=np.int64(2))
+    env.reset(seed=0)
+    assert env.observation_space["responder_mask"].shape == (2,)
+    assert np.isfinite(env.step(env.action_space.sample())[1])
+
