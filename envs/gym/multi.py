@@ -99,6 +99,7 @@ class SearchParallelEnv(ParallelEnv):
         decision_period_s: float = 5.0,
         max_responders: int = 3,
         coverage_cells: int = 8,
+        information_weight: float = 1.0,
         detection_bonus: float = 1.0,
         coverage_bonus: float = 5.0,
         time_cost_per_s: float = 0.01,
@@ -108,7 +109,8 @@ class SearchParallelEnv(ParallelEnv):
         self.config, self.loop_config = env_settings(
             render_mode, self.metadata["render_modes"], seed_split, mode,
             decision_period_s=decision_period_s, max_responders=max_responders,
-            coverage_cells=coverage_cells, detection_bonus=detection_bonus,
+            coverage_cells=coverage_cells, information_weight=information_weight,
+            detection_bonus=detection_bonus,
             coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
             leave_penalty=leave_penalty)
         sc = search_scenario(scenario)
@@ -172,7 +174,7 @@ class SearchParallelEnv(ParallelEnv):
         obs, changes = self._observe_all()
         c = self.config
         first = changes[self.possible_agents[0]]  # the team's: one shared estimate
-        team = (first["information"] + c.detection_bonus * first["detected"]
+        team = (c.information_weight * first["information"] + c.detection_bonus * first["detected"]
                 + c.coverage_bonus * first["covered"])
         dt = loop.t_s - t0
         rewards = {}

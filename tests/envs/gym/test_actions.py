@@ -105,3 +105,26 @@ def test_a_reward_weight_that_is_not_a_number_at_least_0_is_refused_when_made(en
     assert env.observation_space["responder_mask"].shape == (2,)
     assert np.isfinite(env.step(env.action_space.sample())[1])
 
+
+def test_the_team_env_takes_the_information_weight_as_the_one_uav_envs():
+    """docs/rl.md: the team env's other arguments are ``osa/Waypoint-v0``'s; before,
+    ``information_weight`` was a TypeError (an unexpected keyword) and the team reward
+    always counted the information at weight 1."""
+    pytest.importorskip("pettingzoo")
+    from envs.gym.multi import SearchParallelEnv
+
+    def rollout(weight: float) -> np.ndarray:
+        env = SearchParallelEnv(short(120), uavs=2, information_weight=weight)
+        env.reset(seed=5)  # a world where a responder is heard within the 2 minutes
+        rng = np.random.default_rng(5)
+        out = []
+        while env.agents:
+            acts = {a: rng.uniform(-1, 1, 3).astype(np.float32) for a in env.agents}
+            out.append(list(env.step(acts)[1].values()))
+        return np.array(out)
+
+    one, half, off = rollout(1.0), rollout(0.5), rollout(0.0)
+    assert one.shape == half.shape == off.shape == (24, 2)
+    information = one - off  # the same flight: only the information term differs
+    assert information.sum() > 5.0  # heard and narrowed down within the 2 minutes
+    np.testing.assert_allclose(half, off + 0.5 * information, atol=1e-9)
