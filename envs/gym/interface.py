@@ -158,6 +158,11 @@ class Encoder:
                       config.prior_sigma_z_m**2])
         self.prior_half_logdet = half_logdet(p0, config.cov_floor_m2)
 
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The low and high of the observation as one vector (the keys in turn)."""
+        return self._low, self._high
+
     # ------------------------------------------------------------------ episode
     def reset(self, mission: SearchMission, agent: int = 0) -> None:
         self.mission = mission

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
+from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
@@ -128,6 +129,11 @@ class SearchParallelEnv(ParallelEnv):
         self.loop: ClosedLoop | None = None
         self.world_seed: int | None = None
         self.np_random, _ = seeding.np_random(None)
+        # state(): every agent's observation vector in turn (the encoder's order)
+        bounds = [p.encoder.bounds for p in self.pilots.values()]
+        self.state_space = spaces.Box(np.concatenate([lo for lo, _ in bounds]).astype(np.float32),
+                                      np.concatenate([hi for _, hi in bounds]).astype(np.float32),
+                                      dtype=np.float32)
 
     def observation_space(self, agent: str):  # the same object every call
         return self.pilots[agent].observation_space
