@@ -4,6 +4,7 @@ with how much each responder's sigma_H shrank lately in the observation."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from pathlib import Path
@@ -91,8 +92,10 @@ class PlanEnv(SearchEnvBase):
         self.set_level(level)
 
     def _make_pilot(self) -> Pilot:
-        actions = self._actions_arg or PlanActions(self.config, self._sectors,
-                                                   **PLAN_KINDS[self.kind])
+        # the given actions are a setting: each env flies its own copy (one object given
+        # to make_vec or to several makes was every world's: their state is per episode)
+        actions = (copy.deepcopy(self._actions_arg) if self._actions_arg is not None
+                   else PlanActions(self.config, self._sectors, **PLAN_KINDS[self.kind]))
         return Pilot(self.kind, self.config, actions=actions)
 
     # ------------------------------------------------------------------ curriculum
