@@ -96,6 +96,10 @@ class PlanEnv(SearchEnvBase):
         # to make_vec or to several makes was every world's: their state is per episode)
         actions = (copy.deepcopy(self._actions_arg) if self._actions_arg is not None
                    else PlanActions(self.config, self._sectors, **PLAN_KINDS[self.kind]))
+        k, n = actions.cfg.max_responders, self.config.max_responders
+        if k != n:  # set_aside (and sigma_shrink) per responder slot of the observation
+            raise ValueError(f"actions observe {k} responder slots, the env {n} "
+                             "(max_responders): give both the same")
         return Pilot(self.kind, self.config, actions=actions)
 
     # ------------------------------------------------------------------ curriculum

@@ -38,3 +38,17 @@ def test_envs_given_one_actions_object_fly_their_own_copies():
     for k in range(12):
         act = np.array([k % 4, (k + 2) % 4])
         assert_same(vec.step(act), ref.step(act), f"step {k}")
+
+
+def test_actions_for_other_responder_slots_are_refused_when_made():
+    """``PlanActions(EnvConfig())`` (3 responder slots) given to v1 (5 by default): the
+    env observed ``set_aside`` for 3 slots beside ``responders`` of 5, silently."""
+    import pytest
+
+    with pytest.raises(ValueError, match=r"^actions observe 3 responder slots, the env 5 "
+                                         r"\(max_responders\)"):
+        gymnasium.make("osa/Search-v1", scenario=short(), actions=PlanActions(EnvConfig()))
+    env = gymnasium.make("osa/Search-v1", scenario=short(), max_responders=3,
+                         actions=PlanActions(EnvConfig()))
+    obs, _ = env.reset(seed=0)
+    assert obs["set_aside"].shape == obs["responder_mask"].shape == (3,)
