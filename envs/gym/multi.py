@@ -167,6 +167,10 @@ class SearchParallelEnv(ParallelEnv):
     def step(self, actions: dict):
         if self.loop is None:
             raise RuntimeError("call reset() before step()")
+        unknown = [a for a in actions if a not in self.possible_agents]
+        if unknown:  # a typo would otherwise fly on silently
+            raise ValueError(f"no agent {unknown[0]!r} in this team "
+                             f"({', '.join(self.possible_agents)})")
         loop = self.loop
         t0 = loop.t_s
         plans = {}

@@ -41,3 +41,17 @@ def test_the_team_state_has_its_space_and_passes_pettingzoos_state_test():
                 s[i * 136:(i + 1) * 136],
                 np.concatenate([obs[a][k] for k in ("agent", "responders", "responder_mask",
                                                     "coverage", "others")]))
+
+
+def test_an_action_for_an_agent_the_team_does_not_have_is_refused():
+    """``{"uav1": ...}`` for ``uav-1`` (a typo): before, ignored, every UAV flew on what it
+    flew and the step was spent; now a ValueError naming the agents, nothing flown."""
+    from envs.gym.multi import SearchParallelEnv
+
+    env = SearchParallelEnv(short(60), uavs=2)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"^no agent 'uav1' in this team \(uav-1, uav-2\)"):
+        env.step({"uav1": np.zeros(3, np.float32), "uav-2": np.zeros(3, np.float32)})
+    assert env.loop.t_s == 0.0
+    _, rew, *_ = env.step({"uav-1": np.zeros(3, np.float32)})  # a subset is fine
+    assert set(rew) == {"uav-1", "uav-2"} and env.loop.t_s == 5.0
