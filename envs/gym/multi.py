@@ -213,6 +213,8 @@ class SearchParallelEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Every agent's observation, concatenated (for centralised critics)."""
+        if self.loop is None:
+            raise RuntimeError("call reset() before state()")
         return np.concatenate([
             np.concatenate(list(self.pilots[name].encoder.encode(self._obs,
                                                                  self._others(i)).values()))

@@ -27,6 +27,8 @@ def test_the_team_state_has_its_space_and_passes_pettingzoos_state_test():
 
     state_test(parallel_to_aec(make()), make(), num_cycles=5)
     env = make()
+    with pytest.raises(RuntimeError, match="call reset"):  # before: AttributeError '_obs'
+        env.state()
     env.reset(seed=5)
     rng = np.random.default_rng(5)
     # 3 agents x (10 + 3 x 17 + 3 + 64 + 2 x 4)
