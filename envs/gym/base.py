@@ -66,6 +66,14 @@ def draw_world_seed(options: dict | None, rng: np.random.Generator, seed_split: 
     return check_seed(world_seed)
 
 
+def free_sibling(path: Path) -> Path:
+    """The first of ``NAME-2.rrd``, ``NAME-3.rrd``, ... beside ``path`` not there yet."""
+    k = 2
+    while (p := path.with_name(f"{path.stem}-{k}{path.suffix}")).exists():
+        k += 1
+    return p
+
+
 def outside_area(loop: ClosedLoop, obs, agent: int) -> float:
     """1 when the agent's autopilot position is outside the search area, else 0."""
     p = np.asarray(obs.agents[agent].position_enu_m[:2], dtype=float)[None, :]
@@ -126,6 +134,8 @@ class SearchEnvBase(gym.Env):
         self.observation_space = self.pilot.observation_space
         self.action_space = self.pilot.action_space
         self.rerun_path = rerun_path
+        self.rerun_file: str | None = None  # the .rrd this env writes (human, rerun_path)
+        self._rrd_taken = False  # rerun_path opened by this env or the one it copies
         self.loop: ClosedLoop | None = None
         self.world_seed: int | None = None
         self._rr = None
@@ -213,7 +223,11 @@ class SearchEnvBase(gym.Env):
             # a file, else kept in memory (``self.rerun_memory``, e.g. for a notebook):
             # never a spawned viewer, which would open a network port
             if self.rerun_path:
-                self._rr.save(self.rerun_path)
+                path = Path(self.rerun_path)
+                if self._rrd_taken:  # a copy (or reopened): the file is another's
+                    path = free_sibling(path)
+                self._rr.save(str(path))
+                self.rerun_file, self._rrd_taken = str(path), True
             else:
                 self.rerun_memory = self._rr.memory_recording()
         log_rerun(self._rr, self.loop, self.pilot)

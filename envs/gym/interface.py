@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TypeVar
@@ -66,6 +67,11 @@ T = TypeVar("T")
 _THIRDS = np.array([1 / 6, 1 / 2, 5 / 6])[:, None, None]  # three points along a step
 
 
+# the reward weights of every env (osa train --reward, besides v1's localised_bonus)
+REWARD_WEIGHTS = ("information_weight", "detection_bonus", "coverage_bonus",
+                  "time_cost_per_s", "leave_penalty")
+
+
 @dataclass(frozen=True, kw_only=True)
 class EnvConfig:
     """The environments' settings (documented in docs/rl.md, Arguments)."""
@@ -87,10 +93,19 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.decision_period_s) and 0.5 <= self.decision_period_s <= 600):
             raise ValueError("decision_period_s must be in [0.5, 600] s")
-        if not 1 <= self.max_responders <= 32:
-            raise ValueError("max_responders must be in [1, 32]")
-        if not 2 <= self.coverage_cells <= 32:
-            raise ValueError("coverage_cells must be in [2, 32]")
+        for name, lo in (("max_responders", 1), ("coverage_cells", 2)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+                raise ValueError(f"{name} must be an integer, not {v!r}")
+            if not lo <= v <= 32:
+                raise ValueError(f"{name} must be in [{lo}, 32]")
+            object.__setattr__(self, name, int(v))
+        # as osa train's --reward: a NaN weight made every reward NaN
+        for name in REWARD_WEIGHTS:
+            v = getattr(self, name)
+            if (isinstance(v, bool) or not isinstance(v, numbers.Real)
+                    or not (math.isfinite(v) and v >= 0)):
+                raise ValueError(f"{name} must be a number >= 0, not {v!r}")
 
     def to_json(self) -> dict:
         """The settings a trained model needs to meet the same observation and actions."""
@@ -142,6 +157,11 @@ class Encoder:
         p0 = np.diag([config.prior_sigma_h_m**2, config.prior_sigma_h_m**2,
                       config.prior_sigma_z_m**2])
         self.prior_half_logdet = half_logdet(p0, config.cov_floor_m2)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The low and high of the observation as one vector (the keys in turn)."""
+        return self._low, self._high
 
     # ------------------------------------------------------------------ episode
     def reset(self, mission: SearchMission, agent: int = 0) -> None:
@@ -349,6 +369,33 @@ def responder_manoeuvre(man, adaptive, name: str, target: str, obs: Observation,
     return man.goto(center, a, goto_note)
 
 
+def discrete_action(action, n: int) -> int:
+    """The index of a ``Discrete(n)`` action (an integer, NumPy's integer or a one-value
+    array of one); anything else, e.g. -1, ``n``, 2.5, ``"1"`` or NaN, is a
+    ``ValueError`` (not another action flown)."""
+    a = np.asarray(action) if not isinstance(action, str) else None
+    if a is not None and a.size == 1 and a.dtype.kind in "biuf":
+        v = a.item()
+        if math.isfinite(v) and float(v).is_integer() and 0 <= v < n:
+            return int(v)
+    raise ValueError(f"action {action!r} is not one of Discrete({n})'s: an integer "
+                     f"from 0 to {n - 1}")
+
+
+def waypoint_action(action) -> tuple[float, float, float]:
+    """A ``Box(-1, 1, (3,))`` waypoint action clipped to the bounds (inf too); not three
+    numbers, or a NaN among them, is a ``ValueError`` (not a waypoint flown)."""
+    try:
+        a = np.asarray(action, dtype=float)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.size != 3 or np.isnan(a).any():
+        raise ValueError(f"action {action!r} is not a waypoint: three numbers (east, "
+                         "north, up) in [-1, 1], none NaN")
+    ax, ay, az = (min(max(v, -1.0), 1.0) for v in a.reshape(3).tolist())
+    return ax, ay, az
+
+
 class ManoeuvreActions:
     """``osa/Search-v0``: a choice of manoeuvre per decision (:data:`MANOEUVRES`).
 
@@ -391,9 +438,9 @@ class ManoeuvreActions:
         self.enc.target = max(pending, key=lambda r: r.detected_at_s).bssid if pending else None
 
     def decide(self, action, obs: Observation) -> Decision:
+        name = MANOEUVRES[discrete_action(action, len(MANOEUVRES))]
         loc = self.enc.tracker.frozen()
         a = obs.agents[self.enc.agent]
-        name = MANOEUVRES[int(action)]
         self._pick_target(obs)
         if name == "next-responder":
             loc_set = self.enc.tracker.localised
@@ -487,11 +534,10 @@ class WaypointActions:
         return q
 
     def decide(self, action, obs: Observation) -> Decision:
+        ax, ay, az = waypoint_action(action)
         m = self.mission
         area = m.area
         loc = self.enc.tracker.frozen()
-        ax, ay, az = (min(max(v, -1.0), 1.0)  # np.clip's values, NaN kept
-                      for v in np.asarray(action, dtype=float).reshape(3).tolist())
         a = obs.agents[self.enc.agent]
         here = np.asarray(a.position_enu_m, dtype=float)
         he, hn, hz = here.tolist()

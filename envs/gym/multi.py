@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
+from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
@@ -99,6 +100,7 @@ class SearchParallelEnv(ParallelEnv):
         decision_period_s: float = 5.0,
         max_responders: int = 3,
         coverage_cells: int = 8,
+        information_weight: float = 1.0,
         detection_bonus: float = 1.0,
         coverage_bonus: float = 5.0,
         time_cost_per_s: float = 0.01,
@@ -108,7 +110,8 @@ class SearchParallelEnv(ParallelEnv):
         self.config, self.loop_config = env_settings(
             render_mode, self.metadata["render_modes"], seed_split, mode,
             decision_period_s=decision_period_s, max_responders=max_responders,
-            coverage_cells=coverage_cells, detection_bonus=detection_bonus,
+            coverage_cells=coverage_cells, information_weight=information_weight,
+            detection_bonus=detection_bonus,
             coverage_bonus=coverage_bonus, time_cost_per_s=time_cost_per_s,
             leave_penalty=leave_penalty)
         sc = search_scenario(scenario)
@@ -126,6 +129,11 @@ class SearchParallelEnv(ParallelEnv):
         self.loop: ClosedLoop | None = None
         self.world_seed: int | None = None
         self.np_random, _ = seeding.np_random(None)
+        # state(): every agent's observation vector in turn (the encoder's order)
+        bounds = [p.encoder.bounds for p in self.pilots.values()]
+        self.state_space = spaces.Box(np.concatenate([lo for lo, _ in bounds]).astype(np.float32),
+                                      np.concatenate([hi for _, hi in bounds]).astype(np.float32),
+                                      dtype=np.float32)
 
     def observation_space(self, agent: str):  # the same object every call
         return self.pilots[agent].observation_space
@@ -159,6 +167,10 @@ class SearchParallelEnv(ParallelEnv):
     def step(self, actions: dict):
         if self.loop is None:
             raise RuntimeError("call reset() before step()")
+        unknown = [a for a in actions if a not in self.possible_agents]
+        if unknown:  # a typo would otherwise fly on silently
+            raise ValueError(f"no agent {unknown[0]!r} in this team "
+                             f"({', '.join(self.possible_agents)})")
         loop = self.loop
         t0 = loop.t_s
         plans = {}
@@ -172,7 +184,7 @@ class SearchParallelEnv(ParallelEnv):
         obs, changes = self._observe_all()
         c = self.config
         first = changes[self.possible_agents[0]]  # the team's: one shared estimate
-        team = (first["information"] + c.detection_bonus * first["detected"]
+        team = (c.information_weight * first["information"] + c.detection_bonus * first["detected"]
                 + c.coverage_bonus * first["covered"])
         dt = loop.t_s - t0
         rewards = {}
@@ -201,6 +213,8 @@ class SearchParallelEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Every agent's observation, concatenated (for centralised critics)."""
+        if self.loop is None:
+            raise RuntimeError("call reset() before state()")
         return np.concatenate([
             np.concatenate(list(self.pilots[name].encoder.encode(self._obs,
                                                                  self._others(i)).values()))

@@ -4,6 +4,7 @@ with how much each responder's sigma_H shrank lately in the observation."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from pathlib import Path
@@ -91,8 +92,14 @@ class PlanEnv(SearchEnvBase):
         self.set_level(level)
 
     def _make_pilot(self) -> Pilot:
-        actions = self._actions_arg or PlanActions(self.config, self._sectors,
-                                                   **PLAN_KINDS[self.kind])
+        # the given actions are a setting: each env flies its own copy (one object given
+        # to make_vec or to several makes was every world's: their state is per episode)
+        actions = (copy.deepcopy(self._actions_arg) if self._actions_arg is not None
+                   else PlanActions(self.config, self._sectors, **PLAN_KINDS[self.kind]))
+        k, n = actions.cfg.max_responders, self.config.max_responders
+        if k != n:  # set_aside (and sigma_shrink) per responder slot of the observation
+            raise ValueError(f"actions observe {k} responder slots, the env {n} "
+                             "(max_responders): give both the same")
         return Pilot(self.kind, self.config, actions=actions)
 
     # ------------------------------------------------------------------ curriculum

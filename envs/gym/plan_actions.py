@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
-from envs.gym.interface import responder_manoeuvre
+from envs.gym.interface import discrete_action, responder_manoeuvre
 from estimator.records import Trajectory
 from planner.adaptive import Manoeuvres, ResponderPlanner
 from planner.area import SearchArea
@@ -204,9 +204,9 @@ class PlanActions:
         self.enc.target = pending[(i + 1) % len(pending)]
 
     def decide(self, action, obs: Observation) -> Decision:
+        i = discrete_action(action, len(self.names))
         loc = self.enc.tracker.frozen()
         a = obs.agents[self.enc.agent]
-        i = int(action)
         name = self.names[i]
         self._ensure_target(obs)
         if name == "done":

@@ -124,6 +124,12 @@ class TrainedPolicy:
                 raise ValueError(f"{d}: {MODEL_FILE} was not trained in the env of its "
                                  f"{META_FILE} ({meta.get('env_id', kind)}): its observation "
                                  "or action space differs")
+            # the normalisation of another env or observation version (a copied file)
+            # broke the first decision ("operands could not be broadcast")
+            if (stats is not None
+                    and getattr(stats, "observation_space", None) != pilot.observation_space):
+                raise ValueError(f"{d / STATS_FILE}: statistics of another observation than "
+                                 f"{MODEL_FILE}'s ({meta.get('env_id', kind)})")
         return policy
 
     def _pilots(self) -> list[Pilot]:

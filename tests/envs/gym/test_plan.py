@@ -86,7 +86,9 @@ def test_the_action_mapping_is_an_object_passed_to_the_env():
     acts = PlanActions(EnvConfig(max_responders=5, coverage_cells=8), sectors=4)
     env = gymnasium.make(ID, scenario=small(), actions=acts, coverage_cells=8)
     u = env.unwrapped
-    assert u.pilot.actions is acts and u.action_space.n == 16 + 8
+    # its own copy (test_shared_actions.py: one object given to several envs)
+    assert u.pilot.actions is not acts and u.pilot.actions.sectors == 4
+    assert u.action_space.n == 16 + 8
     obs, _ = env.reset(seed=0)
     assert obs["sectors"].shape == (16,) and obs["flying"].shape == (24,)
     with pytest.raises(ValueError, match="sectors"):
