@@ -28,14 +28,15 @@ import re
 import numpy as np
 import pytest
 
-# one worker runs this file (pytest-xdist --dist loadgroup): its trained model is
-# built once
-pytestmark = pytest.mark.xdist_group("learning")
 pytest.importorskip("stable_baselines3")
 
 from envs.gym.trained import TrainedPolicy
 from envs.rl import TrainSettings, make_env, model_actor, rollout, train
 from envs.seeds import split_seeds
+
+# one worker runs this file (pytest-xdist --dist loadgroup): its trained model is
+# built once
+pytestmark = pytest.mark.xdist_group("learning")
 
 STEPS = 8192  # with the default estimator (refined): 25 of 30 wins (4096: 16, too few)
 WORLDS = 30

@@ -19,9 +19,6 @@ import json
 import numpy as np
 import pytest
 
-# one worker runs this file (pytest-xdist --dist loadgroup): its trained model is
-# built once
-pytestmark = pytest.mark.xdist_group("teams")
 pytest.importorskip("stable_baselines3")
 pytest.importorskip("supersuit")
 
@@ -33,6 +30,10 @@ from envs.policies import load_policy
 from envs.rl import TrainSettings, model_actor, train
 from envs.seeds import split_seeds
 from tests.envs.gym.test_learning import sign_test_p
+
+# one worker runs this file (pytest-xdist --dist loadgroup): its trained model is
+# built once
+pytestmark = pytest.mark.xdist_group("teams")
 
 STEPS = 8192  # agent decisions (4096 team steps of 2 UAVs): ~25 s of CPU
 WORLDS = 30
