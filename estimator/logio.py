@@ -563,7 +563,21 @@ def _lines(fh: IO[bytes], raw: _Counted, st: LogStream) -> Iterator[bytes | None
                 continue
             check()
             yield line
-    except (OSError, EOFError, gzip.BadGzipFile, zlib.error) as exc:
+    except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
+        if not gz or st.n_records == 0:
+            raise LogError(f"{name}: corrupt or truncated compressed file ({exc})") from exc
+        # a recorder cut off while writing (a flat battery) leaves a truncated gzip: the
+        # records before the damage are the flight's, and kept
+        if "CRC" in str(exc) or "length" in str(exc):  # at its end: everything was read
+            warnings.warn(f"{name}: the compressed file fails its checksum ({exc}): its "
+                          f"{st.n_records} records are read, each line checked as always "
+                          "(damaged ones are counted as rejected)", LogWarning, stacklevel=2)
+        else:
+            what = "ends early" if isinstance(exc, EOFError) else "is corrupt"
+            warnings.warn(f"{name}: the compressed file {what} ({exc}): the {st.n_records} "
+                          f"records of its first {total} bytes are read, nothing after",
+                          LogWarning, stacklevel=2)
+    except OSError as exc:
         raise LogError(f"{name}: corrupt or truncated compressed file ({exc})") from exc
 
 

@@ -384,23 +384,41 @@ def _big_gz_log(tmp_path: Path, n: int = 3000) -> tuple[Path, bytes]:
     return path, path.read_bytes()
 
 
-def test_truncated_gzip_raises_log_error(tmp_path: Path) -> None:
+def test_a_truncated_gzip_keeps_the_records_before_the_cut(tmp_path: Path) -> None:
+    """A recorder cut off while writing (a flat battery) leaves a truncated gzip: the
+    records before the cut are read, with a warning saying so (it used to refuse the
+    whole flight); cut inside the gzip header, nothing is readable: refused."""
     path, blob = _big_gz_log(tmp_path)
-    for cut in (len(blob) // 2, len(blob) - 4, 12):
+    whole = read_log(path)
+    assert len(whole.gnss) == 3000
+    for cut in (len(blob) // 2, len(blob) - 4):
         path.write_bytes(blob[:cut])
-        with pytest.raises(LogError, match="corrupt or truncated"):
-            read_log(path)
+        with pytest.warns(LogWarning, match="compressed file ends early") as said:
+            log = read_log(path)
+        n = len(log.gnss)
+        assert (1000 < n < 2000) if cut == len(blob) // 2 else n == 3000
+        assert log.gnss == whole.gnss[:n]  # the records before the cut, exactly
+        assert f"the {n + 1} records" in str(said[0].message)  # the header and the fixes
+        assert log.counts.n_rejected <= 1  # at most the line cut in two
+    path.write_bytes(blob[:12])
+    with pytest.raises(LogError, match="corrupt or truncated"):
+        read_log(path)
 
 
-def test_corrupt_gzip_raises_log_error(tmp_path: Path) -> None:
+def test_a_corrupt_gzip_is_read_to_the_damage_or_refused(tmp_path: Path) -> None:
+    """Damaged compressed data: a stream that breaks before any record is refused in
+    one line; a checksum that fails at the end (every line was read) is a warning and
+    the lines are checked one by one as always."""
     path, blob = _big_gz_log(tmp_path)
+    whole = read_log(path)
     flipped = blob[:100] + bytes(b ^ 0x55 for b in blob[100:200]) + blob[200:]
     path.write_bytes(flipped)
     with pytest.raises(LogError, match="corrupt or truncated"):
         read_log(path)
     path.write_bytes(blob[:-8] + b"\0" * 8)  # CRC and size trailer zeroed
-    with pytest.raises(LogError, match="corrupt or truncated"):
-        read_log(path)
+    with pytest.warns(LogWarning, match="fails its checksum"):
+        log = read_log(path)
+    assert log.gnss == whole.gnss
 
 
 def _mixed_log_lines() -> list[str]:
