@@ -83,7 +83,6 @@ RESEND_WAIT_S = 1.0  # records missing at a mark are asked again for this long (
 RESEND_EVERY_S = 0.25
 QUIET_S = 0.3  # at the start: a source without marks quiet this long holds no backlog
 DRAIN_MAX_S = 2.0
-HEARTBEAT_PERIOD_S = 1.0  # the ground station's HEARTBEAT (MAVLink: 1 Hz)
 KEEPALIVE_POLL_S = 0.2  # the keep-alive thread looks this often whether one is due
 RCVBUF_BYTES = 4 << 20  # a lockstep vehicle sends a decision period's records at once
 
@@ -197,7 +196,6 @@ class MavlinkVehicle:
         self._boot0_s: float | None = None
         self._boot_s: float | None = None
         self._last_rx = self._last_look = time.monotonic()
-        self._last_hb = 0.0
         self._acked_ms = -1
         self.position: tuple[float, float, float] | None = None
         self.velocity = (0.0, 0.0, 0.0)
@@ -358,16 +356,10 @@ class MavlinkVehicle:
 
     # ------------------------------------------------------------------ MAVLink in
     def _heartbeat(self) -> bool:
-        """The ground station's HEARTBEAT if one is due (True if sent)."""
+        """The link's ground-station HEARTBEAT if one is due (True if sent); under the
+        send lock, so the loop's thread and the keep-alive thread send one, not two."""
         with self._send_lock:
-            now = time.monotonic()
-            if now - self._last_hb < HEARTBEAT_PERIOD_S:
-                return False
-            self._last_hb = now
-            with contextlib.suppress(OSError, ValueError):  # ValueError: a closed socket
-                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS,
-                                             mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            return True
+            return self.link.heartbeat()
 
     def _keep_alive(self) -> None:
         """The keep-alive thread: a HEARTBEAT whenever one is due, until :meth:`close`

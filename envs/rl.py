@@ -28,6 +28,7 @@ import numpy as np
 
 import envs  # noqa: F401  (registers the envs, also in subprocesses that import this)
 from envs.cli import Terminated
+from envs.gym.interface import REWARD_WEIGHTS
 from envs.gym.registration import TEAM_ENV_ID
 from envs.gym.trained import META_FILE, MODEL_FILE, STATS_FILE, algo_class
 from envs.seeds import split_seeds
@@ -296,10 +297,8 @@ def check_init(folder: Path, env_id: str, algo: str, env_kwargs: dict) -> str | 
         env = make_env(env_id, env_kwargs).unwrapped
         config = env.config.to_json()
         env.close()
-        rewards = ("information_weight", "detection_bonus", "coverage_bonus", "time_cost_per_s",
-                   "leave_penalty")
-        if {k: v for k, v in meta.get("config", {}).items() if k not in rewards} != \
-                {k: v for k, v in config.items() if k not in rewards}:
+        if {k: v for k, v in meta.get("config", {}).items() if k not in REWARD_WEIGHTS} != \
+                {k: v for k, v in config.items() if k not in REWARD_WEIGHTS}:
             return (f"{folder} was trained with other env settings (observation and "
                     "actions) than this training's")
     from envs.gym.trained import TrainedPolicy

@@ -380,18 +380,21 @@ class PymavlinkLink:
 
     # -- low level
 
-    def _heartbeat(self, force: bool = False) -> None:
+    def heartbeat(self, force: bool = False) -> bool:
+        """The ground station's HEARTBEAT if one is due (1 Hz) or ``force``; True if sent."""
         now = time.monotonic()
-        if force or now - self._last_heartbeat_s >= HEARTBEAT_PERIOD_S:
-            self._last_heartbeat_s = now
-            with contextlib.suppress(OSError):
-                self._conn.mav.heartbeat_send(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        if not force and now - self._last_heartbeat_s < HEARTBEAT_PERIOD_S:
+            return False
+        self._last_heartbeat_s = now
+        with contextlib.suppress(OSError):
+            self._conn.mav.heartbeat_send(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        return True
 
     @_lost_is_no_vehicle
     def _wait_vehicle(self, timeout_s: float) -> tuple[int, int]:
         deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
-            self._heartbeat()  # a udpin vehicle learns our address from it
+            self.heartbeat()  # a udpin vehicle learns our address from it
             msg = self._conn.recv_match(type="HEARTBEAT", blocking=True,
                                         timeout=min(left, HEARTBEAT_PERIOD_S / 2))
             if (msg is not None and msg.type != MAV_TYPE_GCS
@@ -404,7 +407,7 @@ class PymavlinkLink:
         """The next message of ``types`` from the vehicle to us, or None at ``deadline``."""
         sysid, compid = self.vehicle
         while (left := deadline - time.monotonic()) > 0:
-            self._heartbeat()
+            self.heartbeat()
             msg = self._conn.recv_match(type=list(types), blocking=True,
                                         timeout=min(left, HEARTBEAT_PERIOD_S))
             if msg is None:
